@@ -1,0 +1,164 @@
+//! Command-line interface. Each subcommand's `--help` says what it does; those that later
+//! work fills in say so when run instead of pretending.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+/// mavloc: localise an area's 3D border and a vehicle's indoor x, y from a drone's camera,
+/// next to a PX4 autopilot over MAVLink.
+#[derive(Debug, Parser)]
+#[command(name = "mavloc", version, about, long_about = None, propagate_version = true)]
+pub struct Cli {
+    /// Configuration file (TOML). Default: /etc/mavloc/mavloc.toml if it exists, else the
+    /// built-in defaults.
+    #[arg(long, short = 'c', global = true, env = "MAVLOC_CONFIG", value_name = "FILE")]
+    pub config: Option<PathBuf>,
+
+    /// Override one configuration key, e.g. `--set area.l_max=300` (repeatable; wins over
+    /// the file and MAVLOC_* variables).
+    #[arg(long = "set", global = true, value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
+
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run the daemon: MAVLink link, camera and the live pipeline (what systemd starts).
+    Run(RunArgs),
+    /// Run the end-to-end demonstration on simulated data and print a report.
+    Demo(DemoArgs),
+    /// The simulated world: render datasets, run a simulated MAVLink vehicle.
+    Sim {
+        #[command(subcommand)]
+        command: SimCommand,
+    },
+    /// Area pipeline offline: localise the 3D border of an area from a dataset.
+    Area(AreaArgs),
+    /// Indoor texton pipeline offline: train a model, run it, evaluate a floor texture.
+    Indoor {
+        #[command(subcommand)]
+        command: IndoorCommand,
+    },
+    /// Evaluate results against a dataset's ground truth, as the seeds measure them.
+    Eval {
+        #[command(subcommand)]
+        command: EvalCommand,
+    },
+    /// Check a configuration file or show the configuration in force.
+    Config {
+        #[command(subcommand)]
+        command: ConfigCommand,
+    },
+}
+
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// MAVLink connection, overriding `mavlink.connection`: serial:DEV:BAUD,
+    /// udpin:HOST:PORT, udpout:HOST:PORT, tcpin:HOST:PORT or tcpout:HOST:PORT.
+    #[arg(long, value_name = "ADDRESS")]
+    pub mavlink: Option<String>,
+}
+
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Random seed of the simulated noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum SimCommand {
+    /// Render a synthetic dataset (frames, masks, telemetry, ground truth) from a scenario.
+    Render {
+        #[arg(long)]
+        scenario: String,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Run a simulated MAVLink vehicle that flies a scenario's mission.
+    Vehicle {
+        #[arg(long)]
+        scenario: String,
+        #[arg(long, default_value = "udpout:127.0.0.1:14540")]
+        mavlink: String,
+    },
+}
+
+#[derive(Debug, Args)]
+pub struct AreaArgs {
+    /// Dataset folder (the simulation-world format).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Output folder for landmarks, border and traces.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum IndoorCommand {
+    /// Train a texton model from a labelled dataset.
+    Train {
+        #[arg(long)]
+        dataset: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Run a trained model over a dataset's flight.
+    Run {
+        #[arg(long)]
+        dataset: PathBuf,
+        #[arg(long)]
+        model: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Evaluate how well a floor image suits texton localisation (global loss, heat map).
+    MapEval {
+        #[arg(long)]
+        map: PathBuf,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+pub enum EvalCommand {
+    /// Area results: distances of landmarks to the ground-truth border.
+    Area {
+        #[arg(long)]
+        dataset: PathBuf,
+        #[arg(long)]
+        result: PathBuf,
+    },
+    /// Indoor results: x, y error against ground truth.
+    Indoor {
+        #[arg(long)]
+        dataset: PathBuf,
+        #[arg(long)]
+        result: PathBuf,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+pub enum ConfigCommand {
+    /// Validate a configuration file (with the MAVLOC_* environment and --set applied);
+    /// exits non-zero and lists every problem if it is not valid.
+    Check {
+        /// The file to check.
+        file: PathBuf,
+    },
+    /// Print the configuration in force, each non-default value with where it came from.
+    Show,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn cli_definition_is_consistent() {
+        Cli::command().debug_assert();
+    }
+}

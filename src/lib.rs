@@ -1,0 +1,29 @@
+//! mavloc: a MAVLink companion-computer daemon that localises, from a drone's camera and
+//! telemetry, the 3D border of an area (lake, fire, flood) and the vehicle's own x, y over
+//! a known indoor floor.
+//!
+//! # Module map
+//!
+//! * [`geometry`] (crate `mavloc-geometry`, sources in `src/geometry/`): frames (WGS84,
+//!   local NED, body, gimbal, camera), gimbal kinematic chains, pinhole camera, pixel <->
+//!   bearing, the ground-plane projection (the area seed's previous method), geodesy.
+//!   It is its own crate so the simulator (`sim/`) shares it without a dependency cycle.
+//! * [`filter`]: a generic unscented Kalman filter (const-generic dimensions, models as
+//!   traits, numerically guarded) and the static-landmark bearing model.
+//! * [`settings`]: the layered, validated configuration (`config/mavloc.toml`).
+//! * [`link`]: the MAVLink side; so far connection addresses.
+//! * [`demo`]: the end-to-end demonstration `make demo` runs.
+//! * [`logging`]: tracing set-up (plain lines for journald, colour on a terminal).
+//! * [`cli`]: command-line definitions; `main.rs` only dispatches.
+//!
+//! Data flows one way: sources (link, camera) -> time alignment -> pipeline -> outputs.
+//! Pipelines are plain synchronous libraries with no tokio or MAVLink inside.
+
+pub use mavloc_geometry as geometry;
+
+pub mod cli;
+pub mod demo;
+pub mod filter;
+pub mod link;
+pub mod logging;
+pub mod settings;

@@ -1,0 +1,103 @@
+//! MAVLink connection addresses as mavlink-router and MAVSDK users write them:
+//! `serial:/dev/ttyAMA0:921600`, `udpin:0.0.0.0:14540`, `udpout:127.0.0.1:14550`,
+//! `tcpout:host:port`, `tcpin:host:port`.
+
+use std::fmt;
+
+/// A parsed connection address.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum LinkAddress {
+    /// Serial device and baud rate.
+    Serial { device: String, baud: u32 },
+    /// Listen for UDP datagrams; answers go to whoever spoke last.
+    UdpIn { host: String, port: u16 },
+    /// Send UDP datagrams to a fixed peer.
+    UdpOut { host: String, port: u16 },
+    /// Accept one TCP client.
+    TcpIn { host: String, port: u16 },
+    /// Connect to a TCP server.
+    TcpOut { host: String, port: u16 },
+}
+
+impl LinkAddress {
+    /// Parses an address; the error says what was expected.
+    pub fn parse(s: &str) -> Result<LinkAddress, String> {
+        let (scheme, rest) = s
+            .split_once(':')
+            .ok_or_else(|| format!("`{s}` has no scheme; expected serial:, udpin:, udpout:, tcpin: or tcpout:"))?;
+        // The port or baud rate is after the last colon, so IPv6-free hosts and device
+        // paths keep their own characters.
+        let (head, tail) = rest
+            .rsplit_once(':')
+            .ok_or_else(|| format!("`{s}` lacks a `:port` (or `:baud` for serial)"))?;
+        if head.is_empty() {
+            return Err(format!("`{s}` has an empty host or device"));
+        }
+        let port = || -> Result<u16, String> {
+            match tail.parse::<u16>() {
+                Ok(p) if p > 0 => Ok(p),
+                _ => Err(format!("`{s}`: port `{tail}` is not in 1..=65535")),
+            }
+        };
+        let host = head.to_string();
+        match scheme {
+            "serial" => match tail.parse::<u32>() {
+                Ok(baud) if baud > 0 => Ok(LinkAddress::Serial { device: host, baud }),
+                _ => Err(format!("`{s}`: baud rate `{tail}` is not a positive integer")),
+            },
+            "udpin" => Ok(LinkAddress::UdpIn { host, port: port()? }),
+            "udpout" => Ok(LinkAddress::UdpOut { host, port: port()? }),
+            "tcpin" => Ok(LinkAddress::TcpIn { host, port: port()? }),
+            "tcpout" => Ok(LinkAddress::TcpOut { host, port: port()? }),
+            other => Err(format!(
+                "`{s}`: unknown scheme `{other}`; expected serial, udpin, udpout, tcpin or tcpout"
+            )),
+        }
+    }
+}
+
+impl fmt::Display for LinkAddress {
+    /// The same syntax, which is also what the `mavlink` crate's `connect` accepts.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            LinkAddress::Serial { device, baud } => write!(f, "serial:{device}:{baud}"),
+            LinkAddress::UdpIn { host, port } => write!(f, "udpin:{host}:{port}"),
+            LinkAddress::UdpOut { host, port } => write!(f, "udpout:{host}:{port}"),
+            LinkAddress::TcpIn { host, port } => write!(f, "tcpin:{host}:{port}"),
+            LinkAddress::TcpOut { host, port } => write!(f, "tcpout:{host}:{port}"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_the_usual_forms_and_round_trips() {
+        for s in [
+            "serial:/dev/ttyAMA0:921600",
+            "udpin:0.0.0.0:14540",
+            "udpout:127.0.0.1:14550",
+            "tcpout:localhost:5760",
+            "tcpin:0.0.0.0:5760",
+        ] {
+            let a = LinkAddress::parse(s).unwrap();
+            assert_eq!(a.to_string(), s);
+        }
+        assert_eq!(
+            LinkAddress::parse("serial:/dev/ttyAMA0:921600").unwrap(),
+            LinkAddress::Serial { device: "/dev/ttyAMA0".into(), baud: 921600 }
+        );
+    }
+
+    #[test]
+    fn errors_say_what_is_wrong() {
+        assert!(LinkAddress::parse("udp:1.2.3.4:5").unwrap_err().contains("unknown scheme"));
+        assert!(LinkAddress::parse("udpin:0.0.0.0:70000").unwrap_err().contains("port"));
+        assert!(LinkAddress::parse("udpin:0.0.0.0").unwrap_err().contains("port"));
+        assert!(LinkAddress::parse("serial:/dev/ttyS0:fast").unwrap_err().contains("baud"));
+        assert!(LinkAddress::parse("14540").unwrap_err().contains("scheme"));
+        assert!(LinkAddress::parse("tcpout::5760").unwrap_err().contains("empty"));
+    }
+}

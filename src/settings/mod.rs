@@ -1,0 +1,539 @@
+//! Configuration loading and validation.
+//!
+//! Layers, later wins: built-in defaults ([`Settings::default`]) < the TOML file <
+//! `MAVLOC_SECTION__KEY` environment variables < `--set section.key=value` on the command
+//! line. The `config` crate merges the layers; before it does, every layer is checked
+//! against the schema (the defaults' own key tree), so an unknown key or a value of the
+//! wrong type is reported with where it came from instead of surfacing as a generic
+//! deserialisation error. After merging, every value is range-checked. All problems are
+//! reported together and nothing starts half-configured.
+//!
+//! (The module is called `settings` so that it does not shadow the `config` crate.)
+
+mod schema;
+
+pub use schema::*;
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use ::config::{Config, Environment, File, FileFormat};
+
+use crate::link::LinkAddress;
+
+/// Environment variables with this prefix configure mavloc.
+pub const ENV_PREFIX: &str = "MAVLOC_";
+/// `MAVLOC_CONFIG` names the configuration file; it is not a configuration key.
+pub const ENV_CONFIG_FILE: &str = "MAVLOC_CONFIG";
+/// Where the systemd unit and the packaged install put the configuration.
+pub const SYSTEM_CONFIG: &str = "/etc/mavloc/mavloc.toml";
+
+/// One thing wrong with the configuration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Problem {
+    /// Dotted key, e.g. `area.ukf_alpha`.
+    pub key: String,
+    /// The offending value as written, if there is one.
+    pub value: Option<String>,
+    /// What would have been accepted.
+    pub expected: String,
+    /// Where the value came from: a file path, an environment variable, the command line.
+    pub origin: String,
+}
+
+impl fmt::Display for Problem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match &self.value {
+            Some(v) => write!(f, "{} = {} in {}: {}", self.key, v, self.origin, self.expected),
+            None => write!(f, "{} in {}: {}", self.key, self.origin, self.expected),
+        }
+    }
+}
+
+/// Why the configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum SettingsError {
+    #[error("cannot read configuration file {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("configuration file {path} is not valid TOML: {message}")]
+    Syntax { path: PathBuf, message: String },
+    #[error("invalid configuration ({} problem{}):\n{}", .0.len(), if .0.len() == 1 { "" } else { "s" },
+        .0.iter().map(|p| format!("  - {p}")).collect::<Vec<_>>().join("\n"))]
+    Invalid(Vec<Problem>),
+    #[error("configuration: {0}")]
+    Merge(String),
+}
+
+/// What to load: a file, environment variables and command-line overrides.
+#[derive(Clone, Debug, Default)]
+pub struct Layers {
+    pub file: Option<PathBuf>,
+    /// Environment variables (all of them; those without the prefix are ignored).
+    pub env: BTreeMap<String, String>,
+    /// `key=value` overrides from the command line, in order.
+    pub overrides: Vec<String>,
+}
+
+impl Layers {
+    /// The process environment and the given file and overrides.
+    pub fn from_process(file: Option<PathBuf>, overrides: Vec<String>) -> Layers {
+        Layers { file, env: std::env::vars().collect(), overrides }
+    }
+}
+
+/// Loaded settings with a record of where each non-default value came from.
+#[derive(Clone, Debug)]
+pub struct Loaded {
+    pub settings: Settings,
+    /// Dotted key -> origin, for keys not left at their default.
+    pub origins: BTreeMap<String, String>,
+    pub file: Option<PathBuf>,
+}
+
+/// The kind of a leaf in the schema tree.
+fn kind_name(v: &toml::Value) -> &'static str {
+    match v {
+        toml::Value::String(_) => "a string",
+        toml::Value::Integer(_) => "an integer",
+        toml::Value::Float(_) => "a number",
+        toml::Value::Boolean(_) => "true or false",
+        toml::Value::Array(_) => "a list of numbers",
+        toml::Value::Table(_) => "a section",
+        toml::Value::Datetime(_) => "a date",
+    }
+}
+
+/// Whether `given` fits where the schema has `schema`.
+fn type_fits(schema: &toml::Value, given: &toml::Value) -> bool {
+    use toml::Value as V;
+    match (schema, given) {
+        (V::Float(_), V::Float(_) | V::Integer(_)) => true,
+        (V::Integer(_), V::Integer(_)) => true,
+        (V::String(_), V::String(_)) => true,
+        (V::Boolean(_), V::Boolean(_)) => true,
+        (V::Array(_), V::Array(items)) => items.iter().all(|i| matches!(i, V::Float(_) | V::Integer(_))),
+        _ => false,
+    }
+}
+
+fn schema() -> toml::Table {
+    toml::Table::try_from(Settings::default()).expect("the defaults serialise to TOML")
+}
+
+/// Every dotted key of the schema.
+pub fn all_keys() -> Vec<String> {
+    let mut keys = Vec::new();
+    for (section, table) in schema() {
+        if let toml::Value::Table(t) = table {
+            keys.extend(t.keys().map(|k| format!("{section}.{k}")));
+        }
+    }
+    keys
+}
+
+fn lookup<'a>(schema: &'a toml::Table, key: &str) -> Option<&'a toml::Value> {
+    let (section, name) = key.split_once('.')?;
+    schema.get(section)?.as_table()?.get(name)
+}
+
+/// The closest known key, for "did you mean" hints.
+fn suggest(key: &str) -> Option<String> {
+    all_keys()
+        .into_iter()
+        .map(|k| (strsim::damerau_levenshtein(key, &k), k))
+        .filter(|(d, k)| *d <= 3.max(k.len() / 4))
+        .min()
+        .map(|(_, k)| k)
+}
+
+fn unknown_key(key: &str, value: Option<String>, origin: &str) -> Problem {
+    let expected = match suggest(key) {
+        Some(s) => format!("unknown key; did you mean `{s}`?"),
+        None => "unknown key; `mavloc config show` lists every key".to_string(),
+    };
+    Problem { key: key.to_string(), value, expected, origin: origin.to_string() }
+}
+
+/// Reads a value written on the command line or in the environment: TOML syntax if it
+/// parses (`3`, `0.5`, `true`, `[0.1, 0]`), otherwise a bare string.
+fn parse_loose(raw: &str) -> toml::Value {
+    let doc = format!("v = {raw}");
+    match doc.parse::<toml::Table>() {
+        Ok(mut t) => t.remove("v").unwrap_or_else(|| toml::Value::String(raw.to_string())),
+        Err(_) => {
+            // Environment lists may be written without brackets: `0.1,0,0,0,0`.
+            let items: Option<Vec<toml::Value>> = raw
+                .split(',')
+                .map(|s| s.trim().parse::<f64>().ok().map(toml::Value::Float))
+                .collect();
+            match items {
+                Some(v) if raw.contains(',') => toml::Value::Array(v),
+                _ => toml::Value::String(raw.to_string()),
+            }
+        }
+    }
+}
+
+/// Keys whose values are names from a fixed set, with the names accepted. A test checks
+/// each name deserialises, so this list cannot drift from the schema's enums.
+pub const ENUM_KEYS: &[(&str, &[&str])] = &[
+    ("daemon.pipeline", &["area", "indoor", "none"]),
+    ("camera.source", &["v4l2", "file", "dataset", "sim", "none"]),
+    ("gimbal.chain", &["yaw-pitch-roll", "yaw-roll-pitch"]),
+    ("area.method", &["ukf", "ground-plane"]),
+    ("indoor.dictionary", &["competitive", "k-means"]),
+    ("indoor.motion_model", &["velocity", "noise"]),
+];
+
+/// Checks one layer's key/value pairs against the schema.
+fn check_layer(schema: &toml::Table, pairs: &[(String, toml::Value, String)], problems: &mut Vec<Problem>) {
+    for (key, value, origin) in pairs {
+        match lookup(schema, key) {
+            None => problems.push(unknown_key(key, Some(render(value)), origin)),
+            Some(s) if !type_fits(s, value) => problems.push(Problem {
+                key: key.clone(),
+                value: Some(render(value)),
+                expected: format!("expected {}", kind_name(s)),
+                origin: origin.clone(),
+            }),
+            Some(_) => {
+                if let (Some((_, names)), toml::Value::String(given)) =
+                    (ENUM_KEYS.iter().find(|(k, _)| k == key), value)
+                {
+                    if !names.contains(&given.as_str()) {
+                        problems.push(Problem {
+                            key: key.clone(),
+                            value: Some(render(value)),
+                            expected: format!("expected one of {}", names.join(", ")),
+                            origin: origin.clone(),
+                        });
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn render(v: &toml::Value) -> String {
+    v.to_string()
+}
+
+/// Flattens a parsed file into (key, value, origin) triples; sections that are not
+/// tables and unknown sections are problems of their own.
+fn flatten_file(
+    schema: &toml::Table,
+    path: &Path,
+    doc: &toml::Table,
+    problems: &mut Vec<Problem>,
+) -> Vec<(String, toml::Value, String)> {
+    let origin = path.display().to_string();
+    let mut pairs = Vec::new();
+    for (section, value) in doc {
+        match (schema.get(section), value) {
+            (Some(_), toml::Value::Table(t)) => {
+                for (k, v) in t {
+                    pairs.push((format!("{section}.{k}"), v.clone(), origin.clone()));
+                }
+            }
+            (Some(_), other) => problems.push(Problem {
+                key: section.clone(),
+                value: Some(render(other)),
+                expected: format!("`{section}` is a section: write `[{section}]` and its keys below it"),
+                origin: origin.clone(),
+            }),
+            (None, _) => {
+                let sections: Vec<_> = schema.keys().map(String::as_str).collect();
+                problems.push(Problem {
+                    key: section.clone(),
+                    value: None,
+                    expected: format!("unknown section; sections are {}", sections.join(", ")),
+                    origin: origin.clone(),
+                })
+            }
+        }
+    }
+    pairs
+}
+
+/// Loads and validates the configuration from all layers.
+pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
+    let schema = schema();
+    let mut problems = Vec::new();
+    let mut origins = BTreeMap::new();
+
+    // Layer 1: the file.
+    let mut file_text = None;
+    if let Some(path) = &layers.file {
+        let text = std::fs::read_to_string(path).map_err(|source| SettingsError::Read { path: path.clone(), source })?;
+        let doc: toml::Table = text
+            .parse()
+            .map_err(|e: toml::de::Error| SettingsError::Syntax { path: path.clone(), message: e.to_string() })?;
+        let pairs = flatten_file(&schema, path, &doc, &mut problems);
+        check_layer(&schema, &pairs, &mut problems);
+        for (k, _, o) in &pairs {
+            origins.insert(k.clone(), o.clone());
+        }
+        file_text = Some(text);
+    }
+
+    // Layer 2: the environment.
+    let mut env_pairs = Vec::new();
+    let mut env_map = ::config::Map::new();
+    for (var, raw) in &layers.env {
+        let Some(rest) = var.strip_prefix(ENV_PREFIX) else { continue };
+        if var == ENV_CONFIG_FILE {
+            continue;
+        }
+        let key = rest.to_lowercase().replacen("__", ".", 1);
+        let origin = format!("environment variable {var}");
+        env_pairs.push((key.clone(), parse_loose(raw), origin.clone()));
+        origins.insert(key, origin);
+        env_map.insert(var.clone(), raw.clone());
+    }
+    check_layer(&schema, &env_pairs, &mut problems);
+
+    // Layer 3: the command line.
+    let mut cli_pairs = Vec::new();
+    for item in &layers.overrides {
+        let origin = format!("command line (--set {item})");
+        match item.split_once('=') {
+            Some((k, v)) if !k.trim().is_empty() => {
+                let key = k.trim().to_string();
+                cli_pairs.push((key.clone(), parse_loose(v.trim()), origin.clone()));
+                origins.insert(key, origin);
+            }
+            _ => problems.push(Problem {
+                key: item.clone(),
+                value: None,
+                expected: "expected `section.key=value`".into(),
+                origin,
+            }),
+        }
+    }
+    check_layer(&schema, &cli_pairs, &mut problems);
+
+    if !problems.is_empty() {
+        return Err(SettingsError::Invalid(problems));
+    }
+
+    // Merge with the `config` crate.
+    let defaults = Config::try_from(&Settings::default()).map_err(|e| SettingsError::Merge(e.to_string()))?;
+    let mut builder = Config::builder().add_source(defaults);
+    if let Some(text) = &file_text {
+        builder = builder.add_source(File::from_str(text, FileFormat::Toml));
+    }
+    builder = builder.add_source(
+        Environment::with_prefix("MAVLOC")
+            .prefix_separator("_")
+            .separator("__")
+            .try_parsing(true)
+            .list_separator(",")
+            .with_list_parse_key("camera.distortion")
+            .source(Some(env_map)),
+    );
+    if !cli_pairs.is_empty() {
+        let mut doc = toml::Table::new();
+        for (key, value, _) in &cli_pairs {
+            let (section, name) = key.split_once('.').expect("checked against the schema");
+            doc.entry(section.to_string())
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                .as_table_mut()
+                .expect("sections are tables")
+                .insert(name.to_string(), value.clone());
+        }
+        builder = builder.add_source(File::from_str(&doc.to_string(), FileFormat::Toml));
+    }
+    let merged = builder.build().map_err(|e| SettingsError::Merge(e.to_string()))?;
+    let settings: Settings = merged.try_deserialize().map_err(|e| merge_error(e, &origins))?;
+
+    let problems = validate(&settings, &origins);
+    if !problems.is_empty() {
+        return Err(SettingsError::Invalid(problems));
+    }
+    Ok(Loaded { settings, origins, file: layers.file.clone() })
+}
+
+/// Turns a deserialisation error (an enum value that is not one of the variants, an
+/// integer out of its type's range) into a problem naming the key and its origin.
+fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> SettingsError {
+    let msg = e.to_string();
+    // The config crate phrases these as "... for key `section.key` ...".
+    let key = msg
+        .split('`')
+        .nth(1)
+        .filter(|k| k.contains('.'))
+        .map(str::to_string);
+    match key {
+        Some(key) => {
+            let origin = origins.get(&key).cloned().unwrap_or_else(|| "the merged configuration".into());
+            SettingsError::Invalid(vec![Problem { key, value: None, expected: msg, origin }])
+        }
+        None => SettingsError::Merge(msg),
+    }
+}
+
+/// Range and consistency checks on merged settings.
+pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem> {
+    let mut v = Validator { origins, problems: Vec::new() };
+
+    // [daemon]
+    v.range("daemon.max_frame_age_s", s.daemon.max_frame_age_s, 0.01, 60.0);
+    v.nonempty("daemon.state_dir", &s.daemon.state_dir);
+    if let Err(e) = tracing_subscriber::EnvFilter::try_new(&s.daemon.log) {
+        v.problem("daemon.log", quote(&s.daemon.log), format!("not a tracing filter ({e}); e.g. \"info\" or \"mavloc=debug\""));
+    }
+
+    // [mavlink]
+    if let Err(e) = LinkAddress::parse(&s.mavlink.connection) {
+        v.problem("mavlink.connection", quote(&s.mavlink.connection), e);
+    }
+    v.range_int("mavlink.component_id", s.mavlink.component_id.into(), 1, 255);
+    v.range_int("mavlink.autopilot_system_id", s.mavlink.autopilot_system_id.into(), 1, 255);
+    v.range_int("mavlink.gcs_system_id", s.mavlink.gcs_system_id.into(), 1, 255);
+    v.range("mavlink.heartbeat_hz", s.mavlink.heartbeat_hz, 0.2, 10.0);
+    v.range("mavlink.autopilot_timeout_s", s.mavlink.autopilot_timeout_s, 0.5, 60.0);
+
+    // [camera]
+    v.range_int("camera.width", s.camera.width.into(), 16, 8192);
+    v.range_int("camera.height", s.camera.height.into(), 16, 8192);
+    v.range("camera.fps", s.camera.fps, 0.1, 240.0);
+    v.range("camera.hfov_deg", s.camera.hfov_deg, 1.0, 179.0);
+    if s.camera.pixel_format.len() != 4 || !s.camera.pixel_format.is_ascii() {
+        v.problem("camera.pixel_format", quote(&s.camera.pixel_format), "a four-character V4L2 code such as \"MJPG\" or \"YUYV\"");
+    }
+    for (key, val) in [("camera.fx", s.camera.fx), ("camera.fy", s.camera.fy)] {
+        if val != 0.0 {
+            v.range(key, val, 1.0, 100_000.0);
+        }
+    }
+    for (key, val, size) in [("camera.cx", s.camera.cx, s.camera.width), ("camera.cy", s.camera.cy, s.camera.height)] {
+        if val != -1.0 {
+            v.range(key, val, 0.0, size as f64);
+        }
+    }
+    if ![0, 4, 5, 8].contains(&s.camera.distortion.len()) {
+        v.problem(
+            "camera.distortion",
+            format!("{:?}", s.camera.distortion),
+            "0, 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]])",
+        );
+    }
+    for c in &s.camera.distortion {
+        if !c.is_finite() || c.abs() > 100.0 {
+            v.problem("camera.distortion", format!("{:?}", s.camera.distortion), "coefficients within -100 ..= 100");
+            break;
+        }
+    }
+
+    // [gimbal]
+    v.range("gimbal.mount_yaw_deg", s.gimbal.mount_yaw_deg, -180.0, 180.0);
+    v.range("gimbal.mount_pitch_deg", s.gimbal.mount_pitch_deg, -90.0, 90.0);
+    v.range("gimbal.mount_roll_deg", s.gimbal.mount_roll_deg, -180.0, 180.0);
+    v.range("gimbal.yaw_offset_deg", s.gimbal.yaw_offset_deg, -20.0, 20.0);
+    v.range("gimbal.pitch_offset_deg", s.gimbal.pitch_offset_deg, -20.0, 20.0);
+    v.range("gimbal.roll_offset_deg", s.gimbal.roll_offset_deg, -20.0, 20.0);
+
+    // [area]
+    let a = &s.area;
+    v.range_int("area.downscale", a.downscale.into(), 1, 8);
+    v.range_int("area.band_px", a.band_px.into(), 1, 2000);
+    v.range_int("area.l_max", a.l_max.into(), 1, 20_000);
+    v.range_int("area.turnover", a.turnover.into(), 0, a.l_max.saturating_sub(1).into());
+    v.range_int("area.feature_factor", a.feature_factor.into(), 1, 100);
+    v.range("area.ratio_test", a.ratio_test, 0.05, 1.0);
+    v.range("area.mahalanobis_max", a.mahalanobis_max, 0.5, 1e6);
+    v.range("area.convergence_m", a.convergence_m, 0.01, 100.0);
+    v.range_int("area.min_observations", a.min_observations.into(), 1, 10_000);
+    v.range("area.bearing_noise_deg", a.bearing_noise_deg, 0.001, 20.0);
+    v.range("area.ukf_alpha", a.ukf_alpha, 0.001, 1.0);
+    v.range("area.ukf_beta", a.ukf_beta, 0.0, 10.0);
+    v.range("area.ukf_kappa", a.ukf_kappa, -2.9, 10.0); // n + kappa > 0 for n = 3
+    v.range("area.init_sigma_m", a.init_sigma_m, 0.1, 1000.0);
+    v.range("area.ground_down_m", a.ground_down_m, -10_000.0, 10_000.0);
+    v.range_int("area.max_descriptors", a.max_descriptors.into(), 1, 1000);
+
+    // [indoor]
+    let i = &s.indoor;
+    v.range_int("indoor.textons", i.textons.into(), 2, 256);
+    v.range_int("indoor.patch_w", i.patch_w.into(), 1, 64);
+    v.range_int("indoor.patch_h", i.patch_h.into(), 1, 64);
+    v.range("indoor.learning_rate", i.learning_rate, 1e-5, 1.0);
+    v.range_int("indoor.samples", i.samples.into(), 1, 1_000_000);
+    v.range_int("indoor.k", i.k.into(), 1, 100);
+    v.range_int("indoor.particles", i.particles.into(), 1, 100_000);
+    v.range("indoor.process_sigma_m", i.process_sigma_m, 0.0, 10.0);
+    v.range("indoor.landing_x_m", i.landing_x_m, -1000.0, 1000.0);
+    v.range("indoor.landing_y_m", i.landing_y_m, -1000.0, 1000.0);
+    v.range("indoor.landing_radius_m", i.landing_radius_m, 0.05, 100.0);
+    v.range("indoor.landing_sigma_gate_m", i.landing_sigma_gate_m, 0.01, 100.0);
+    // At least two frames: the trigger never fires on a single frame.
+    v.range_int("indoor.landing_frames", i.landing_frames.into(), 2, 1000);
+
+    v.problems
+}
+
+fn quote(s: &str) -> String {
+    format!("{s:?}")
+}
+
+struct Validator<'a> {
+    origins: &'a BTreeMap<String, String>,
+    problems: Vec<Problem>,
+}
+
+impl Validator<'_> {
+    fn origin(&self, key: &str) -> String {
+        self.origins.get(key).cloned().unwrap_or_else(|| "the built-in defaults".into())
+    }
+
+    fn problem(&mut self, key: &str, value: String, expected: impl Into<String>) {
+        let origin = self.origin(key);
+        self.problems.push(Problem { key: key.into(), value: Some(value), expected: expected.into(), origin });
+    }
+
+    fn range(&mut self, key: &str, value: f64, min: f64, max: f64) {
+        if !(value.is_finite() && value >= min && value <= max) {
+            self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
+        }
+    }
+
+    fn range_int(&mut self, key: &str, value: i64, min: i64, max: i64) {
+        if value < min || value > max {
+            self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
+        }
+    }
+
+    fn nonempty(&mut self, key: &str, value: &str) {
+        if value.trim().is_empty() {
+            self.problem(key, quote(value), "must not be empty");
+        }
+    }
+}
+
+/// The effective configuration as TOML, each non-default value annotated with its origin.
+pub fn render_effective(loaded: &Loaded) -> String {
+    let table = toml::Table::try_from(&loaded.settings).expect("settings serialise to TOML");
+    let mut out = String::new();
+    out.push_str("# Effective mavloc configuration: built-in defaults");
+    if let Some(f) = &loaded.file {
+        out.push_str(&format!(" < {}", f.display()));
+    }
+    out.push_str(" < MAVLOC_* environment < --set\n");
+    for (section, value) in &table {
+        out.push_str(&format!("\n[{section}]\n"));
+        if let toml::Value::Table(t) = value {
+            for (k, v) in t {
+                let key = format!("{section}.{k}");
+                match loaded.origins.get(&key) {
+                    Some(o) => out.push_str(&format!("{k} = {v}  # from {o}\n")),
+                    None => out.push_str(&format!("{k} = {v}\n")),
+                }
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests;

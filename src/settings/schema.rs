@@ -1,0 +1,310 @@
+//! The typed configuration: every parameter of the daemon and both pipelines, with its
+//! default. `config/mavloc.toml` documents the same keys one per line with units; a test
+//! keeps the two in step.
+//!
+//! Defaults are the seeds' best values: area seed table 6.4 (convergence 0.5 m, band
+//! 50 px, Mahalanobis 3.75, downscale 2), table 6.2 and eq. 5.6 (bearing noise 0.5 deg),
+//! eq. 5.7 (UKF alpha 0.7, beta 2, kappa 0), sec. 5.4.1 (ratio test 0.5), sec. 5.2
+//! (`10 L_max` features after the first frame); indoor seed sec. 3.3.1-3.3.4 and 4.7-4.8
+//! (20 textons of 6x6 px, learning rate 0.02, 400 samples, 100 particles, landing radius
+//! and spread gate 0.6 m). Where a seed leaves a value open (`L_max`, `T`, `k`) the
+//! default is ours and says so in `config/mavloc.toml`.
+
+use mavloc_geometry::GimbalChain;
+use serde::{Deserialize, Serialize};
+
+/// Everything mavloc can be configured with.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct Settings {
+    pub daemon: Daemon,
+    pub mavlink: Mavlink,
+    pub camera: Camera,
+    pub gimbal: Gimbal,
+    pub area: Area,
+    pub indoor: Indoor,
+}
+
+/// Which pipeline the daemon runs live.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PipelineKind {
+    Area,
+    Indoor,
+    None,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Daemon {
+    pub pipeline: PipelineKind,
+    pub state_dir: String,
+    pub log: String,
+    pub max_frame_age_s: f64,
+}
+
+impl Default for Daemon {
+    fn default() -> Self {
+        Daemon {
+            pipeline: PipelineKind::Area,
+            state_dir: "/var/lib/mavloc".into(),
+            log: "info".into(),
+            max_frame_age_s: 0.5,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Mavlink {
+    pub connection: String,
+    pub system_id: u8,
+    pub component_id: u8,
+    pub autopilot_system_id: u8,
+    pub gcs_system_id: u8,
+    pub heartbeat_hz: f64,
+    pub autopilot_timeout_s: f64,
+    pub signing_key: String,
+    pub accept_unsigned_telemetry: bool,
+}
+
+impl Default for Mavlink {
+    fn default() -> Self {
+        Mavlink {
+            connection: "udpin:0.0.0.0:14540".into(),
+            system_id: 0,
+            component_id: 191,
+            autopilot_system_id: 1,
+            gcs_system_id: 255,
+            heartbeat_hz: 1.0,
+            autopilot_timeout_s: 3.0,
+            signing_key: String::new(),
+            accept_unsigned_telemetry: true,
+        }
+    }
+}
+
+/// Where frames come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CameraSource {
+    V4l2,
+    File,
+    Dataset,
+    Sim,
+    None,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Camera {
+    pub source: CameraSource,
+    pub device: String,
+    pub path: String,
+    pub scenario: String,
+    pub width: u32,
+    pub height: u32,
+    pub fps: f64,
+    pub pixel_format: String,
+    pub hfov_deg: f64,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub distortion: Vec<f64>,
+}
+
+impl Default for Camera {
+    fn default() -> Self {
+        Camera {
+            source: CameraSource::Sim,
+            device: "/dev/video0".into(),
+            path: String::new(),
+            scenario: "coastline".into(),
+            width: 1920,
+            height: 1080,
+            fps: 6.0,
+            pixel_format: "MJPG".into(),
+            hfov_deg: 90.0,
+            fx: 0.0,
+            fy: 0.0,
+            cx: -1.0,
+            cy: -1.0,
+            distortion: vec![0.0; 5],
+        }
+    }
+}
+
+impl Camera {
+    /// Intrinsics from the explicit values, or from the field of view where they are
+    /// left at their "derive" defaults (fx/fy 0, cx/cy -1).
+    pub fn intrinsics(&self) -> mavloc_geometry::Intrinsics {
+        let mut k = mavloc_geometry::Intrinsics::from_hfov(self.width, self.height, self.hfov_deg.to_radians());
+        if self.fx > 0.0 {
+            k.fx = self.fx;
+        }
+        if self.fy > 0.0 {
+            k.fy = self.fy;
+        } else if self.fx > 0.0 {
+            k.fy = self.fx;
+        }
+        if self.cx >= 0.0 {
+            k.cx = self.cx;
+        }
+        if self.cy >= 0.0 {
+            k.cy = self.cy;
+        }
+        k
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Gimbal {
+    pub chain: GimbalChain,
+    pub use_telemetry: bool,
+    pub mount_yaw_deg: f64,
+    pub mount_pitch_deg: f64,
+    pub mount_roll_deg: f64,
+    pub yaw_offset_deg: f64,
+    pub pitch_offset_deg: f64,
+    pub roll_offset_deg: f64,
+}
+
+impl Default for Gimbal {
+    fn default() -> Self {
+        Gimbal {
+            chain: GimbalChain::YawPitchRoll,
+            use_telemetry: true,
+            mount_yaw_deg: 0.0,
+            mount_pitch_deg: -90.0,
+            mount_roll_deg: 0.0,
+            yaw_offset_deg: 0.0,
+            pitch_offset_deg: 0.0,
+            roll_offset_deg: 0.0,
+        }
+    }
+}
+
+/// Area localisation method.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AreaMethod {
+    /// The seed's method: SIFT landmarks, one UKF each.
+    Ukf,
+    /// The seed's previous method (sec. 2.1): border pixels onto a ground plane.
+    GroundPlane,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Area {
+    pub method: AreaMethod,
+    pub downscale: u32,
+    pub band_px: u32,
+    pub l_max: u32,
+    pub turnover: u32,
+    pub feature_factor: u32,
+    pub ratio_test: f64,
+    pub mahalanobis_max: f64,
+    pub convergence_m: f64,
+    pub min_observations: u32,
+    pub bearing_noise_deg: f64,
+    pub ukf_alpha: f64,
+    pub ukf_beta: f64,
+    pub ukf_kappa: f64,
+    pub init_sigma_m: f64,
+    pub ground_down_m: f64,
+    pub max_descriptors: u32,
+}
+
+impl Default for Area {
+    fn default() -> Self {
+        Area {
+            method: AreaMethod::Ukf,
+            downscale: 2,
+            band_px: 50,
+            l_max: 200,
+            turnover: 20,
+            feature_factor: 10,
+            ratio_test: 0.5,
+            mahalanobis_max: 3.75,
+            convergence_m: 0.5,
+            min_observations: 3,
+            bearing_noise_deg: 0.5,
+            ukf_alpha: 0.7,
+            ukf_beta: 2.0,
+            ukf_kappa: 0.0,
+            init_sigma_m: 20.0,
+            ground_down_m: 0.0,
+            max_descriptors: 32,
+        }
+    }
+}
+
+/// How the texton dictionary is learned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DictionaryMethod {
+    /// The seed's winner-take-all competitive learning (sec. 3.3.1).
+    Competitive,
+    KMeans,
+}
+
+/// Particle-filter motion model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MotionModel {
+    /// The seed's: Gaussian process noise only.
+    Noise,
+    /// Displacement from velocity (telemetry, else recent estimates) plus noise.
+    Velocity,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Indoor {
+    pub model: String,
+    pub textons: u32,
+    pub patch_w: u32,
+    pub patch_h: u32,
+    pub dictionary: DictionaryMethod,
+    pub learning_rate: f64,
+    pub samples: u32,
+    pub k: u32,
+    pub particles: u32,
+    pub motion_model: MotionModel,
+    pub process_sigma_m: f64,
+    pub derotate: bool,
+    pub landing_enabled: bool,
+    pub landing_x_m: f64,
+    pub landing_y_m: f64,
+    pub landing_radius_m: f64,
+    pub landing_sigma_gate_m: f64,
+    pub landing_frames: u32,
+}
+
+impl Default for Indoor {
+    fn default() -> Self {
+        Indoor {
+            model: String::new(),
+            textons: 20,
+            patch_w: 6,
+            patch_h: 6,
+            dictionary: DictionaryMethod::Competitive,
+            learning_rate: 0.02,
+            samples: 400,
+            k: 5,
+            particles: 100,
+            motion_model: MotionModel::Velocity,
+            process_sigma_m: 0.0,
+            derotate: true,
+            landing_enabled: false,
+            landing_x_m: 0.0,
+            landing_y_m: 0.0,
+            landing_radius_m: 0.6,
+            landing_sigma_gate_m: 0.6,
+            landing_frames: 5,
+        }
+    }
+}

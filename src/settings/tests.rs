@@ -1,0 +1,209 @@
+use super::*;
+use std::io::Write;
+
+fn documented_file() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("config/mavloc.toml")
+}
+
+fn write_temp(text: &str) -> tempfile::NamedTempFile {
+    let mut f = tempfile::Builder::new().suffix(".toml").tempfile().unwrap();
+    f.write_all(text.as_bytes()).unwrap();
+    f
+}
+
+fn load_file(path: &Path) -> Result<Loaded, SettingsError> {
+    load(&Layers { file: Some(path.to_path_buf()), ..Layers::default() })
+}
+
+fn problems(r: Result<Loaded, SettingsError>) -> Vec<Problem> {
+    match r {
+        Err(SettingsError::Invalid(p)) => p,
+        Err(other) => panic!("expected validation problems, got {other}"),
+        Ok(_) => panic!("expected validation problems, got a configuration"),
+    }
+}
+
+#[test]
+fn documented_file_is_exactly_the_defaults() {
+    let loaded = load_file(&documented_file()).unwrap();
+    assert_eq!(loaded.settings, Settings::default());
+}
+
+#[test]
+fn every_key_is_documented_with_a_unit() {
+    let text = std::fs::read_to_string(documented_file()).unwrap();
+    let mut section = String::new();
+    let mut documented = Vec::new();
+    for line in text.lines() {
+        let line = line.trim();
+        if let Some(s) = line.strip_prefix('[').and_then(|l| l.strip_suffix(']')) {
+            section = s.to_string();
+        } else if !line.starts_with('#') && line.contains('=') {
+            let key = line.split('=').next().unwrap().trim();
+            let comment = line.split_once('#').map(|(_, c)| c.trim()).unwrap_or("");
+            assert!(comment.len() > 10, "{section}.{key} has no comment");
+            assert!(
+                comment.ends_with(']') && comment.contains('['),
+                "{section}.{key}: comment must end with its unit in brackets: {comment}"
+            );
+            documented.push(format!("{section}.{key}"));
+        }
+    }
+    let mut keys = all_keys();
+    keys.sort();
+    documented.sort();
+    assert_eq!(documented, keys);
+}
+
+#[test]
+fn misspelt_key_is_refused_with_suggestion_and_file() {
+    let f = write_temp("[area]\nukf_alfa = 0.7\n");
+    let p = problems(load_file(f.path()));
+    assert_eq!(p.len(), 1);
+    let msg = p[0].to_string();
+    assert!(msg.contains("area.ukf_alfa"), "{msg}");
+    assert!(msg.contains("area.ukf_alpha"), "{msg}");
+    assert!(msg.contains(&f.path().display().to_string()), "{msg}");
+    assert!(msg.contains("0.7"), "{msg}");
+}
+
+#[test]
+fn out_of_range_value_names_key_value_range_and_file() {
+    let f = write_temp("[area]\nukf_alpha = 1.5\n");
+    let p = problems(load_file(f.path()));
+    assert_eq!(p.len(), 1);
+    let msg = p[0].to_string();
+    for needle in ["area.ukf_alpha", "1.5", "0.001 ..= 1", &f.path().display().to_string()] {
+        assert!(msg.contains(needle), "`{needle}` missing from: {msg}");
+    }
+}
+
+#[test]
+fn wrong_type_and_unknown_section_are_refused() {
+    let f = write_temp("[area]\nl_max = \"lots\"\n[aera]\nx = 1\n");
+    let p = problems(load_file(f.path()));
+    let text: Vec<String> = p.iter().map(|p| p.to_string()).collect();
+    assert!(text.iter().any(|m| m.contains("area.l_max") && m.contains("expected an integer")), "{text:?}");
+    assert!(text.iter().any(|m| m.contains("aera") && m.contains("unknown section")), "{text:?}");
+}
+
+#[test]
+fn bad_enum_value_names_the_key() {
+    let f = write_temp("[gimbal]\nchain = \"pitch-yaw-roll\"\n");
+    let err = load_file(f.path()).unwrap_err().to_string();
+    assert!(err.contains("gimbal.chain"), "{err}");
+    assert!(err.contains("expected one of yaw-pitch-roll, yaw-roll-pitch"), "{err}");
+    assert!(err.contains("\"pitch-yaw-roll\""), "{err}");
+}
+
+#[test]
+fn all_problems_are_reported_together() {
+    let f = write_temp("[area]\nukf_alpha = 2.0\nratio_test = 0.0\n[indoor]\nlanding_frames = 1\n");
+    let p = problems(load_file(f.path()));
+    let keys: Vec<&str> = p.iter().map(|p| p.key.as_str()).collect();
+    assert_eq!(keys, ["area.ratio_test", "area.ukf_alpha", "indoor.landing_frames"]);
+}
+
+#[test]
+fn cross_field_turnover_below_l_max() {
+    let f = write_temp("[area]\nl_max = 10\nturnover = 10\n");
+    let p = problems(load_file(f.path()));
+    assert_eq!(p[0].key, "area.turnover");
+    assert!(p[0].expected.contains("0 ..= 9"), "{}", p[0]);
+}
+
+#[test]
+fn layers_env_over_file_and_cli_over_env() {
+    let f = write_temp("[area]\nl_max = 300\nturnover = 30\n[camera]\nsource = \"v4l2\"\n");
+    let mut env = BTreeMap::new();
+    env.insert("MAVLOC_AREA__L_MAX".to_string(), "400".to_string());
+    env.insert("MAVLOC_CAMERA__DISTORTION".to_string(), "0.1,0,0,0,0".to_string());
+    env.insert("MAVLOC_CONFIG".to_string(), "/ignored.toml".to_string());
+    env.insert("HOME".to_string(), "/root".to_string());
+    let layers = Layers {
+        file: Some(f.path().to_path_buf()),
+        env: env.clone(),
+        overrides: vec!["area.l_max=500".into(), "mavlink.connection=udpout:127.0.0.1:14550".into()],
+    };
+    let loaded = load(&layers).unwrap();
+    let s = &loaded.settings;
+    assert_eq!(s.area.l_max, 500, "command line wins");
+    assert_eq!(s.area.turnover, 30, "file value kept");
+    assert_eq!(s.camera.source, CameraSource::V4l2);
+    assert_eq!(s.camera.distortion, vec![0.1, 0.0, 0.0, 0.0, 0.0]);
+    assert_eq!(s.mavlink.connection, "udpout:127.0.0.1:14550");
+    assert!(loaded.origins["area.l_max"].contains("command line"));
+    assert!(loaded.origins["camera.distortion"].contains("MAVLOC_CAMERA__DISTORTION"));
+
+    // Without the override the environment wins over the file.
+    let loaded = load(&Layers { overrides: vec![], ..layers }).unwrap();
+    assert_eq!(loaded.settings.area.l_max, 400);
+}
+
+#[test]
+fn unknown_environment_key_names_the_variable() {
+    let mut env = BTreeMap::new();
+    env.insert("MAVLOC_AREA__LMAX".to_string(), "300".to_string());
+    let p = problems(load(&Layers { env, ..Layers::default() }));
+    let msg = p[0].to_string();
+    assert!(msg.contains("MAVLOC_AREA__LMAX") && msg.contains("area.l_max"), "{msg}");
+}
+
+#[test]
+fn bad_command_line_override_is_refused() {
+    let p = problems(load(&Layers { overrides: vec!["area.downscale=16".into()], ..Layers::default() }));
+    assert!(p[0].to_string().contains("command line") && p[0].to_string().contains("1 ..= 8"), "{}", p[0]);
+    let p = problems(load(&Layers { overrides: vec!["nonsense".into()], ..Layers::default() }));
+    assert!(p[0].expected.contains("section.key=value"));
+}
+
+#[test]
+fn bad_connection_string_is_refused() {
+    let f = write_temp("[mavlink]\nconnection = \"udp:14540\"\n");
+    let p = problems(load_file(f.path()));
+    assert_eq!(p[0].key, "mavlink.connection");
+}
+
+#[test]
+fn syntax_error_and_missing_file_name_the_file() {
+    let f = write_temp("[area\nl_max = 3\n");
+    let err = load_file(f.path()).unwrap_err();
+    assert!(matches!(err, SettingsError::Syntax { .. }));
+    assert!(err.to_string().contains(&f.path().display().to_string()));
+    let err = load_file(Path::new("/nonexistent/mavloc.toml")).unwrap_err();
+    assert!(err.to_string().contains("/nonexistent/mavloc.toml"));
+}
+
+#[test]
+fn effective_rendering_parses_back() {
+    let loaded = load(&Layers { overrides: vec!["indoor.k=7".into()], ..Layers::default() }).unwrap();
+    let text = render_effective(&loaded);
+    assert!(text.contains("k = 7  # from command line"));
+    let f = write_temp(&text);
+    assert_eq!(load_file(f.path()).unwrap().settings, loaded.settings);
+}
+
+#[test]
+fn intrinsics_follow_the_camera_settings() {
+    let mut c = Camera::default();
+    let k = c.intrinsics();
+    assert!((k.fx - 960.0).abs() < 1e-9 && (k.cx - 959.5).abs() < 1e-9);
+    c.fx = 1000.0;
+    c.cx = 900.0;
+    let k = c.intrinsics();
+    assert_eq!((k.fx, k.fy, k.cx), (1000.0, 1000.0, 900.0));
+}
+
+#[test]
+fn enum_names_match_the_schema() {
+    for (key, names) in ENUM_KEYS {
+        for name in *names {
+            let loaded = load(&Layers { overrides: vec![format!("{key}={name}")], ..Layers::default() });
+            assert!(loaded.is_ok(), "{key}={name}: {:?}", loaded.err());
+        }
+        let (section, field) = key.split_once('.').unwrap();
+        let table = toml::Table::try_from(Settings::default()).unwrap();
+        let default = table[section][field].as_str().unwrap().to_string();
+        assert!(names.contains(&default.as_str()), "{key} default {default} not listed");
+    }
+}
