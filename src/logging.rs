@@ -22,5 +22,9 @@ pub fn init(fallback: &str) {
         .with_writer(std::io::stderr)
         .with_ansi(terminal);
     // journald adds its own timestamps; a terminal user wants them.
-    let _ = if terminal { builder.try_init() } else { builder.without_time().try_init() };
+    let _ = if terminal {
+        builder.try_init()
+    } else {
+        builder.without_time().try_init()
+    };
 }

@@ -20,7 +20,11 @@ fn main() -> ExitCode {
 
 /// The configuration file to use: the one given, else the system one if it exists.
 fn config_file(given: Option<PathBuf>) -> Option<PathBuf> {
-    given.or_else(|| Path::new(settings::SYSTEM_CONFIG).exists().then(|| PathBuf::from(settings::SYSTEM_CONFIG)))
+    given.or_else(|| {
+        Path::new(settings::SYSTEM_CONFIG)
+            .exists()
+            .then(|| PathBuf::from(settings::SYSTEM_CONFIG))
+    })
 }
 
 fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded> {
@@ -35,7 +39,9 @@ fn not_yet(what: &str, issue: u32) -> anyhow::Result<ExitCode> {
 
 fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
-        Command::Config { command: ConfigCommand::Check { file } } => {
+        Command::Config {
+            command: ConfigCommand::Check { file },
+        } => {
             let loaded = load(Some(file.clone()), cli.overrides)?;
             println!(
                 "{}: valid ({} key{} set in the file or overridden)",
@@ -45,7 +51,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Command::Config { command: ConfigCommand::Show } => {
+        Command::Config {
+            command: ConfigCommand::Show,
+        } => {
             let loaded = load(config_file(cli.config), cli.overrides)?;
             print!("{}", settings::render_effective(&loaded));
             Ok(ExitCode::SUCCESS)
@@ -55,7 +63,11 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             mavloc::logging::init(&loaded.settings.daemon.log);
             let report = mavloc::demo::run(&loaded.settings, args.seed)?;
             print!("{report}");
-            Ok(if report.passed() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+            Ok(if report.passed() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            })
         }
         Command::Run(args) => {
             let mut overrides = cli.overrides;

@@ -8,7 +8,9 @@ pub mod bearing;
 pub mod ukf;
 
 pub use bearing::{bearing_noise, BearingModel, StaticLandmark};
-pub use ukf::{MeasurementModel, PredictedMeasurement, ProcessModel, Ukf, UkfParams, UpdateReport, MAX_STATE};
+pub use ukf::{
+    MeasurementModel, PredictedMeasurement, ProcessModel, Ukf, UkfParams, UpdateReport, MAX_STATE,
+};
 
 /// Why a filter step was refused. The filter's state is unchanged when one is returned.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]

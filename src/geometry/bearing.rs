@@ -26,7 +26,10 @@ impl Bearing {
         if !(horizontal > 0.0 || d.z != 0.0) || !d.iter().all(|c| c.is_finite()) {
             return None;
         }
-        Some(Bearing { yaw: d.y.atan2(d.x), pitch: (-d.z).atan2(horizontal) })
+        Some(Bearing {
+            yaw: d.y.atan2(d.x),
+            pitch: (-d.z).atan2(horizontal),
+        })
     }
 
     /// Unit direction vector in the local frame.
@@ -85,8 +88,14 @@ mod tests {
 
     #[test]
     fn residual_wraps_across_south() {
-        let a = Bearing { yaw: PI - 0.01, pitch: 0.0 };
-        let b = Bearing { yaw: -PI + 0.01, pitch: 0.0 };
+        let a = Bearing {
+            yaw: PI - 0.01,
+            pitch: 0.0,
+        };
+        let b = Bearing {
+            yaw: -PI + 0.01,
+            pitch: 0.0,
+        };
         assert!((a.residual(&b)[0] + 0.02).abs() < 1e-12);
     }
 
@@ -99,7 +108,7 @@ mod tests {
         }
 
         #[test]
-        fn direction_round_trips(yaw in -3.14f64..3.14, pitch in -1.57f64..1.57) {
+        fn direction_round_trips(yaw in -PI..PI, pitch in -1.5f64..1.5) {
             let b = Bearing { yaw, pitch };
             let back = Bearing::from_direction(&(b.direction() * 7.5)).unwrap();
             prop_assert!(back.residual(&b)[0].abs() < 1e-9 && back.residual(&b)[1].abs() < 1e-9);

@@ -17,7 +17,7 @@ pub fn ground_plane_point(origin: &Vec3, direction: &Vec3, ground_down: f64) -> 
         return None;
     }
     let s = (ground_down - origin.z) / dz;
-    if !(s > 0.0) || !s.is_finite() {
+    if !s.is_finite() || s <= 0.0 {
         return None;
     }
     let p = origin + direction * s;
@@ -43,8 +43,7 @@ mod tests {
 
     #[test]
     fn forty_five_degrees() {
-        let p = ground_plane_point(&Vec3::new(0.0, 0.0, -30.0), &Vec3::new(1.0, 0.0, 1.0), -5.0)
-            .unwrap();
+        let p = ground_plane_point(&Vec3::new(0.0, 0.0, -30.0), &Vec3::new(1.0, 0.0, 1.0), -5.0).unwrap();
         assert!((p - Vec3::new(25.0, 0.0, -5.0)).norm() < 1e-12);
     }
 }

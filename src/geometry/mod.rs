@@ -43,7 +43,7 @@ pub use bearing::{angle_diff, bearing_between, wrap_angle, Bearing};
 pub use camera::{CameraPose, Intrinsics, Mount, Pixel};
 pub use geodetic::{Geodetic, LocalFrame};
 pub use ground::ground_plane_point;
-pub use rotation::{gimbal_from_camera, body_rotation, GimbalAngles, GimbalChain};
+pub use rotation::{body_rotation, gimbal_from_camera, GimbalAngles, GimbalChain};
 
 /// A 3-vector in metres; in the local frame unless a name says otherwise.
 pub type Vec3 = nalgebra::Vector3<f64>;

@@ -22,9 +22,22 @@ pub enum LinkAddress {
 impl LinkAddress {
     /// Parses an address; the error says what was expected.
     pub fn parse(s: &str) -> Result<LinkAddress, String> {
-        let (scheme, rest) = s
-            .split_once(':')
-            .ok_or_else(|| format!("`{s}` has no scheme; expected serial:, udpin:, udpout:, tcpin: or tcpout:"))?;
+        let (scheme, rest) = s.split_once(':').ok_or_else(|| {
+            format!("`{s}` has no scheme; expected serial:, udpin:, udpout:, tcpin: or tcpout:")
+        })?;
+        type Make = fn(String, u16) -> LinkAddress;
+        let make: Option<Make> = match scheme {
+            "serial" => None,
+            "udpin" => Some(|host, port| LinkAddress::UdpIn { host, port }),
+            "udpout" => Some(|host, port| LinkAddress::UdpOut { host, port }),
+            "tcpin" => Some(|host, port| LinkAddress::TcpIn { host, port }),
+            "tcpout" => Some(|host, port| LinkAddress::TcpOut { host, port }),
+            other => {
+                return Err(format!(
+                    "`{s}`: unknown scheme `{other}`; expected serial, udpin, udpout, tcpin or tcpout"
+                ))
+            }
+        };
         // The port or baud rate is after the last colon, so IPv6-free hosts and device
         // paths keep their own characters.
         let (head, tail) = rest
@@ -33,25 +46,18 @@ impl LinkAddress {
         if head.is_empty() {
             return Err(format!("`{s}` has an empty host or device"));
         }
-        let port = || -> Result<u16, String> {
-            match tail.parse::<u16>() {
-                Ok(p) if p > 0 => Ok(p),
-                _ => Err(format!("`{s}`: port `{tail}` is not in 1..=65535")),
-            }
-        };
-        let host = head.to_string();
-        match scheme {
-            "serial" => match tail.parse::<u32>() {
-                Ok(baud) if baud > 0 => Ok(LinkAddress::Serial { device: host, baud }),
+        match make {
+            None => match tail.parse::<u32>() {
+                Ok(baud) if baud > 0 => Ok(LinkAddress::Serial {
+                    device: head.to_string(),
+                    baud,
+                }),
                 _ => Err(format!("`{s}`: baud rate `{tail}` is not a positive integer")),
             },
-            "udpin" => Ok(LinkAddress::UdpIn { host, port: port()? }),
-            "udpout" => Ok(LinkAddress::UdpOut { host, port: port()? }),
-            "tcpin" => Ok(LinkAddress::TcpIn { host, port: port()? }),
-            "tcpout" => Ok(LinkAddress::TcpOut { host, port: port()? }),
-            other => Err(format!(
-                "`{s}`: unknown scheme `{other}`; expected serial, udpin, udpout, tcpin or tcpout"
-            )),
+            Some(make) => match tail.parse::<u16>() {
+                Ok(port) if port > 0 => Ok(make(head.to_string(), port)),
+                _ => Err(format!("`{s}`: port `{tail}` is not in 1..=65535")),
+            },
         }
     }
 }
@@ -87,16 +93,25 @@ mod tests {
         }
         assert_eq!(
             LinkAddress::parse("serial:/dev/ttyAMA0:921600").unwrap(),
-            LinkAddress::Serial { device: "/dev/ttyAMA0".into(), baud: 921600 }
+            LinkAddress::Serial {
+                device: "/dev/ttyAMA0".into(),
+                baud: 921600
+            }
         );
     }
 
     #[test]
     fn errors_say_what_is_wrong() {
-        assert!(LinkAddress::parse("udp:1.2.3.4:5").unwrap_err().contains("unknown scheme"));
-        assert!(LinkAddress::parse("udpin:0.0.0.0:70000").unwrap_err().contains("port"));
+        assert!(LinkAddress::parse("udp:1.2.3.4:5")
+            .unwrap_err()
+            .contains("unknown scheme"));
+        assert!(LinkAddress::parse("udpin:0.0.0.0:70000")
+            .unwrap_err()
+            .contains("port"));
         assert!(LinkAddress::parse("udpin:0.0.0.0").unwrap_err().contains("port"));
-        assert!(LinkAddress::parse("serial:/dev/ttyS0:fast").unwrap_err().contains("baud"));
+        assert!(LinkAddress::parse("serial:/dev/ttyS0:fast")
+            .unwrap_err()
+            .contains("baud"));
         assert!(LinkAddress::parse("14540").unwrap_err().contains("scheme"));
         assert!(LinkAddress::parse("tcpout::5760").unwrap_err().contains("empty"));
     }

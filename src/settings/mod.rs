@@ -78,7 +78,11 @@ pub struct Layers {
 impl Layers {
     /// The process environment and the given file and overrides.
     pub fn from_process(file: Option<PathBuf>, overrides: Vec<String>) -> Layers {
-        Layers { file, env: std::env::vars().collect(), overrides }
+        Layers {
+            file,
+            env: std::env::vars().collect(),
+            overrides,
+        }
     }
 }
 
@@ -152,7 +156,12 @@ fn unknown_key(key: &str, value: Option<String>, origin: &str) -> Problem {
         Some(s) => format!("unknown key; did you mean `{s}`?"),
         None => "unknown key; `mavloc config show` lists every key".to_string(),
     };
-    Problem { key: key.to_string(), value, expected, origin: origin.to_string() }
+    Problem {
+        key: key.to_string(),
+        value,
+        expected,
+        origin: origin.to_string(),
+    }
 }
 
 /// Reads a value written on the command line or in the environment: TOML syntax if it
@@ -160,7 +169,9 @@ fn unknown_key(key: &str, value: Option<String>, origin: &str) -> Problem {
 fn parse_loose(raw: &str) -> toml::Value {
     let doc = format!("v = {raw}");
     match doc.parse::<toml::Table>() {
-        Ok(mut t) => t.remove("v").unwrap_or_else(|| toml::Value::String(raw.to_string())),
+        Ok(mut t) => t
+            .remove("v")
+            .unwrap_or_else(|| toml::Value::String(raw.to_string())),
         Err(_) => {
             // Environment lists may be written without brackets: `0.1,0,0,0,0`.
             let items: Option<Vec<toml::Value>> = raw
@@ -265,10 +276,14 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     // Layer 1: the file.
     let mut file_text = None;
     if let Some(path) = &layers.file {
-        let text = std::fs::read_to_string(path).map_err(|source| SettingsError::Read { path: path.clone(), source })?;
-        let doc: toml::Table = text
-            .parse()
-            .map_err(|e: toml::de::Error| SettingsError::Syntax { path: path.clone(), message: e.to_string() })?;
+        let text = std::fs::read_to_string(path).map_err(|source| SettingsError::Read {
+            path: path.clone(),
+            source,
+        })?;
+        let doc: toml::Table = text.parse().map_err(|e: toml::de::Error| SettingsError::Syntax {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
         let pairs = flatten_file(&schema, path, &doc, &mut problems);
         check_layer(&schema, &pairs, &mut problems);
         for (k, _, o) in &pairs {
@@ -281,7 +296,9 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     let mut env_pairs = Vec::new();
     let mut env_map = ::config::Map::new();
     for (var, raw) in &layers.env {
-        let Some(rest) = var.strip_prefix(ENV_PREFIX) else { continue };
+        let Some(rest) = var.strip_prefix(ENV_PREFIX) else {
+            continue;
+        };
         if var == ENV_CONFIG_FILE {
             continue;
         }
@@ -296,7 +313,7 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     // Layer 3: the command line.
     let mut cli_pairs = Vec::new();
     for item in &layers.overrides {
-        let origin = format!("command line (--set {item})");
+        let origin = format!("command line ({item})");
         match item.split_once('=') {
             Some((k, v)) if !k.trim().is_empty() => {
                 let key = k.trim().to_string();
@@ -351,7 +368,11 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     if !problems.is_empty() {
         return Err(SettingsError::Invalid(problems));
     }
-    Ok(Loaded { settings, origins, file: layers.file.clone() })
+    Ok(Loaded {
+        settings,
+        origins,
+        file: layers.file.clone(),
+    })
 }
 
 /// Turns a deserialisation error (an enum value that is not one of the variants, an
@@ -366,8 +387,16 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
         .map(str::to_string);
     match key {
         Some(key) => {
-            let origin = origins.get(&key).cloned().unwrap_or_else(|| "the merged configuration".into());
-            SettingsError::Invalid(vec![Problem { key, value: None, expected: msg, origin }])
+            let origin = origins
+                .get(&key)
+                .cloned()
+                .unwrap_or_else(|| "the merged configuration".into());
+            SettingsError::Invalid(vec![Problem {
+                key,
+                value: None,
+                expected: msg,
+                origin,
+            }])
         }
         None => SettingsError::Merge(msg),
     }
@@ -375,13 +404,20 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
 
 /// Range and consistency checks on merged settings.
 pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem> {
-    let mut v = Validator { origins, problems: Vec::new() };
+    let mut v = Validator {
+        origins,
+        problems: Vec::new(),
+    };
 
     // [daemon]
     v.range("daemon.max_frame_age_s", s.daemon.max_frame_age_s, 0.01, 60.0);
     v.nonempty("daemon.state_dir", &s.daemon.state_dir);
     if let Err(e) = tracing_subscriber::EnvFilter::try_new(&s.daemon.log) {
-        v.problem("daemon.log", quote(&s.daemon.log), format!("not a tracing filter ({e}); e.g. \"info\" or \"mavloc=debug\""));
+        v.problem(
+            "daemon.log",
+            quote(&s.daemon.log),
+            format!("not a tracing filter ({e}); e.g. \"info\" or \"mavloc=debug\""),
+        );
     }
 
     // [mavlink]
@@ -389,10 +425,20 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
         v.problem("mavlink.connection", quote(&s.mavlink.connection), e);
     }
     v.range_int("mavlink.component_id", s.mavlink.component_id.into(), 1, 255);
-    v.range_int("mavlink.autopilot_system_id", s.mavlink.autopilot_system_id.into(), 1, 255);
+    v.range_int(
+        "mavlink.autopilot_system_id",
+        s.mavlink.autopilot_system_id.into(),
+        1,
+        255,
+    );
     v.range_int("mavlink.gcs_system_id", s.mavlink.gcs_system_id.into(), 1, 255);
     v.range("mavlink.heartbeat_hz", s.mavlink.heartbeat_hz, 0.2, 10.0);
-    v.range("mavlink.autopilot_timeout_s", s.mavlink.autopilot_timeout_s, 0.5, 60.0);
+    v.range(
+        "mavlink.autopilot_timeout_s",
+        s.mavlink.autopilot_timeout_s,
+        0.5,
+        60.0,
+    );
 
     // [camera]
     v.range_int("camera.width", s.camera.width.into(), 16, 8192);
@@ -400,14 +446,21 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range("camera.fps", s.camera.fps, 0.1, 240.0);
     v.range("camera.hfov_deg", s.camera.hfov_deg, 1.0, 179.0);
     if s.camera.pixel_format.len() != 4 || !s.camera.pixel_format.is_ascii() {
-        v.problem("camera.pixel_format", quote(&s.camera.pixel_format), "a four-character V4L2 code such as \"MJPG\" or \"YUYV\"");
+        v.problem(
+            "camera.pixel_format",
+            quote(&s.camera.pixel_format),
+            "a four-character V4L2 code such as \"MJPG\" or \"YUYV\"",
+        );
     }
     for (key, val) in [("camera.fx", s.camera.fx), ("camera.fy", s.camera.fy)] {
         if val != 0.0 {
             v.range(key, val, 1.0, 100_000.0);
         }
     }
-    for (key, val, size) in [("camera.cx", s.camera.cx, s.camera.width), ("camera.cy", s.camera.cy, s.camera.height)] {
+    for (key, val, size) in [
+        ("camera.cx", s.camera.cx, s.camera.width),
+        ("camera.cy", s.camera.cy, s.camera.height),
+    ] {
         if val != -1.0 {
             v.range(key, val, 0.0, size as f64);
         }
@@ -421,7 +474,11 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     }
     for c in &s.camera.distortion {
         if !c.is_finite() || c.abs() > 100.0 {
-            v.problem("camera.distortion", format!("{:?}", s.camera.distortion), "coefficients within -100 ..= 100");
+            v.problem(
+                "camera.distortion",
+                format!("{:?}", s.camera.distortion),
+                "coefficients within -100 ..= 100",
+            );
             break;
         }
     }
@@ -439,7 +496,12 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range_int("area.downscale", a.downscale.into(), 1, 8);
     v.range_int("area.band_px", a.band_px.into(), 1, 2000);
     v.range_int("area.l_max", a.l_max.into(), 1, 20_000);
-    v.range_int("area.turnover", a.turnover.into(), 0, a.l_max.saturating_sub(1).into());
+    v.range_int(
+        "area.turnover",
+        a.turnover.into(),
+        0,
+        a.l_max.saturating_sub(1).into(),
+    );
     v.range_int("area.feature_factor", a.feature_factor.into(), 1, 100);
     v.range("area.ratio_test", a.ratio_test, 0.05, 1.0);
     v.range("area.mahalanobis_max", a.mahalanobis_max, 0.5, 1e6);
@@ -484,23 +546,39 @@ struct Validator<'a> {
 
 impl Validator<'_> {
     fn origin(&self, key: &str) -> String {
-        self.origins.get(key).cloned().unwrap_or_else(|| "the built-in defaults".into())
+        self.origins
+            .get(key)
+            .cloned()
+            .unwrap_or_else(|| "the built-in defaults".into())
     }
 
     fn problem(&mut self, key: &str, value: String, expected: impl Into<String>) {
         let origin = self.origin(key);
-        self.problems.push(Problem { key: key.into(), value: Some(value), expected: expected.into(), origin });
+        self.problems.push(Problem {
+            key: key.into(),
+            value: Some(value),
+            expected: expected.into(),
+            origin,
+        });
     }
 
     fn range(&mut self, key: &str, value: f64, min: f64, max: f64) {
         if !(value.is_finite() && value >= min && value <= max) {
-            self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
+            self.problem(
+                key,
+                value.to_string(),
+                format!("out of range; allowed {min} ..= {max}"),
+            );
         }
     }
 
     fn range_int(&mut self, key: &str, value: i64, min: i64, max: i64) {
         if value < min || value > max {
-            self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
+            self.problem(
+                key,
+                value.to_string(),
+                format!("out of range; allowed {min} ..= {max}"),
+            );
         }
     }
 

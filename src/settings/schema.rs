@@ -139,7 +139,8 @@ impl Camera {
     /// Intrinsics from the explicit values, or from the field of view where they are
     /// left at their "derive" defaults (fx/fy 0, cx/cy -1).
     pub fn intrinsics(&self) -> mavloc_geometry::Intrinsics {
-        let mut k = mavloc_geometry::Intrinsics::from_hfov(self.width, self.height, self.hfov_deg.to_radians());
+        let mut k =
+            mavloc_geometry::Intrinsics::from_hfov(self.width, self.height, self.hfov_deg.to_radians());
         if self.fx > 0.0 {
             k.fx = self.fx;
         }

@@ -1,0 +1,54 @@
+# mavloc: two commands do everything on a fresh Debian machine that has rustup.
+#   make demo   the end-to-end demonstration
+#   make test   every check CI runs (fmt, clippy, all tests)
+# Both first run `make deps`, which installs only what is missing.
+
+APT_PACKAGES := libopencv-dev clang libclang-dev
+PYTHON ?= python3
+PYMAVLINK_VERSION := 2.4.50
+CARGO ?= cargo
+SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
+
+.PHONY: deps demo test build release install uninstall clean
+
+deps:
+	@command -v $(CARGO) >/dev/null || { echo "make deps: cargo not found; install Rust with rustup first" >&2; exit 1; }
+	@missing=""; \
+	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "make deps: installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing >/dev/null || exit 1; \
+	fi
+	@$(PYTHON) -c "import pymavlink" 2>/dev/null || { \
+	  echo "make deps: installing pymavlink $(PYMAVLINK_VERSION) from PyPI"; \
+	  $(PYTHON) -m pip install --quiet "pymavlink==$(PYMAVLINK_VERSION)"; }
+	@$(CARGO) fmt --version >/dev/null 2>&1 && $(CARGO) clippy --version >/dev/null 2>&1 || { \
+	  echo "make deps: rustfmt and clippy are needed: rustup component add rustfmt clippy" >&2; exit 1; }
+
+demo: deps
+	$(CARGO) run --release --quiet -- demo
+
+test: deps
+	$(CARGO) fmt --all -- --check
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
+	$(CARGO) test --workspace
+
+build: deps
+	$(CARGO) build --workspace
+
+release: deps
+	$(CARGO) build --release
+
+# Installs the binary, the systemd unit and the default configuration (kept if present).
+PREFIX ?= /usr/local
+install: release
+	install -D -m 0755 target/release/mavloc $(DESTDIR)$(PREFIX)/bin/mavloc
+	install -D -m 0644 systemd/mavloc.service $(DESTDIR)/etc/systemd/system/mavloc.service
+	[ -e $(DESTDIR)/etc/mavloc/mavloc.toml ] || install -D -m 0644 config/mavloc.toml $(DESTDIR)/etc/mavloc/mavloc.toml
+
+uninstall:
+	rm -f $(DESTDIR)$(PREFIX)/bin/mavloc $(DESTDIR)/etc/systemd/system/mavloc.service
+
+clean:
+	$(CARGO) clean

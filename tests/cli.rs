@@ -1,0 +1,143 @@
+//! The `mavloc` binary as a user meets it: help texts, configuration checks, errors.
+
+use assert_cmd::Command;
+use std::io::Write;
+
+fn mavloc() -> Command {
+    let mut c = Command::cargo_bin("mavloc").unwrap();
+    // Keep the caller's MAVLOC_* variables and /etc config out of these tests.
+    for (k, _) in std::env::vars() {
+        if k.starts_with("MAVLOC_") {
+            c.env_remove(k);
+        }
+    }
+    c.timeout(std::time::Duration::from_secs(60));
+    c
+}
+
+fn temp_config(text: &str) -> tempfile::NamedTempFile {
+    let mut f = tempfile::Builder::new().suffix(".toml").tempfile().unwrap();
+    f.write_all(text.as_bytes()).unwrap();
+    f
+}
+
+fn stdout_of(c: &mut Command) -> String {
+    String::from_utf8(c.assert().success().get_output().stdout.clone()).unwrap()
+}
+
+#[test]
+fn help_lists_every_subcommand() {
+    let out = stdout_of(mavloc().arg("--help"));
+    for sub in ["run", "demo", "sim", "area", "indoor", "eval", "config"] {
+        assert!(
+            out.lines().any(|l| l.trim_start().starts_with(sub)),
+            "`{sub}` missing from:\n{out}"
+        );
+    }
+}
+
+#[test]
+fn every_subcommand_has_help() {
+    for sub in ["run", "demo", "sim", "area", "indoor", "eval", "config"] {
+        let out = stdout_of(mavloc().args([sub, "--help"]));
+        assert!(out.contains("Usage: mavloc"), "{sub}: {out}");
+    }
+}
+
+#[test]
+fn documented_config_checks() {
+    let out = stdout_of(mavloc().args(["config", "check", "config/mavloc.toml"]));
+    assert!(out.contains("valid"), "{out}");
+}
+
+#[test]
+fn misspelt_key_fails_naming_key_and_file() {
+    let f = temp_config("[area]\nukf_alfa = 0.7\n");
+    let a = mavloc()
+        .args(["config", "check"])
+        .arg(f.path())
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("area.ukf_alfa"), "{err}");
+    assert!(err.contains("did you mean `area.ukf_alpha`"), "{err}");
+    assert!(err.contains(&f.path().display().to_string()), "{err}");
+}
+
+#[test]
+fn out_of_range_fails_naming_key_value_range_and_file() {
+    let f = temp_config("[indoor]\nparticles = 0\n");
+    let a = mavloc()
+        .args(["config", "check"])
+        .arg(f.path())
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    for needle in [
+        "indoor.particles = 0",
+        "1 ..= 100000",
+        &f.path().display().to_string(),
+    ] {
+        assert!(err.contains(needle), "`{needle}` missing from: {err}");
+    }
+}
+
+#[test]
+fn environment_layer_is_checked_and_named() {
+    let a = mavloc()
+        .args(["config", "show"])
+        .env("MAVLOC_AREA__L_MAX", "many")
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(
+        err.contains("MAVLOC_AREA__L_MAX") && err.contains("expected an integer"),
+        "{err}"
+    );
+}
+
+#[test]
+fn show_reports_overrides_with_their_origin() {
+    let out = stdout_of(
+        mavloc()
+            .args(["config", "show", "--set", "area.l_max=300"])
+            .env("MAVLOC_INDOOR__K", "7"),
+    );
+    assert!(out.contains("l_max = 300  # from command line"), "{out}");
+    assert!(
+        out.contains("k = 7  # from environment variable MAVLOC_INDOOR__K"),
+        "{out}"
+    );
+}
+
+#[test]
+fn run_refuses_a_bad_mavlink_address() {
+    let a = mavloc()
+        .args(["run", "--mavlink", "udp:14540"])
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(
+        err.contains("mavlink.connection") && err.contains("unknown scheme"),
+        "{err}"
+    );
+}
+
+#[test]
+fn unfinished_commands_say_so_plainly() {
+    let a = mavloc()
+        .args(["area", "--dataset", "d", "--out", "o"])
+        .assert()
+        .code(2);
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("not implemented yet"), "{err}");
+}
+
+#[test]
+fn demo_prints_its_report() {
+    let out = stdout_of(mavloc().args(["demo", "--seed", "2"]));
+    assert!(
+        out.contains("converged") && out.contains("result            PASS"),
+        "{out}"
+    );
+}
