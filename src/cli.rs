@@ -71,13 +71,9 @@ pub struct DemoArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum SimCommand {
-    /// Render a synthetic dataset (frames, masks, telemetry, ground truth) from a scenario.
-    Render {
-        #[arg(long)]
-        scenario: String,
-        #[arg(long)]
-        out: PathBuf,
-    },
+    /// Render a synthetic dataset (frames, masks, telemetry, ground truth, QGC plan) from
+    /// a scenario: coastline, cliff, indoor-floor, or a scenario file.
+    Render(RenderArgs),
     /// Run a simulated MAVLink vehicle that flies a scenario's mission.
     Vehicle {
         #[arg(long)]
@@ -85,6 +81,49 @@ pub enum SimCommand {
         #[arg(long, default_value = "udpout:127.0.0.1:14540")]
         mavlink: String,
     },
+}
+
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// Scenario name (coastline, cliff, indoor-floor) or path to a scenario TOML file.
+    #[arg(long)]
+    pub scenario: String,
+    /// Output folder; must be empty or absent unless --force.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seed of the world and the noise (default: the scenario's).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Render at most this many frames (default: one lap of the mission).
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Image width in pixels (default: the scenario's; the field of view is kept).
+    #[arg(long, requires = "height")]
+    pub width: Option<u32>,
+    /// Image height in pixels.
+    #[arg(long, requires = "width")]
+    pub height: Option<u32>,
+    /// Record the true pose as the measured one (no noise, offsets, lag or drops).
+    #[arg(long, conflicts_with_all = ["gimbal_sd_deg", "position_sd_m", "gimbal_offset_deg", "gimbal_lag_s", "drop_rate"])]
+    pub no_noise: bool,
+    /// Gimbal yaw and pitch noise SD, degrees (seed table 6.2: 0.5).
+    #[arg(long)]
+    pub gimbal_sd_deg: Option<f64>,
+    /// Position noise SD north,east,down in metres (seed table 6.2: 0.5,0.5,2).
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    pub position_sd_m: Option<Vec<f64>>,
+    /// Static gimbal offsets yaw,pitch,roll in degrees (seed sec. 6.10).
+    #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true)]
+    pub gimbal_offset_deg: Option<Vec<f64>>,
+    /// Gimbal telemetry lags the frames by this many seconds (seed sec. 5.6.1).
+    #[arg(long)]
+    pub gimbal_lag_s: Option<f64>,
+    /// Fraction of frames dropped, 0..1.
+    #[arg(long)]
+    pub drop_rate: Option<f64>,
+    /// Overwrite a non-empty output folder.
+    #[arg(long)]
+    pub force: bool,
 }
 
 #[derive(Debug, Args)]

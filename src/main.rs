@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::Parser;
-use mavloc::cli::{Cli, Command, ConfigCommand};
+use mavloc::cli::{Cli, Command, ConfigCommand, RenderArgs, SimCommand};
 use mavloc::settings::{self, Layers, Loaded};
 
 fn main() -> ExitCode {
@@ -79,9 +79,71 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             tracing::info!(connection = %loaded.settings.mavlink.connection, "configuration valid");
             not_yet("run (the daemon)", 6)
         }
-        Command::Sim { .. } => not_yet("sim", 3),
+        Command::Sim {
+            command: SimCommand::Render(args),
+        } => sim_render(args),
+        Command::Sim {
+            command: SimCommand::Vehicle { .. },
+        } => not_yet("sim vehicle", 7),
         Command::Area(_) => not_yet("area", 4),
         Command::Indoor { .. } => not_yet("indoor", 5),
         Command::Eval { .. } => not_yet("eval", 4),
     }
+}
+
+/// `mavloc sim render`: a dataset from a scenario, with a progress bar.
+fn sim_render(args: RenderArgs) -> anyhow::Result<ExitCode> {
+    use anyhow::anyhow;
+    use mavloc_sim::{render_dataset, RenderOptions, Scenario};
+    let scenario = Scenario::load(&args.scenario).map_err(|e| anyhow!(e))?;
+    let mut noise = scenario.noise.clone();
+    if args.no_noise {
+        noise = mavloc_sim::scenario::NoiseSpec::none();
+    }
+    if let Some(sd) = args.gimbal_sd_deg {
+        noise.gimbal_yaw_sd_deg = sd;
+        noise.gimbal_pitch_sd_deg = sd;
+    }
+    if let Some(v) = &args.position_sd_m {
+        noise.position_sd_m = [v[0], v[1], v[2]];
+    }
+    if let Some(v) = &args.gimbal_offset_deg {
+        noise.gimbal_offset_deg = [v[0], v[1], v[2]];
+    }
+    if let Some(lag) = args.gimbal_lag_s {
+        noise.gimbal_lag_s = lag;
+    }
+    if let Some(rate) = args.drop_rate {
+        noise.drop_rate = rate;
+    }
+    let opts = RenderOptions {
+        frames: args.frames,
+        size: args.width.zip(args.height),
+        seed: args.seed,
+        noise: Some(noise),
+        force: args.force,
+    };
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar.set_message(format!("rendering {}", scenario.name));
+    let start = std::time::Instant::now();
+    let summary = render_dataset(&scenario, &opts, &args.out, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })
+    .map_err(|e| anyhow!(e))?;
+    bar.finish_and_clear();
+    println!(
+        "{}: {} frames ({} dropped) of {} in {:.1} s",
+        summary.dir.display(),
+        summary.frames,
+        summary.dropped,
+        scenario.name,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(ExitCode::SUCCESS)
 }

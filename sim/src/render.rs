@@ -1,0 +1,411 @@
+//! The camera renderer: a z-buffered rasteriser of the world's surface mesh, then one
+//! shading pass per pixel from the world position it sees.
+//!
+//! Vertices go through `mavloc-geometry`'s own projection (`CameraPose::to_camera`,
+//! `Intrinsics::project_camera`), so rendered pixels and the pipeline's geometry agree by
+//! construction; a test checks it to a fraction of a pixel. Triangles are clipped against
+//! a near plane in camera space, interpolation is perspective-correct, and the image is
+//! split into row bands rendered in parallel. Each pixel is shaded once (deferred), from
+//! the world's texture at a mip level matched to the pixel's ground footprint.
+
+use mavloc_geometry::{CameraPose, Intrinsics, Vec3};
+use rayon::prelude::*;
+
+use crate::world::World;
+
+/// A rendered frame: RGB (row-major, 3 bytes per pixel) and the target mask (255 inside
+/// the target area, 0 elsewhere), as AirSim's scene and segmentation images.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<u8>,
+    pub mask: Vec<u8>,
+}
+
+/// A coloured disk painted on the ground, for tests that need to find a known 3D point in
+/// the image.
+#[derive(Clone, Copy, Debug)]
+pub struct Marker {
+    pub centre: Vec3,
+    pub radius_m: f64,
+    pub rgb: [u8; 3],
+}
+
+/// Renders frames of one world.
+pub struct Renderer<'w> {
+    world: &'w World,
+    /// Surface vertices (terrain, or water surface where it is higher), local NED.
+    vertices: Vec<Vec3>,
+    rows: usize,
+    cols: usize,
+    pub markers: Vec<Marker>,
+}
+
+const NEAR: f64 = 0.05;
+
+#[derive(Clone, Copy, Debug)]
+struct ClipVert {
+    cam: Vec3,
+    n: f64,
+    e: f64,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct ScreenVert {
+    u: f64,
+    v: f64,
+    inv_z: f64,
+    n_z: f64,
+    e_z: f64,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Prepared {
+    v: [ScreenVert; 3],
+    area: f64,
+    x0: i64,
+    x1: i64,
+    y0: i64,
+    y1: i64,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct Texel {
+    inv_z: f32,
+    n: f32,
+    e: f32,
+}
+
+impl<'w> Renderer<'w> {
+    pub fn new(world: &'w World) -> Renderer<'w> {
+        let t = &world.terrain;
+        let vertices = (0..t.rows * t.cols)
+            .map(|k| {
+                let (i, j) = (k / t.cols, k % t.cols);
+                let v = t.vertex(i, j);
+                world.surface_point(v.x, v.y)
+            })
+            .collect();
+        Renderer {
+            world,
+            vertices,
+            rows: t.rows,
+            cols: t.cols,
+            markers: Vec::new(),
+        }
+    }
+
+    /// Renders the view of a camera with intrinsics `k` at `pose`.
+    pub fn render(&self, pose: &CameraPose, k: &Intrinsics) -> Frame {
+        let (w, h) = (k.width as usize, k.height as usize);
+        let cam: Vec<Vec3> = self.vertices.par_iter().map(|p| pose.to_camera(p)).collect();
+        let tris = self.prepare(&cam, k);
+
+        // Bands of rows, a few per thread so uneven bands balance out.
+        let bands = (rayon::current_num_threads() * 4).clamp(1, h);
+        let band_rows = h.div_ceil(bands);
+        let mut gbuf = vec![Texel::default(); w * h];
+        gbuf.par_chunks_mut(band_rows * w)
+            .enumerate()
+            .for_each(|(b, chunk)| {
+                let y0 = (b * band_rows) as i64;
+                let y1 = y0 + (chunk.len() / w) as i64 - 1;
+                for t in &tris {
+                    if t.y1 < y0 || t.y0 > y1 {
+                        continue;
+                    }
+                    raster(t, y0.max(t.y0), y1.min(t.y1), y0, w, chunk);
+                }
+            });
+
+        let mut rgb = vec![0u8; w * h * 3];
+        let mut mask = vec![0u8; w * h];
+        let fx = k.fx;
+        rgb.par_chunks_mut(w * 3)
+            .zip(mask.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(y, (row, mrow))| {
+                for x in 0..w {
+                    let g = gbuf[y * w + x];
+                    let (colour, target) = if g.inv_z > 0.0 {
+                        let (n, e) = (g.n as f64, g.e as f64);
+                        // Ground footprint of the pixel: its size at that depth, stretched by
+                        // the slant (bounded so grazing views do not blur to nothing).
+                        let depth = 1.0 / g.inv_z as f64;
+                        let footprint = depth / fx * 1.5;
+                        let colour = self
+                            .marker_at(n, e)
+                            .unwrap_or_else(|| self.world.shade(n, e, footprint));
+                        (colour, self.world.is_target(n, e))
+                    } else {
+                        (self.world.sky(), false)
+                    };
+                    for c in 0..3 {
+                        row[3 * x + c] = colour[c].round().clamp(0.0, 255.0) as u8;
+                    }
+                    mrow[x] = if target { 255 } else { 0 };
+                }
+            });
+        Frame {
+            width: k.width,
+            height: k.height,
+            rgb,
+            mask,
+        }
+    }
+
+    fn marker_at(&self, n: f64, e: f64) -> Option<[f32; 3]> {
+        self.markers.iter().find_map(|m| {
+            let d = (n - m.centre.x).hypot(e - m.centre.y);
+            (d <= m.radius_m).then(|| [m.rgb[0] as f32, m.rgb[1] as f32, m.rgb[2] as f32])
+        })
+    }
+
+    /// Clips, projects and bounds every triangle that can appear on screen.
+    fn prepare(&self, cam: &[Vec3], k: &Intrinsics) -> Vec<Prepared> {
+        let (w, h) = (k.width as i64, k.height as i64);
+        let cells: Vec<(usize, usize)> = (0..self.rows - 1)
+            .flat_map(|i| (0..self.cols - 1).map(move |j| (i, j)))
+            .collect();
+        cells
+            .par_iter()
+            .flat_map_iter(|&(i, j)| {
+                let idx = |i: usize, j: usize| i * self.cols + j;
+                let corner = |i: usize, j: usize| {
+                    let p = self.vertices[idx(i, j)];
+                    ClipVert {
+                        cam: cam[idx(i, j)],
+                        n: p.x,
+                        e: p.y,
+                    }
+                };
+                let (a, b, c, d) = (
+                    corner(i, j),
+                    corner(i + 1, j),
+                    corner(i + 1, j + 1),
+                    corner(i, j + 1),
+                );
+                let mut out = Vec::new();
+                for tri in [[a, b, c], [a, c, d]] {
+                    if tri.iter().all(|v| v.cam.z < NEAR) {
+                        continue;
+                    }
+                    let poly = clip_near(&tri);
+                    for f in 1..poly.len().saturating_sub(1) {
+                        if let Some(p) = setup([poly[0], poly[f], poly[f + 1]], k, w, h) {
+                            out.push(p);
+                        }
+                    }
+                }
+                out.into_iter()
+            })
+            .collect()
+    }
+}
+
+/// Sutherland-Hodgman clip of a triangle against `z >= NEAR` in camera space.
+fn clip_near(tri: &[ClipVert; 3]) -> Vec<ClipVert> {
+    let mut out = Vec::with_capacity(4);
+    for i in 0..3 {
+        let (a, b) = (tri[i], tri[(i + 1) % 3]);
+        let (ina, inb) = (a.cam.z >= NEAR, b.cam.z >= NEAR);
+        if ina {
+            out.push(a);
+        }
+        if ina != inb {
+            let t = (NEAR - a.cam.z) / (b.cam.z - a.cam.z);
+            out.push(ClipVert {
+                cam: a.cam + (b.cam - a.cam) * t,
+                n: a.n + (b.n - a.n) * t,
+                e: a.e + (b.e - a.e) * t,
+            });
+        }
+    }
+    out
+}
+
+fn setup(tri: [ClipVert; 3], k: &Intrinsics, w: i64, h: i64) -> Option<Prepared> {
+    let mut v = [ScreenVert {
+        u: 0.0,
+        v: 0.0,
+        inv_z: 0.0,
+        n_z: 0.0,
+        e_z: 0.0,
+    }; 3];
+    for (s, c) in v.iter_mut().zip(tri.iter()) {
+        let px = k.project_camera(&c.cam)?;
+        let iz = 1.0 / c.cam.z;
+        *s = ScreenVert {
+            u: px.u,
+            v: px.v,
+            inv_z: iz,
+            n_z: c.n * iz,
+            e_z: c.e * iz,
+        };
+    }
+    let area = edge(&v[0], &v[1], v[2].u, v[2].v);
+    if area.abs() < 1e-12 {
+        return None;
+    }
+    let min = |f: fn(&ScreenVert) -> f64| v.iter().map(f).fold(f64::INFINITY, f64::min);
+    let max = |f: fn(&ScreenVert) -> f64| v.iter().map(f).fold(f64::NEG_INFINITY, f64::max);
+    // Pixel centres are at integers: cover the centres inside the bounding box.
+    let x0 = (min(|s| s.u).ceil() as i64).max(0);
+    let x1 = (max(|s| s.u).floor() as i64).min(w - 1);
+    let y0 = (min(|s| s.v).ceil() as i64).max(0);
+    let y1 = (max(|s| s.v).floor() as i64).min(h - 1);
+    (x0 <= x1 && y0 <= y1).then_some(Prepared {
+        v,
+        area,
+        x0,
+        x1,
+        y0,
+        y1,
+    })
+}
+
+fn edge(a: &ScreenVert, b: &ScreenVert, x: f64, y: f64) -> f64 {
+    (b.u - a.u) * (y - a.v) - (b.v - a.v) * (x - a.u)
+}
+
+/// Rasterises rows `ya..=yb` of a triangle into a band starting at row `band_y0`.
+fn raster(t: &Prepared, ya: i64, yb: i64, band_y0: i64, w: usize, band: &mut [Texel]) {
+    let [a, b, c] = t.v;
+    let inv_area = 1.0 / t.area;
+    for y in ya..=yb {
+        let yf = y as f64;
+        let row = &mut band[(y - band_y0) as usize * w..][..w];
+        for x in t.x0..=t.x1 {
+            let xf = x as f64;
+            let w0 = edge(&b, &c, xf, yf) * inv_area;
+            let w1 = edge(&c, &a, xf, yf) * inv_area;
+            let w2 = 1.0 - w0 - w1;
+            // Inside test with a little tolerance so shared edges leave no cracks.
+            if w0 < -1e-9 || w1 < -1e-9 || w2 < -1e-9 {
+                continue;
+            }
+            let inv_z = w0 * a.inv_z + w1 * b.inv_z + w2 * c.inv_z;
+            let texel = &mut row[x as usize];
+            if inv_z as f32 > texel.inv_z {
+                let n = (w0 * a.n_z + w1 * b.n_z + w2 * c.n_z) / inv_z;
+                let e = (w0 * a.e_z + w1 * b.e_z + w2 * c.e_z) / inv_z;
+                *texel = Texel {
+                    inv_z: inv_z as f32,
+                    n: n as f32,
+                    e: e as f32,
+                };
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scenario::Scenario;
+    use mavloc_geometry::{GimbalAngles, GimbalChain, Mount};
+
+    fn small(k: &Intrinsics) -> Intrinsics {
+        k.downscaled(4)
+    }
+
+    /// The projection-agreement test: a marked 3D point appears within 0.5 px of where
+    /// the geometry module projects it.
+    #[test]
+    fn marked_point_lands_where_geometry_projects_it() {
+        for name in ["coastline", "cliff"] {
+            let scenario = Scenario::load(name).unwrap();
+            let world = World::build(&scenario).unwrap();
+            let mut renderer = Renderer::new(&world);
+            let k = small(&scenario.intrinsics());
+            for (n, e, yaw, pitch) in [
+                (-50.0, 30.0, 20.0, -60.0),
+                (40.0, -70.0, -150.0, -35.0),
+                (0.0, 0.0, 90.0, -89.0),
+            ] {
+                let centre = world.surface_point(n, e);
+                renderer.markers = vec![Marker {
+                    centre,
+                    radius_m: 0.35,
+                    rgb: [255, 0, 255],
+                }];
+                // Camera 30 m above and back along the view direction.
+                let angles = GimbalAngles::from_degrees(yaw, pitch, 0.0);
+                let dir = GimbalChain::YawPitchRoll.rotation(angles) * Vec3::x();
+                let pose = CameraPose::from_gimbal(
+                    centre - dir * 40.0,
+                    GimbalChain::YawPitchRoll,
+                    angles,
+                    Mount::Earth,
+                );
+                let expected = pose.project(&k, &centre).unwrap();
+                let frame = renderer.render(&pose, &k);
+                let (mut su, mut sv, mut count) = (0.0, 0.0, 0.0);
+                for y in 0..frame.height as usize {
+                    for x in 0..frame.width as usize {
+                        let p = &frame.rgb[3 * (y * frame.width as usize + x)..][..3];
+                        if p == [255, 0, 255] {
+                            su += x as f64;
+                            sv += y as f64;
+                            count += 1.0;
+                        }
+                    }
+                }
+                assert!(count >= 3.0, "{name}: marker covers {count} px");
+                let (u, v) = (su / count, sv / count);
+                let err = (u - expected.u).hypot(v - expected.v);
+                assert!(
+                    err < 0.5,
+                    "{name} at ({n}, {e}): centroid ({u:.2}, {v:.2}) vs ({:.2}, {:.2})",
+                    expected.u,
+                    expected.v
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn nadir_over_the_lake_sees_water_in_the_mask() {
+        let scenario = Scenario::load("coastline").unwrap();
+        let world = World::build(&scenario).unwrap();
+        let renderer = Renderer::new(&world);
+        let k = small(&scenario.intrinsics());
+        let pose = CameraPose::from_gimbal(
+            Vec3::new(0.0, 0.0, -30.0),
+            GimbalChain::YawPitchRoll,
+            GimbalAngles::from_degrees(0.0, -90.0, 0.0),
+            Mount::Earth,
+        );
+        let frame = renderer.render(&pose, &k);
+        let water = frame.mask.iter().filter(|&&m| m == 255).count();
+        assert_eq!(water, frame.mask.len(), "the lake centre is all water");
+        // Looking at the horizon: sky at the top, no target there.
+        let pose = CameraPose::from_gimbal(
+            Vec3::new(0.0, 0.0, -30.0),
+            GimbalChain::YawPitchRoll,
+            GimbalAngles::from_degrees(0.0, 0.0, 0.0),
+            Mount::Earth,
+        );
+        let frame = renderer.render(&pose, &k);
+        let top = &frame.rgb[..3];
+        assert_eq!(top, [178, 202, 228], "sky colour at the top");
+        assert_eq!(frame.mask[0], 0);
+    }
+
+    #[test]
+    fn mask_agrees_with_the_world_at_pixel_rays() {
+        let scenario = Scenario::load("cliff").unwrap();
+        let world = World::build(&scenario).unwrap();
+        let renderer = Renderer::new(&world);
+        let k = small(&scenario.intrinsics());
+        let pose =
+            CameraPose::looking_at(Vec3::new(-90.0, 10.0, -45.0), &world.surface_point(-20.0, 0.0)).unwrap();
+        let frame = renderer.render(&pose, &k);
+        let inside = frame.mask.iter().filter(|&&m| m == 255).count();
+        assert!(
+            inside > 100 && inside < frame.mask.len() - 100,
+            "the view straddles the border"
+        );
+    }
+}

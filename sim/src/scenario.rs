@@ -1,0 +1,235 @@
+//! Scenario files (`sim/scenarios/*.toml`): everything needed to rebuild a world and
+//! re-render a dataset, deterministically from `seed`.
+
+use std::path::{Path, PathBuf};
+
+use mavloc_geometry::{Geodetic, GimbalChain};
+use serde::{Deserialize, Serialize};
+
+/// Which world generator builds the scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum WorldKind {
+    /// Mostly flat land around a lake; the target is the water (area seed fig. 4.10-4.12).
+    Coastline,
+    /// An escarpment with a darker region whose border runs over the slope (fig. 4.13-4.14).
+    Cliff,
+    /// A flat textured floor for the texton pipeline (indoor seed sec. 3.4.2, 4.6).
+    IndoorFloor,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    pub kind: WorldKind,
+    pub seed: u64,
+    pub origin: Geodetic,
+    pub terrain: TerrainSpec,
+    pub ground: GroundSpec,
+    pub camera: CameraSpec,
+    pub mission: MissionSpec,
+    #[serde(default)]
+    pub noise: NoiseSpec,
+    /// Folder relative paths in the file are resolved against (not serialised).
+    #[serde(skip)]
+    pub base_dir: Option<PathBuf>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TerrainSpec {
+    /// Side of the square terrain, metres.
+    pub size_m: f64,
+    /// Grid spacing, metres.
+    pub cell_m: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GroundSpec {
+    /// Texture image: a built-in asset name (`aukerman.png`, `caliterra.png`), a path, or
+    /// empty for the procedural texture.
+    #[serde(default)]
+    pub texture: String,
+    /// Ground size of one texel, metres.
+    pub metres_per_texel: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    pub width: u32,
+    pub height: u32,
+    pub hfov_deg: f64,
+    pub chain: GimbalChain,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MissionSpec {
+    /// Flight altitude above the local origin, metres.
+    pub altitude_m: f64,
+    /// Horizontal offset of the flight path from the border, metres (positive: outside the
+    /// target area).
+    pub offset_m: f64,
+    /// Altitude varies by this much (+-) along the path, for viewpoint diversity (seed
+    /// sec. 4.2.4: "offset along all 3 axes").
+    #[serde(default)]
+    pub altitude_swing_m: f64,
+    /// Speed limit, m/s (seed table 6.4: 3).
+    pub speed_m_s: f64,
+    /// Capture rate, Hz (seed sec. 6.3: about 6).
+    pub frame_rate_hz: f64,
+    /// Spacing of waypoints along the border, metres.
+    pub waypoint_spacing_m: f64,
+}
+
+/// Sensor noise and faults added to what the simulated vehicle reports (seed table 6.2,
+/// sec. 5.6.1, 6.10). The true pose is always recorded next to the noisy one.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NoiseSpec {
+    pub gimbal_yaw_sd_deg: f64,
+    pub gimbal_pitch_sd_deg: f64,
+    /// North, east, down.
+    pub position_sd_m: [f64; 3],
+    /// Static offsets added to the reported gimbal yaw, pitch, roll.
+    pub gimbal_offset_deg: [f64; 3],
+    /// The reported gimbal attitude is the one this long before the frame.
+    pub gimbal_lag_s: f64,
+    /// Fraction of frames dropped, 0..1.
+    pub drop_rate: f64,
+}
+
+impl Default for NoiseSpec {
+    fn default() -> Self {
+        NoiseSpec {
+            gimbal_yaw_sd_deg: 0.5,
+            gimbal_pitch_sd_deg: 0.5,
+            position_sd_m: [0.5, 0.5, 2.0],
+            gimbal_offset_deg: [0.0; 3],
+            gimbal_lag_s: 0.0,
+            drop_rate: 0.0,
+        }
+    }
+}
+
+impl NoiseSpec {
+    /// No noise at all.
+    pub fn none() -> Self {
+        NoiseSpec {
+            gimbal_yaw_sd_deg: 0.0,
+            gimbal_pitch_sd_deg: 0.0,
+            position_sd_m: [0.0; 3],
+            gimbal_offset_deg: [0.0; 3],
+            gimbal_lag_s: 0.0,
+            drop_rate: 0.0,
+        }
+    }
+}
+
+/// The built-in scenarios, by name.
+pub const BUILT_IN: &[(&str, &str)] = &[
+    ("coastline", include_str!("../scenarios/coastline.toml")),
+    ("cliff", include_str!("../scenarios/cliff.toml")),
+    ("indoor-floor", include_str!("../scenarios/indoor-floor.toml")),
+];
+
+impl Scenario {
+    /// Parses a scenario from TOML text.
+    pub fn parse(text: &str, origin: &str) -> Result<Scenario, String> {
+        let s: Scenario = toml::from_str(text).map_err(|e| format!("scenario {origin}: {e}"))?;
+        s.validate().map_err(|e| format!("scenario {origin}: {e}"))?;
+        Ok(s)
+    }
+
+    /// A built-in scenario by name, or a scenario file by path.
+    pub fn load(name_or_path: &str) -> Result<Scenario, String> {
+        if let Some((_, text)) = BUILT_IN.iter().find(|(n, _)| *n == name_or_path) {
+            return Scenario::parse(text, name_or_path);
+        }
+        let path = Path::new(name_or_path);
+        if !path.exists() {
+            let names: Vec<_> = BUILT_IN.iter().map(|(n, _)| *n).collect();
+            return Err(format!(
+                "no scenario `{name_or_path}`: give one of {} or a scenario file",
+                names.join(", ")
+            ));
+        }
+        let text =
+            std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        let mut s = Scenario::parse(&text, &path.display().to_string())?;
+        s.base_dir = path.parent().map(Path::to_path_buf);
+        Ok(s)
+    }
+
+    /// Checks values a world cannot be built from.
+    pub fn validate(&self) -> Result<(), String> {
+        self.origin.validate()?;
+        let t = &self.terrain;
+        if !(t.cell_m > 0.0 && t.size_m >= 2.0 * t.cell_m && t.size_m / t.cell_m <= 4000.0) {
+            return Err(format!(
+                "terrain: size_m {} / cell_m {} is not a usable grid",
+                t.size_m, t.cell_m
+            ));
+        }
+        if !self.ground.metres_per_texel.is_finite() || self.ground.metres_per_texel <= 0.0 {
+            return Err("ground.metres_per_texel must be positive".into());
+        }
+        let c = &self.camera;
+        if c.width < 16 || c.height < 16 || !(1.0..=179.0).contains(&c.hfov_deg) {
+            return Err(format!(
+                "camera: {}x{} px, hfov {} deg is not a usable camera",
+                c.width, c.height, c.hfov_deg
+            ));
+        }
+        let m = &self.mission;
+        if !(m.speed_m_s > 0.0 && m.frame_rate_hz > 0.0 && m.waypoint_spacing_m > 0.0 && m.altitude_m > 0.0) {
+            return Err("mission: speed, frame rate, waypoint spacing and altitude must be positive".into());
+        }
+        if !(0.0..1.0).contains(&self.noise.drop_rate) {
+            return Err(format!(
+                "noise.drop_rate {} must be in [0, 1)",
+                self.noise.drop_rate
+            ));
+        }
+        Ok(())
+    }
+
+    /// The camera intrinsics at the scenario's resolution.
+    pub fn intrinsics(&self) -> mavloc_geometry::Intrinsics {
+        mavloc_geometry::Intrinsics::from_hfov(
+            self.camera.width,
+            self.camera.height,
+            self.camera.hfov_deg.to_radians(),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn built_in_scenarios_parse() {
+        for (name, _) in BUILT_IN {
+            let s = Scenario::load(name).unwrap();
+            assert_eq!(&s.name, name);
+        }
+    }
+
+    #[test]
+    fn unknown_scenario_lists_the_built_in_ones() {
+        let e = Scenario::load("moon").unwrap_err();
+        assert!(e.contains("coastline") && e.contains("indoor-floor"), "{e}");
+    }
+
+    #[test]
+    fn unknown_key_is_refused() {
+        let text = BUILT_IN[0].1.replace("[mission]", "[mission]\nspeeed = 3.0");
+        assert!(Scenario::parse(&text, "x").unwrap_err().contains("speeed"));
+    }
+}

@@ -1,0 +1,97 @@
+//! `render_dataset` writes every file of the format for each scenario, and they parse back.
+
+use mavloc_sim::scenario::NoiseSpec;
+use mavloc_sim::{render_dataset, Dataset, RenderOptions, Scenario};
+
+fn render(name: &str, frames: usize, noise: Option<NoiseSpec>) -> (tempfile::TempDir, Dataset) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join(name);
+    let opts = RenderOptions {
+        frames: Some(frames),
+        size: Some((160, 120)),
+        noise,
+        ..RenderOptions::default()
+    };
+    let mut calls = 0;
+    let summary = render_dataset(&Scenario::load(name).unwrap(), &opts, &out, |_, _| calls += 1).unwrap();
+    assert_eq!(calls, frames, "progress after every frame");
+    assert_eq!(summary.frames + summary.dropped, frames);
+    let ds = Dataset::open(&out).unwrap();
+    (dir, ds)
+}
+
+#[test]
+fn every_scenario_renders_and_parses_back() {
+    for name in ["coastline", "cliff", "indoor-floor"] {
+        let (_dir, ds) = render(name, 4, None);
+        assert_eq!(ds.records.len(), 4, "{name}");
+        assert_eq!((ds.camera.width, ds.camera.height), (160, 120));
+        for r in &ds.records {
+            let frame = image::open(ds.frame_path(r)).unwrap();
+            let mask = image::open(ds.mask_path(r)).unwrap();
+            assert_eq!((frame.width(), frame.height()), (160, 120));
+            assert_eq!(mask.color(), image::ColorType::L8);
+        }
+        for f in ["scenario.toml", "ground_truth.geojson", "mission.plan"] {
+            assert!(ds.dir.join(f).exists(), "{name}: {f}");
+        }
+        let scenario = Scenario::load(ds.dir.join("scenario.toml").to_str().unwrap()).unwrap();
+        assert_eq!(scenario.camera.width, 160, "scenario.toml records the overrides");
+        if name != "indoor-floor" {
+            assert!(
+                !ds.ground_truth.is_empty() && ds.ground_truth[0].len() > 100,
+                "{name}"
+            );
+            let geo: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(ds.dir.join("ground_truth.geojson")).unwrap())
+                    .unwrap();
+            assert_eq!(geo["type"], "FeatureCollection");
+            // The masks see the target somewhere along the flight.
+            let seen = ds.records.iter().any(|r| {
+                image::open(ds.mask_path(r))
+                    .unwrap()
+                    .to_luma8()
+                    .pixels()
+                    .any(|p| p[0] == 255)
+            });
+            assert!(seen, "{name}: no target in any mask");
+        }
+    }
+}
+
+#[test]
+fn noise_is_applied_to_measured_only() {
+    let noise = NoiseSpec {
+        gimbal_offset_deg: [0.0, 2.0, 0.0],
+        ..NoiseSpec::default()
+    };
+    let (_dir, ds) = render("coastline", 6, Some(noise));
+    let mut pitch_diff = 0.0;
+    for r in &ds.records {
+        pitch_diff += r.measured.gimbal_deg[1] - r.truth.gimbal_deg[1];
+        let dz = (r.measured.position[2] - r.truth.position[2]).abs();
+        assert!(dz < 10.0);
+    }
+    let mean = pitch_diff / ds.records.len() as f64;
+    assert!((mean - 2.0).abs() < 1.0, "static pitch offset shows: {mean}");
+    let (_dir, clean) = render("coastline", 3, Some(NoiseSpec::none()));
+    for r in &clean.records {
+        assert_eq!(r.truth, r.measured);
+    }
+}
+
+#[test]
+fn refuses_to_overwrite_and_reports_broken_telemetry() {
+    let (dir, ds) = render("cliff", 2, None);
+    let opts = RenderOptions {
+        frames: Some(1),
+        size: Some((64, 48)),
+        ..RenderOptions::default()
+    };
+    let err = render_dataset(&Scenario::load("cliff").unwrap(), &opts, &ds.dir, |_, _| {}).unwrap_err();
+    assert!(err.contains("not empty") && err.contains("--force"), "{err}");
+    std::fs::write(ds.dir.join("telemetry.jsonl"), "{\"frame\": 0, \"t\": oops}\n").unwrap();
+    let err = Dataset::open(&ds.dir).unwrap_err();
+    assert!(err.contains("telemetry.jsonl line 1"), "{err}");
+    drop(dir);
+}
