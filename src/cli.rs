@@ -74,6 +74,14 @@ pub enum SimCommand {
     /// Render a synthetic dataset (frames, masks, telemetry, ground truth, QGC plan) from
     /// a scenario: coastline, cliff, indoor-floor, or a scenario file.
     Render(RenderArgs),
+    /// Write a scenario's mission as a QGroundControl .plan file (stdout without --out).
+    Plan {
+        /// Scenario name or file.
+        #[arg(long)]
+        scenario: String,
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Run a simulated MAVLink vehicle that flies a scenario's mission.
     Vehicle {
         #[arg(long)]
@@ -121,6 +129,19 @@ pub struct RenderArgs {
     /// Fraction of frames dropped, 0..1.
     #[arg(long)]
     pub drop_rate: Option<f64>,
+    /// Render this many random labelled views instead of the flight (indoor-floor only;
+    /// indoor seed sec. 3.4.2).
+    #[arg(long)]
+    pub views: Option<usize>,
+    /// Brightness offset for every frame of the flight, grey levels.
+    #[arg(long, allow_hyphen_values = true)]
+    pub brightness: Option<f64>,
+    /// Contrast factor for every frame of the flight.
+    #[arg(long)]
+    pub contrast: Option<f64>,
+    /// Box-blur kernel for every frame of the flight, pixels (odd).
+    #[arg(long)]
+    pub blur_px: Option<u32>,
     /// Overwrite a non-empty output folder.
     #[arg(long)]
     pub force: bool,

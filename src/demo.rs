@@ -59,10 +59,7 @@ impl DemoReport {
 
 impl fmt::Display for DemoReport {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        writeln!(
-            f,
-            "mavloc demo: bearing-only landmark localisation (geometry + UKF core)"
-        )?;
+        writeln!(f, "mavloc demo: bearing-only landmark localisation (geometry + UKF core)")?;
         writeln!(
             f,
             "  flight            {} frames at {FRAME_RATE_HZ} Hz, {SPEED_M_S} m/s, {ALTITUDE_M} m above a {LANDMARKS}-landmark shore",
@@ -78,16 +75,8 @@ impl fmt::Display for DemoReport {
             "  observations      {} ({} refused by the Mahalanobis gate)",
             self.observations, self.gated
         )?;
-        writeln!(
-            f,
-            "  converged         {} of {} landmarks",
-            self.converged, self.landmarks
-        )?;
-        writeln!(
-            f,
-            "  UKF error         mean {:.2} m, max {:.2} m",
-            self.ukf_mean_m, self.ukf_max_m
-        )?;
+        writeln!(f, "  converged         {} of {} landmarks", self.converged, self.landmarks)?;
+        writeln!(f, "  UKF error         mean {:.2} m, max {:.2} m", self.ukf_mean_m, self.ukf_max_m)?;
         writeln!(
             f,
             "  ground plane      mean {:.2} m, max {:.2} m (the seed's previous method, same data)",
@@ -98,11 +87,7 @@ impl fmt::Display for DemoReport {
             f,
             "  not yet in this demo: rendered frames, SIFT matching, the MAVLink daemon (later issues)"
         )?;
-        writeln!(
-            f,
-            "  result            {}",
-            if self.passed() { "PASS" } else { "FAIL" }
-        )
+        writeln!(f, "  result            {}", if self.passed() { "PASS" } else { "FAIL" })
     }
 }
 
@@ -123,25 +108,15 @@ pub fn run(settings: &Settings, seed: u64) -> anyhow::Result<DemoReport> {
     let area = &settings.area;
     let k: Intrinsics = settings.camera.intrinsics().downscaled(area.downscale);
     let chain = settings.gimbal.chain;
-    let params = UkfParams {
-        alpha: area.ukf_alpha,
-        beta: area.ukf_beta,
-        kappa: area.ukf_kappa,
-    };
+    let params = UkfParams { alpha: area.ukf_alpha, beta: area.ukf_beta, kappa: area.ukf_kappa };
     let r = bearing_noise(area.bearing_noise_deg.to_radians());
     let p0 = Matrix3::identity() * area.init_sigma_m.powi(2);
 
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let unit = Normal::new(0.0, 1.0)?;
-    let truth: Vec<Vec3> = (0..LANDMARKS)
-        .map(|i| shore(i as f64 * std::f64::consts::TAU / LANDMARKS as f64))
-        .collect();
-    let mut tracks: Vec<Track> = (0..LANDMARKS)
-        .map(|_| Track {
-            ukf: None,
-            updates: 0,
-        })
-        .collect();
+    let truth: Vec<Vec3> =
+        (0..LANDMARKS).map(|i| shore(i as f64 * std::f64::consts::TAU / LANDMARKS as f64)).collect();
+    let mut tracks: Vec<Track> = (0..LANDMARKS).map(|_| Track { ukf: None, updates: 0 }).collect();
 
     let lap_s = std::f64::consts::TAU * FLIGHT_RADIUS_M / SPEED_M_S;
     let frames = (lap_s * FRAME_RATE_HZ) as usize;
@@ -150,11 +125,7 @@ pub fn run(settings: &Settings, seed: u64) -> anyhow::Result<DemoReport> {
 
     for frame in 0..frames {
         let phi = frame as f64 / FRAME_RATE_HZ * SPEED_M_S / FLIGHT_RADIUS_M;
-        let position = Vec3::new(
-            FLIGHT_RADIUS_M * phi.cos(),
-            FLIGHT_RADIUS_M * phi.sin(),
-            -ALTITUDE_M,
-        );
+        let position = Vec3::new(FLIGHT_RADIUS_M * phi.cos(), FLIGHT_RADIUS_M * phi.sin(), -ALTITUDE_M);
         // Aim at the nearest point of the shore, as the seed's missions do.
         let Some(true_pose) = CameraPose::looking_at(position, &shore(phi)) else {
             continue;
@@ -163,11 +134,7 @@ pub fn run(settings: &Settings, seed: u64) -> anyhow::Result<DemoReport> {
         // What the vehicle reports: noisy position and gimbal angles.
         let mut sample = |sd: f64| sd * unit.sample(&mut rng);
         let reported_position = position
-            + Vec3::new(
-                sample(POSITION_SD_M[0]),
-                sample(POSITION_SD_M[1]),
-                sample(POSITION_SD_M[2]),
-            );
+            + Vec3::new(sample(POSITION_SD_M[0]), sample(POSITION_SD_M[1]), sample(POSITION_SD_M[2]));
         let reported_angles = GimbalAngles {
             yaw: true_angles.yaw + sample(GIMBAL_SD_DEG.to_radians()),
             pitch: true_angles.pitch + sample(GIMBAL_SD_DEG.to_radians()),
@@ -189,9 +156,7 @@ pub fn run(settings: &Settings, seed: u64) -> anyhow::Result<DemoReport> {
             }
             let b = reported.pixel_bearing(&k, px);
             let z = Vector2::new(b.yaw, b.pitch);
-            let model = BearingModel {
-                observer: reported.position,
-            };
+            let model = BearingModel { observer: reported.position };
             match &mut track.ukf {
                 None => {
                     // Seed sec. 5.3: start from the ground-plane guess, wide covariance.
@@ -246,10 +211,7 @@ fn mean_max(v: &[f64]) -> (f64, f64) {
     if v.is_empty() {
         return (f64::NAN, f64::NAN);
     }
-    (
-        v.iter().sum::<f64>() / v.len() as f64,
-        v.iter().cloned().fold(0.0, f64::max),
-    )
+    (v.iter().sum::<f64>() / v.len() as f64, v.iter().cloned().fold(0.0, f64::max))
 }
 
 #[cfg(test)]

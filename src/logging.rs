@@ -17,14 +17,8 @@ pub fn init(fallback: &str) {
         _ => EnvFilter::try_new(fallback).unwrap_or_else(|_| EnvFilter::new("info")),
     };
     let terminal = std::io::stderr().is_terminal();
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(terminal);
+    let builder =
+        tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(terminal);
     // journald adds its own timestamps; a terminal user wants them.
-    let _ = if terminal {
-        builder.try_init()
-    } else {
-        builder.without_time().try_init()
-    };
+    let _ = if terminal { builder.try_init() } else { builder.without_time().try_init() };
 }

@@ -21,9 +21,7 @@ fn main() -> ExitCode {
 /// The configuration file to use: the one given, else the system one if it exists.
 fn config_file(given: Option<PathBuf>) -> Option<PathBuf> {
     given.or_else(|| {
-        Path::new(settings::SYSTEM_CONFIG)
-            .exists()
-            .then(|| PathBuf::from(settings::SYSTEM_CONFIG))
+        Path::new(settings::SYSTEM_CONFIG).exists().then(|| PathBuf::from(settings::SYSTEM_CONFIG))
     })
 }
 
@@ -39,9 +37,7 @@ fn not_yet(what: &str, issue: u32) -> anyhow::Result<ExitCode> {
 
 fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
-        Command::Config {
-            command: ConfigCommand::Check { file },
-        } => {
+        Command::Config { command: ConfigCommand::Check { file } } => {
             let loaded = load(Some(file.clone()), cli.overrides)?;
             println!(
                 "{}: valid ({} key{} set in the file or overridden)",
@@ -51,9 +47,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Command::Config {
-            command: ConfigCommand::Show,
-        } => {
+        Command::Config { command: ConfigCommand::Show } => {
             let loaded = load(config_file(cli.config), cli.overrides)?;
             print!("{}", settings::render_effective(&loaded));
             Ok(ExitCode::SUCCESS)
@@ -63,11 +57,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             mavloc::logging::init(&loaded.settings.daemon.log);
             let report = mavloc::demo::run(&loaded.settings, args.seed)?;
             print!("{report}");
-            Ok(if report.passed() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::FAILURE
-            })
+            Ok(if report.passed() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }
         Command::Run(args) => {
             let mut overrides = cli.overrides;
@@ -79,12 +69,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             tracing::info!(connection = %loaded.settings.mavlink.connection, "configuration valid");
             not_yet("run (the daemon)", 6)
         }
-        Command::Sim {
-            command: SimCommand::Render(args),
-        } => sim_render(args),
-        Command::Sim {
-            command: SimCommand::Vehicle { .. },
-        } => not_yet("sim vehicle", 7),
+        Command::Sim { command: SimCommand::Render(args) } => sim_render(args),
+        Command::Sim { command: SimCommand::Plan { scenario, out } } => sim_plan(&scenario, out),
+        Command::Sim { command: SimCommand::Vehicle { .. } } => not_yet("sim vehicle", 7),
         Command::Area(_) => not_yet("area", 4),
         Command::Indoor { .. } => not_yet("indoor", 5),
         Command::Eval { .. } => not_yet("eval", 4),
@@ -116,7 +103,20 @@ fn sim_render(args: RenderArgs) -> anyhow::Result<ExitCode> {
     if let Some(rate) = args.drop_rate {
         noise.drop_rate = rate;
     }
+    if args.blur_px.is_some_and(|b| b == 0 || b % 2 == 0) {
+        anyhow::bail!("--blur-px must be an odd number of pixels (1 = no blur)");
+    }
+    let appearance =
+        (args.brightness.is_some() || args.contrast.is_some() || args.blur_px.is_some()).then(|| {
+            mavloc_sim::views::Appearance {
+                brightness: args.brightness.unwrap_or(0.0),
+                contrast: args.contrast.unwrap_or(1.0),
+                blur_px: args.blur_px.unwrap_or(1),
+            }
+        });
     let opts = RenderOptions {
+        views: args.views,
+        appearance,
         frames: args.frames,
         size: args.width.zip(args.height),
         seed: args.seed,
@@ -145,5 +145,22 @@ fn sim_render(args: RenderArgs) -> anyhow::Result<ExitCode> {
         scenario.name,
         start.elapsed().as_secs_f64()
     );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `mavloc sim plan`: the scenario's mission as a QGroundControl plan.
+fn sim_plan(scenario: &str, out: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    use anyhow::anyhow;
+    let scenario = mavloc_sim::Scenario::load(scenario).map_err(|e| anyhow!(e))?;
+    let world = mavloc_sim::World::build(&scenario).map_err(|e| anyhow!(e))?;
+    let mission = mavloc_sim::Mission::plan(&world).map_err(|e| anyhow!(e))?;
+    let text = serde_json::to_string_pretty(&mission.qgc_plan(&world.frame))? + "\n";
+    match out {
+        Some(path) => {
+            std::fs::write(&path, text).map_err(|e| anyhow!("cannot write {}: {e}", path.display()))?;
+            println!("{}: {} waypoints", path.display(), mission.waypoints.len());
+        }
+        None => print!("{text}"),
+    }
     Ok(ExitCode::SUCCESS)
 }

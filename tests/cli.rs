@@ -29,10 +29,7 @@ fn stdout_of(c: &mut Command) -> String {
 fn help_lists_every_subcommand() {
     let out = stdout_of(mavloc().arg("--help"));
     for sub in ["run", "demo", "sim", "area", "indoor", "eval", "config"] {
-        assert!(
-            out.lines().any(|l| l.trim_start().starts_with(sub)),
-            "`{sub}` missing from:\n{out}"
-        );
+        assert!(out.lines().any(|l| l.trim_start().starts_with(sub)), "`{sub}` missing from:\n{out}");
     }
 }
 
@@ -53,11 +50,7 @@ fn documented_config_checks() {
 #[test]
 fn misspelt_key_fails_naming_key_and_file() {
     let f = temp_config("[area]\nukf_alfa = 0.7\n");
-    let a = mavloc()
-        .args(["config", "check"])
-        .arg(f.path())
-        .assert()
-        .failure();
+    let a = mavloc().args(["config", "check"]).arg(f.path()).assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("area.ukf_alfa"), "{err}");
     assert!(err.contains("did you mean `area.ukf_alpha`"), "{err}");
@@ -67,68 +60,38 @@ fn misspelt_key_fails_naming_key_and_file() {
 #[test]
 fn out_of_range_fails_naming_key_value_range_and_file() {
     let f = temp_config("[indoor]\nparticles = 0\n");
-    let a = mavloc()
-        .args(["config", "check"])
-        .arg(f.path())
-        .assert()
-        .failure();
+    let a = mavloc().args(["config", "check"]).arg(f.path()).assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
-    for needle in [
-        "indoor.particles = 0",
-        "1 ..= 100000",
-        &f.path().display().to_string(),
-    ] {
+    for needle in ["indoor.particles = 0", "1 ..= 100000", &f.path().display().to_string()] {
         assert!(err.contains(needle), "`{needle}` missing from: {err}");
     }
 }
 
 #[test]
 fn environment_layer_is_checked_and_named() {
-    let a = mavloc()
-        .args(["config", "show"])
-        .env("MAVLOC_AREA__L_MAX", "many")
-        .assert()
-        .failure();
+    let a = mavloc().args(["config", "show"]).env("MAVLOC_AREA__L_MAX", "many").assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
-    assert!(
-        err.contains("MAVLOC_AREA__L_MAX") && err.contains("expected an integer"),
-        "{err}"
-    );
+    assert!(err.contains("MAVLOC_AREA__L_MAX") && err.contains("expected an integer"), "{err}");
 }
 
 #[test]
 fn show_reports_overrides_with_their_origin() {
-    let out = stdout_of(
-        mavloc()
-            .args(["config", "show", "--set", "area.l_max=300"])
-            .env("MAVLOC_INDOOR__K", "7"),
-    );
+    let out =
+        stdout_of(mavloc().args(["config", "show", "--set", "area.l_max=300"]).env("MAVLOC_INDOOR__K", "7"));
     assert!(out.contains("l_max = 300  # from command line"), "{out}");
-    assert!(
-        out.contains("k = 7  # from environment variable MAVLOC_INDOOR__K"),
-        "{out}"
-    );
+    assert!(out.contains("k = 7  # from environment variable MAVLOC_INDOOR__K"), "{out}");
 }
 
 #[test]
 fn run_refuses_a_bad_mavlink_address() {
-    let a = mavloc()
-        .args(["run", "--mavlink", "udp:14540"])
-        .assert()
-        .failure();
+    let a = mavloc().args(["run", "--mavlink", "udp:14540"]).assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
-    assert!(
-        err.contains("mavlink.connection") && err.contains("unknown scheme"),
-        "{err}"
-    );
+    assert!(err.contains("mavlink.connection") && err.contains("unknown scheme"), "{err}");
 }
 
 #[test]
 fn unfinished_commands_say_so_plainly() {
-    let a = mavloc()
-        .args(["area", "--dataset", "d", "--out", "o"])
-        .assert()
-        .code(2);
+    let a = mavloc().args(["area", "--dataset", "d", "--out", "o"]).assert().code(2);
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("not implemented yet"), "{err}");
 }
@@ -136,8 +99,5 @@ fn unfinished_commands_say_so_plainly() {
 #[test]
 fn demo_prints_its_report() {
     let out = stdout_of(mavloc().args(["demo", "--seed", "2"]));
-    assert!(
-        out.contains("converged") && out.contains("result            PASS"),
-        "{out}"
-    );
+    assert!(out.contains("converged") && out.contains("result            PASS"), "{out}");
 }

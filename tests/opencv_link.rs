@@ -13,9 +13,7 @@ fn blobs(width: i32, height: i32, shift: i32) -> Mat {
     let mut img = Mat::new_rows_cols_with_default(height, width, CV_8UC1, Scalar::all(20.0)).unwrap();
     let mut state = 12345u64;
     let mut next = |m: i32| {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         ((state >> 33) % m as u64) as i32
     };
     for _ in 0..150 {
@@ -38,8 +36,7 @@ fn sift(img: &Mat) -> (Vector<KeyPoint>, Mat) {
     let mut sift = SIFT::create(500, 3, 0.04, 10.0, 1.6).unwrap();
     let mut kps = Vector::<KeyPoint>::new();
     let mut desc = Mat::default();
-    sift.detect_and_compute(img, &core::no_array(), &mut kps, &mut desc, false)
-        .unwrap();
+    sift.detect_and_compute(img, &core::no_array(), &mut kps, &mut desc, false).unwrap();
     (kps, desc)
 }
 
@@ -52,9 +49,7 @@ fn sift_detects_and_ratio_test_matches_a_shifted_view() {
 
     let matcher = BFMatcher::create(core::NORM_L2, false).unwrap();
     let mut knn = Vector::<Vector<core::DMatch>>::new();
-    matcher
-        .knn_train_match(&a_desc, &b_desc, &mut knn, 2, &core::no_array(), false)
-        .unwrap();
+    matcher.knn_train_match(&a_desc, &b_desc, &mut knn, 2, &core::no_array(), false).unwrap();
     let mut good = 0;
     let mut consistent = 0;
     for pair in knn.iter() {
@@ -69,8 +64,5 @@ fn sift_detects_and_ratio_test_matches_a_shifted_view() {
         }
     }
     assert!(good > 20, "only {good} ratio-test matches");
-    assert!(
-        consistent * 10 >= good * 9,
-        "{consistent} of {good} matches agree with the 7 px shift"
-    );
+    assert!(consistent * 10 >= good * 9, "{consistent} of {good} matches agree with the 7 px shift");
 }

@@ -10,10 +10,7 @@ use opencv::prelude::*;
 
 fn to_mat(data: &[u8], w: u32, h: u32, channels: i32) -> Mat {
     let flat = Mat::from_slice(data).unwrap();
-    flat.reshape(channels, h as i32)
-        .unwrap()
-        .try_clone()
-        .unwrap_or_else(|_| panic!("{w}x{h}"))
+    flat.reshape(channels, h as i32).unwrap().try_clone().unwrap_or_else(|_| panic!("{w}x{h}"))
 }
 
 /// Band of `width` px around the target area: dilate(mask) - mask.
@@ -63,13 +60,10 @@ fn sift_matches_consecutive_coastline_frames_in_the_border_band() {
         let band = band(&mask, 25);
         let mut kps = Vector::<KeyPoint>::new();
         let mut desc = Mat::default();
-        sift.detect_and_compute(&grey, &band, &mut kps, &mut desc, false)
-            .unwrap();
+        sift.detect_and_compute(&grey, &band, &mut kps, &mut desc, false).unwrap();
         if let Some(prev) = &previous {
             let mut knn = Vector::<Vector<core::DMatch>>::new();
-            matcher
-                .knn_train_match(prev, &desc, &mut knn, 2, &core::no_array(), false)
-                .unwrap();
+            matcher.knn_train_match(prev, &desc, &mut knn, 2, &core::no_array(), false).unwrap();
             let good = knn
                 .iter()
                 .filter(|p| p.len() == 2 && p.get(0).unwrap().distance < 0.5 * p.get(1).unwrap().distance)

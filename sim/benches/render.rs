@@ -12,9 +12,7 @@ fn render(c: &mut Criterion) {
         let renderer = Renderer::new(&world);
         let k = scenario.intrinsics().downscaled(2);
         let pose = mission.camera_pose(&mission.state(20.0));
-        c.bench_function(&format!("render_960x540_{name}"), |b| {
-            b.iter(|| renderer.render(&pose, &k))
-        });
+        c.bench_function(&format!("render_960x540_{name}"), |b| b.iter(|| renderer.render(&pose, &k)));
     }
 }
 

@@ -59,9 +59,7 @@ impl PoseRecord {
         let a = self.attitude_deg.map(f64::to_radians);
         let mount = match frame {
             GimbalFrame::Earth => Mount::Earth,
-            GimbalFrame::Body => Mount::Body {
-                attitude: body_rotation(a[0], a[1], a[2]),
-            },
+            GimbalFrame::Body => Mount::Body { attitude: body_rotation(a[0], a[1], a[2]) },
         };
         CameraPose::from_gimbal(self.position(), chain, self.gimbal(), mount)
     }
@@ -70,11 +68,7 @@ impl PoseRecord {
         PoseRecord {
             position: s.position.into(),
             attitude_deg: s.attitude.map(f64::to_degrees),
-            gimbal_deg: [
-                s.gimbal.yaw.to_degrees(),
-                s.gimbal.pitch.to_degrees(),
-                s.gimbal.roll.to_degrees(),
-            ],
+            gimbal_deg: [s.gimbal.yaw.to_degrees(), s.gimbal.pitch.to_degrees(), s.gimbal.roll.to_degrees()],
             velocity: s.velocity.into(),
         }
     }
@@ -92,6 +86,9 @@ pub struct TelemetryRecord {
     pub truth: PoseRecord,
     /// The pose as the vehicle reported it: noise, offsets and gimbal lag applied.
     pub measured: PoseRecord,
+    /// Photometric change applied to the frame, when there was one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance: Option<crate::views::Appearance>,
 }
 
 /// `camera.toml`.
@@ -134,6 +131,11 @@ pub struct RenderOptions {
     pub noise: Option<NoiseSpec>,
     /// Overwrite a non-empty output folder.
     pub force: bool,
+    /// Render this many random labelled views (indoor seed sec. 3.4.2) instead of the
+    /// mission's flight. Indoor scenarios only.
+    pub views: Option<usize>,
+    /// Photometric change for every frame of a flight (brightness, contrast, blur).
+    pub appearance: Option<crate::views::Appearance>,
 }
 
 /// What a render produced.
@@ -157,11 +159,7 @@ fn write_png(path: &Path, width: u32, height: u32, data: &[u8], colour: bool) ->
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     use image::ImageEncoder;
     let mut buf = Vec::new();
-    let kind = if colour {
-        image::ExtendedColorType::Rgb8
-    } else {
-        image::ExtendedColorType::L8
-    };
+    let kind = if colour { image::ExtendedColorType::Rgb8 } else { image::ExtendedColorType::L8 };
     PngEncoder::new_with_quality(&mut buf, CompressionType::Fast, FilterType::Sub)
         .write_image(data, width, height, kind)
         .map_err(|e| format!("cannot encode {}: {e}", path.display()))?;
@@ -189,15 +187,10 @@ pub fn render_dataset(
     }
     scenario.validate()?;
     if out.exists() {
-        let non_empty = fs::read_dir(out)
-            .map_err(|e| format!("cannot read {}: {e}", out.display()))?
-            .next()
-            .is_some();
+        let non_empty =
+            fs::read_dir(out).map_err(|e| format!("cannot read {}: {e}", out.display()))?.next().is_some();
         if non_empty && !opts.force {
-            return Err(format!(
-                "{} is not empty; pass --force to overwrite it",
-                out.display()
-            ));
+            return Err(format!("{} is not empty; pass --force to overwrite it", out.display()));
         }
     }
     for sub in ["frames", "masks"] {
@@ -210,7 +203,6 @@ pub fn render_dataset(
     let mission = Mission::plan(&world)?;
     let renderer = Renderer::new(&world);
     let k = scenario.intrinsics();
-    let total = opts.frames.unwrap_or(usize::MAX).min(mission.frame_count());
 
     // Static files first; telemetry last marks completeness.
     let camera = CameraFile {
@@ -224,10 +216,7 @@ pub fn render_dataset(
         gimbal_frame: mission.gimbal_frame,
         origin: scenario.origin,
     };
-    write_atomic(
-        &out.join("camera.toml"),
-        toml::to_string(&camera).map_err(|e| e.to_string())?.as_bytes(),
-    )?;
+    write_atomic(&out.join("camera.toml"), toml::to_string(&camera).map_err(|e| e.to_string())?.as_bytes())?;
     write_atomic(
         &out.join("scenario.toml"),
         toml::to_string(&scenario).map_err(|e| e.to_string())?.as_bytes(),
@@ -239,39 +228,48 @@ pub fn render_dataset(
     let noise = &scenario.noise;
     let mut rng = rand::rngs::StdRng::seed_from_u64(scenario.seed ^ 0x5eed);
     let unit = Normal::new(0.0, 1.0).map_err(|e| e.to_string())?;
+    // What to render: the mission's flight, or random views.
+    let shots: Vec<(State, Option<crate::views::Appearance>)> = match opts.views {
+        Some(count) => {
+            if mission.gimbal_frame != GimbalFrame::Body {
+                return Err(format!("--views is for indoor scenarios; {} flies a mission", scenario.name));
+            }
+            let spec = scenario.views.clone().unwrap_or_default();
+            crate::views::random_views(&spec, count, scenario.seed)
+                .into_iter()
+                .map(|(s, a)| (s, Some(a)))
+                .collect()
+        }
+        None => {
+            let total = opts.frames.unwrap_or(usize::MAX).min(mission.frame_count());
+            (0..total).map(|i| (mission.state(i as f64 / mission.frame_rate), opts.appearance)).collect()
+        }
+    };
+    let total = shots.len();
     let mut lines = String::new();
     let mut dropped = 0;
     let mut written = 0;
-    for i in 0..total {
-        let t = i as f64 / mission.frame_rate;
-        let truth = mission.state(t);
+    for (i, (truth, appearance)) in shots.iter().enumerate() {
         if noise.drop_rate > 0.0 && rand::Rng::random::<f64>(&mut rng) < noise.drop_rate {
             dropped += 1;
             progress(i + 1, total);
             continue;
         }
-        let frame = renderer.render(&mission.camera_pose(&truth), &k);
+        let mut frame = renderer.render(&mission.camera_pose(truth), &k);
+        let appearance = appearance.filter(|a| !a.is_identity());
+        if let Some(a) = appearance {
+            a.apply(frame.width as usize, frame.height as usize, &mut frame.rgb);
+        }
         let name = format!("{i:06}.png");
-        write_png(
-            &out.join("frames").join(&name),
-            frame.width,
-            frame.height,
-            &frame.rgb,
-            true,
-        )?;
-        write_png(
-            &out.join("masks").join(&name),
-            frame.width,
-            frame.height,
-            &frame.mask,
-            false,
-        )?;
-        let measured = measure(&mission, &truth, noise, &mut rng, &unit);
+        write_png(&out.join("frames").join(&name), frame.width, frame.height, &frame.rgb, true)?;
+        write_png(&out.join("masks").join(&name), frame.width, frame.height, &frame.mask, false)?;
+        let measured = measure(&mission, truth, noise, opts.views.is_none(), &mut rng, &unit);
         let record = TelemetryRecord {
             frame: i as u64,
-            t,
-            truth: PoseRecord::from_state(&truth),
+            t: truth.t,
+            truth: PoseRecord::from_state(truth),
             measured,
+            appearance,
         };
         lines.push_str(&serde_json::to_string(&record).map_err(|e| e.to_string())?);
         lines.push('\n');
@@ -279,24 +277,22 @@ pub fn render_dataset(
         progress(i + 1, total);
     }
     write_atomic(&out.join("telemetry.jsonl"), lines.as_bytes())?;
-    Ok(RenderSummary {
-        frames: written,
-        dropped,
-        dir: out.to_path_buf(),
-    })
+    Ok(RenderSummary { frames: written, dropped, dir: out.to_path_buf() })
 }
 
 /// What the vehicle reports for a true state: position noise, the gimbal attitude of
-/// `gimbal_lag_s` earlier with static offsets and noise.
+/// `gimbal_lag_s` earlier with static offsets and noise. Random views have no flight to
+/// lag along (`on_flight` false).
 fn measure(
     mission: &Mission,
     truth: &State,
     noise: &NoiseSpec,
+    on_flight: bool,
     rng: &mut impl rand::Rng,
     unit: &Normal<f64>,
 ) -> PoseRecord {
     let mut sample = |sd: f64| if sd > 0.0 { sd * unit.sample(rng) } else { 0.0 };
-    let lagged = if noise.gimbal_lag_s > 0.0 {
+    let lagged = if noise.gimbal_lag_s > 0.0 && on_flight {
         mission.state(truth.t - noise.gimbal_lag_s)
     } else {
         *truth
@@ -337,16 +333,9 @@ fn write_ground_truth(out: &Path, frame: &LocalFrame, lines: &[Vec<Vec3>]) -> Re
             foreign_members: None,
         });
     }
-    let fc = geojson::FeatureCollection {
-        bbox: None,
-        features,
-        foreign_members: None,
-    };
+    let fc = geojson::FeatureCollection { bbox: None, features, foreign_members: None };
     write_atomic(&out.join("ground_truth.csv"), csv.as_bytes())?;
-    write_atomic(
-        &out.join("ground_truth.geojson"),
-        geojson::GeoJson::from(fc).to_string().as_bytes(),
-    )
+    write_atomic(&out.join("ground_truth.geojson"), geojson::GeoJson::from(fc).to_string().as_bytes())
 }
 
 /// A dataset opened for reading.
@@ -368,18 +357,11 @@ impl Dataset {
         };
         let camera: CameraFile = toml::from_str(&read("camera.toml")?)
             .map_err(|e| format!("{}: {e}", dir.join("camera.toml").display()))?;
-        camera
-            .intrinsics()
-            .validate()
-            .map_err(|e| format!("{}: {e}", dir.join("camera.toml").display()))?;
+        camera.intrinsics().validate().map_err(|e| format!("{}: {e}", dir.join("camera.toml").display()))?;
 
         let tpath = dir.join("telemetry.jsonl");
-        let f = fs::File::open(&tpath).map_err(|e| {
-            format!(
-                "{}: {e} (an interrupted render leaves no telemetry)",
-                tpath.display()
-            )
-        })?;
+        let f = fs::File::open(&tpath)
+            .map_err(|e| format!("{}: {e} (an interrupted render leaves no telemetry)", tpath.display()))?;
         let mut records = Vec::new();
         for (n, line) in std::io::BufReader::new(f).lines().enumerate() {
             let line = line.map_err(|e| format!("{}: {e}", tpath.display()))?;
@@ -396,13 +378,8 @@ impl Dataset {
         if gpath.exists() {
             for (n, line) in read("ground_truth.csv")?.lines().enumerate().skip(1) {
                 let cols: Vec<&str> = line.split(',').collect();
-                let bad = || {
-                    format!(
-                        "{} line {}: expected line,index,north,east,down,...",
-                        gpath.display(),
-                        n + 1
-                    )
-                };
+                let bad =
+                    || format!("{} line {}: expected line,index,north,east,down,...", gpath.display(), n + 1);
                 if cols.len() < 5 {
                     return Err(bad());
                 }
@@ -418,12 +395,7 @@ impl Dataset {
                 ground_truth[li].push(Vec3::new(p[0], p[1], p[2]));
             }
         }
-        Ok(Dataset {
-            dir: dir.to_path_buf(),
-            camera,
-            records,
-            ground_truth,
-        })
+        Ok(Dataset { dir: dir.to_path_buf(), camera, records, ground_truth })
     }
 
     pub fn frame_path(&self, r: &TelemetryRecord) -> PathBuf {

@@ -6,6 +6,7 @@
 //! * [`world`]: worlds built from scenarios: terrain, appearance, target area, ground truth.
 //! * [`render`]: the camera renderer (RGB frame + target mask), sharing the geometry crate.
 //! * [`mission`]: flights along the border (area) or over the floor (indoor); QGC plans.
+//! * [`views`]: random labelled views and photometric changes (indoor seed sec. 3.4.2).
 //! * [`dataset`]: the dataset format on disk, written by `render_dataset`, read by `Dataset`.
 
 pub mod dataset;
@@ -14,6 +15,7 @@ pub mod render;
 pub mod scenario;
 pub mod terrain;
 pub mod texture;
+pub mod views;
 pub mod world;
 
 pub use dataset::{render_dataset, Dataset, RenderOptions};

@@ -145,18 +145,10 @@ impl Mission {
 
     fn position_at(&self, t: f64) -> Vec3 {
         let s = (t * self.speed).rem_euclid(self.lap_length());
-        let k = self
-            .cumulative
-            .partition_point(|&c| c <= s)
-            .saturating_sub(1)
-            .min(self.waypoints.len() - 1);
+        let k = self.cumulative.partition_point(|&c| c <= s).saturating_sub(1).min(self.waypoints.len() - 1);
         let (a, b) = (self.waypoints[k], self.waypoints[(k + 1) % self.waypoints.len()]);
         let seg = self.cumulative[k + 1] - self.cumulative[k];
-        let f = if seg > 0.0 {
-            (s - self.cumulative[k]) / seg
-        } else {
-            0.0
-        };
+        let f = if seg > 0.0 { (s - self.cumulative[k]) / seg } else { 0.0 };
         a + (b - a) * f
     }
 
@@ -171,22 +163,10 @@ impl Mission {
                 let target = crate::world::nearest_on_polylines(&self.border, &position)
                     .map(|(q, _)| q)
                     .unwrap_or(Vec3::new(position.x, position.y, 0.0));
-                let b = Bearing::from_direction(&(target - position)).unwrap_or(Bearing {
-                    yaw: heading,
-                    pitch: -PI / 2.0,
-                });
-                let gimbal = GimbalAngles {
-                    yaw: b.yaw,
-                    pitch: b.pitch,
-                    roll: 0.0,
-                };
-                State {
-                    t,
-                    position,
-                    velocity,
-                    attitude: [0.0, 0.0, heading],
-                    gimbal,
-                }
+                let b = Bearing::from_direction(&(target - position))
+                    .unwrap_or(Bearing { yaw: heading, pitch: -PI / 2.0 });
+                let gimbal = GimbalAngles { yaw: b.yaw, pitch: b.pitch, roll: 0.0 };
+                State { t, position, velocity, attitude: [0.0, 0.0, heading], gimbal }
             }
             GimbalFrame::Body => {
                 // Tilt from acceleration (a quadrotor leans into it) plus a slow wobble;
@@ -209,18 +189,8 @@ impl Mission {
                     position.y.clamp(-self.floor_half, self.floor_half),
                     position.z,
                 );
-                let gimbal = GimbalAngles {
-                    yaw: 0.0,
-                    pitch: -PI / 2.0,
-                    roll: 0.0,
-                };
-                State {
-                    t,
-                    position,
-                    velocity,
-                    attitude: [roll, pitch, yaw],
-                    gimbal,
-                }
+                let gimbal = GimbalAngles { yaw: 0.0, pitch: -PI / 2.0, roll: 0.0 };
+                State { t, position, velocity, attitude: [roll, pitch, yaw], gimbal }
             }
         }
     }
@@ -230,9 +200,9 @@ impl Mission {
         use mavloc_geometry::{body_rotation, CameraPose, Mount};
         let mount = match self.gimbal_frame {
             GimbalFrame::Earth => Mount::Earth,
-            GimbalFrame::Body => Mount::Body {
-                attitude: body_rotation(s.attitude[0], s.attitude[1], s.attitude[2]),
-            },
+            GimbalFrame::Body => {
+                Mount::Body { attitude: body_rotation(s.attitude[0], s.attitude[1], s.attitude[2]) }
+            }
         };
         CameraPose::from_gimbal(s.position, self.chain, s.gimbal, mount)
     }
@@ -261,29 +231,13 @@ impl Mission {
         push(
             MAV_CMD_NAV_TAKEOFF,
             3,
-            [
-                Some(0.0),
-                Some(0.0),
-                Some(0.0),
-                None,
-                Some(home.lat_deg),
-                Some(home.lon_deg),
-                Some(first_alt),
-            ],
+            [Some(0.0), Some(0.0), Some(0.0), None, Some(home.lat_deg), Some(home.lon_deg), Some(first_alt)],
             Some(first_alt),
         );
         push(
             MAV_CMD_DO_CHANGE_SPEED,
             2,
-            [
-                Some(1.0),
-                Some(self.speed),
-                Some(-1.0),
-                Some(0.0),
-                Some(0.0),
-                Some(0.0),
-                Some(0.0),
-            ],
+            [Some(1.0), Some(self.speed), Some(-1.0), Some(0.0), Some(0.0), Some(0.0), Some(0.0)],
             None,
         );
         for (wp, roi) in self.waypoints.iter().zip(&self.rois) {
@@ -293,30 +247,14 @@ impl Mission {
             push(
                 MAV_CMD_DO_SET_ROI_LOCATION,
                 3,
-                [
-                    Some(0.0),
-                    Some(0.0),
-                    Some(0.0),
-                    Some(0.0),
-                    Some(r.lat_deg),
-                    Some(r.lon_deg),
-                    Some(roi_alt),
-                ],
+                [Some(0.0), Some(0.0), Some(0.0), Some(0.0), Some(r.lat_deg), Some(r.lon_deg), Some(roi_alt)],
                 None,
             );
             let alt = -wp.z;
             push(
                 MAV_CMD_NAV_WAYPOINT,
                 3,
-                [
-                    Some(0.0),
-                    Some(0.0),
-                    Some(0.0),
-                    None,
-                    Some(w.lat_deg),
-                    Some(w.lon_deg),
-                    Some(alt),
-                ],
+                [Some(0.0), Some(0.0), Some(0.0), None, Some(w.lat_deg), Some(w.lon_deg), Some(alt)],
                 Some(alt),
             );
         }
@@ -466,14 +404,8 @@ mod tests {
         assert_eq!(v["mission"]["version"], 2);
         let items = v["mission"]["items"].as_array().unwrap();
         assert_eq!(items[0]["command"], MAV_CMD_NAV_TAKEOFF);
-        let waypoints = items
-            .iter()
-            .filter(|i| i["command"] == MAV_CMD_NAV_WAYPOINT)
-            .count();
-        let rois = items
-            .iter()
-            .filter(|i| i["command"] == MAV_CMD_DO_SET_ROI_LOCATION)
-            .count();
+        let waypoints = items.iter().filter(|i| i["command"] == MAV_CMD_NAV_WAYPOINT).count();
+        let rois = items.iter().filter(|i| i["command"] == MAV_CMD_DO_SET_ROI_LOCATION).count();
         assert_eq!(waypoints, m.waypoints.len());
         assert_eq!(rois, waypoints);
         for item in items {
@@ -481,10 +413,7 @@ mod tests {
             assert_eq!(item["params"].as_array().unwrap().len(), 7);
         }
         // Waypoints are near the origin in WGS84.
-        let wp = items
-            .iter()
-            .find(|i| i["command"] == MAV_CMD_NAV_WAYPOINT)
-            .unwrap();
+        let wp = items.iter().find(|i| i["command"] == MAV_CMD_NAV_WAYPOINT).unwrap();
         let lat = wp["params"][4].as_f64().unwrap();
         assert!((lat - world.scenario.origin.lat_deg).abs() < 0.01);
     }

@@ -39,6 +39,8 @@ pub struct Renderer<'w> {
     vertices: Vec<Vec3>,
     rows: usize,
     cols: usize,
+    /// Sun lighting of each triangle (two per cell), fixed for the world.
+    light: Vec<f32>,
     pub markers: Vec<Marker>,
 }
 
@@ -63,6 +65,7 @@ struct ScreenVert {
 #[derive(Clone, Copy, Debug)]
 struct Prepared {
     v: [ScreenVert; 3],
+    light: f32,
     area: f64,
     x0: i64,
     x1: i64,
@@ -75,6 +78,7 @@ struct Texel {
     inv_z: f32,
     n: f32,
     e: f32,
+    light: f32,
 }
 
 impl<'w> Renderer<'w> {
@@ -86,14 +90,26 @@ impl<'w> Renderer<'w> {
                 let v = t.vertex(i, j);
                 world.surface_point(v.x, v.y)
             })
+            .collect::<Vec<Vec3>>();
+        let (rows, cols) = (t.rows, t.cols);
+        let light = (0..(rows - 1) * (cols - 1) * 2)
+            .map(|k| {
+                let (cell, second) = (k / 2, k % 2 == 1);
+                let (i, j) = (cell / (cols - 1), cell % (cols - 1));
+                let at = |i: usize, j: usize| vertices[i * cols + j];
+                let (a, b, c) = if second {
+                    (at(i, j), at(i + 1, j + 1), at(i, j + 1))
+                } else {
+                    (at(i, j), at(i + 1, j), at(i + 1, j + 1))
+                };
+                let mut normal = (b - a).cross(&(c - a)).normalize();
+                if normal.z > 0.0 {
+                    normal = -normal; // upward is negative down
+                }
+                world.light(&normal)
+            })
             .collect();
-        Renderer {
-            world,
-            vertices,
-            rows: t.rows,
-            cols: t.cols,
-            markers: Vec::new(),
-        }
+        Renderer { world, vertices, rows, cols, light, markers: Vec::new() }
     }
 
     /// Renders the view of a camera with intrinsics `k` at `pose`.
@@ -106,53 +122,41 @@ impl<'w> Renderer<'w> {
         let bands = (rayon::current_num_threads() * 4).clamp(1, h);
         let band_rows = h.div_ceil(bands);
         let mut gbuf = vec![Texel::default(); w * h];
-        gbuf.par_chunks_mut(band_rows * w)
-            .enumerate()
-            .for_each(|(b, chunk)| {
-                let y0 = (b * band_rows) as i64;
-                let y1 = y0 + (chunk.len() / w) as i64 - 1;
-                for t in &tris {
-                    if t.y1 < y0 || t.y0 > y1 {
-                        continue;
-                    }
-                    raster(t, y0.max(t.y0), y1.min(t.y1), y0, w, chunk);
+        gbuf.par_chunks_mut(band_rows * w).enumerate().for_each(|(b, chunk)| {
+            let y0 = (b * band_rows) as i64;
+            let y1 = y0 + (chunk.len() / w) as i64 - 1;
+            for t in &tris {
+                if t.y1 < y0 || t.y0 > y1 {
+                    continue;
                 }
-            });
+                raster(t, y0.max(t.y0), y1.min(t.y1), y0, w, chunk);
+            }
+        });
 
         let mut rgb = vec![0u8; w * h * 3];
         let mut mask = vec![0u8; w * h];
         let fx = k.fx;
-        rgb.par_chunks_mut(w * 3)
-            .zip(mask.par_chunks_mut(w))
-            .enumerate()
-            .for_each(|(y, (row, mrow))| {
-                for x in 0..w {
-                    let g = gbuf[y * w + x];
-                    let (colour, target) = if g.inv_z > 0.0 {
-                        let (n, e) = (g.n as f64, g.e as f64);
-                        // Ground footprint of the pixel: its size at that depth, stretched by
-                        // the slant (bounded so grazing views do not blur to nothing).
-                        let depth = 1.0 / g.inv_z as f64;
-                        let footprint = depth / fx * 1.5;
-                        let colour = self
-                            .marker_at(n, e)
-                            .unwrap_or_else(|| self.world.shade(n, e, footprint));
-                        (colour, self.world.is_target(n, e))
-                    } else {
-                        (self.world.sky(), false)
-                    };
-                    for c in 0..3 {
-                        row[3 * x + c] = colour[c].round().clamp(0.0, 255.0) as u8;
-                    }
-                    mrow[x] = if target { 255 } else { 0 };
+        rgb.par_chunks_mut(w * 3).zip(mask.par_chunks_mut(w)).enumerate().for_each(|(y, (row, mrow))| {
+            for x in 0..w {
+                let g = gbuf[y * w + x];
+                let (colour, target) = if g.inv_z > 0.0 {
+                    let (n, e) = (g.n as f64, g.e as f64);
+                    // Ground footprint of the pixel: its size at that depth, stretched by
+                    // the slant (bounded so grazing views do not blur to nothing).
+                    let depth = 1.0 / g.inv_z as f64;
+                    let footprint = depth / fx * 1.5;
+                    let (colour, target) = self.world.shade_pixel(n, e, footprint, g.light);
+                    (self.marker_at(n, e).unwrap_or(colour), target)
+                } else {
+                    (self.world.sky(), false)
+                };
+                for c in 0..3 {
+                    row[3 * x + c] = colour[c].round().clamp(0.0, 255.0) as u8;
                 }
-            });
-        Frame {
-            width: k.width,
-            height: k.height,
-            rgb,
-            mask,
-        }
+                mrow[x] = if target { 255 } else { 0 };
+            }
+        });
+        Frame { width: k.width, height: k.height, rgb, mask }
     }
 
     fn marker_at(&self, n: f64, e: f64) -> Option<[f32; 3]> {
@@ -165,84 +169,71 @@ impl<'w> Renderer<'w> {
     /// Clips, projects and bounds every triangle that can appear on screen.
     fn prepare(&self, cam: &[Vec3], k: &Intrinsics) -> Vec<Prepared> {
         let (w, h) = (k.width as i64, k.height as i64);
-        let cells: Vec<(usize, usize)> = (0..self.rows - 1)
-            .flat_map(|i| (0..self.cols - 1).map(move |j| (i, j)))
-            .collect();
-        cells
-            .par_iter()
-            .flat_map_iter(|&(i, j)| {
-                let idx = |i: usize, j: usize| i * self.cols + j;
+        let cols = self.cols;
+        (0..self.rows - 1)
+            .into_par_iter()
+            .fold(Vec::new, |mut out, i| {
                 let corner = |i: usize, j: usize| {
-                    let p = self.vertices[idx(i, j)];
-                    ClipVert {
-                        cam: cam[idx(i, j)],
-                        n: p.x,
-                        e: p.y,
-                    }
+                    let p = self.vertices[i * cols + j];
+                    ClipVert { cam: cam[i * cols + j], n: p.x, e: p.y }
                 };
-                let (a, b, c, d) = (
-                    corner(i, j),
-                    corner(i + 1, j),
-                    corner(i + 1, j + 1),
-                    corner(i, j + 1),
-                );
-                let mut out = Vec::new();
-                for tri in [[a, b, c], [a, c, d]] {
-                    if tri.iter().all(|v| v.cam.z < NEAR) {
-                        continue;
-                    }
-                    let poly = clip_near(&tri);
-                    for f in 1..poly.len().saturating_sub(1) {
-                        if let Some(p) = setup([poly[0], poly[f], poly[f + 1]], k, w, h) {
-                            out.push(p);
+                for j in 0..cols - 1 {
+                    let (a, b, c, d) =
+                        (corner(i, j), corner(i + 1, j), corner(i + 1, j + 1), corner(i, j + 1));
+                    let cell = i * (cols - 1) + j;
+                    for (t, tri) in [[a, b, c], [a, c, d]].into_iter().enumerate() {
+                        if tri.iter().all(|v| v.cam.z < NEAR) {
+                            continue;
+                        }
+                        let light = self.light[2 * cell + t];
+                        let (poly, len) = clip_near(&tri);
+                        for f in 1..len.saturating_sub(1) {
+                            if let Some(p) = setup([poly[0], poly[f], poly[f + 1]], light, k, w, h) {
+                                out.push(p);
+                            }
                         }
                     }
                 }
-                out.into_iter()
+                out
             })
-            .collect()
+            .reduce(Vec::new, |mut a, mut b| {
+                a.append(&mut b);
+                a
+            })
     }
 }
 
-/// Sutherland-Hodgman clip of a triangle against `z >= NEAR` in camera space.
-fn clip_near(tri: &[ClipVert; 3]) -> Vec<ClipVert> {
-    let mut out = Vec::with_capacity(4);
+/// Sutherland-Hodgman clip of a triangle against `z >= NEAR` in camera space: at most
+/// four vertices, kept on the stack.
+fn clip_near(tri: &[ClipVert; 3]) -> ([ClipVert; 4], usize) {
+    let mut out = [tri[0]; 4];
+    let mut len = 0;
     for i in 0..3 {
         let (a, b) = (tri[i], tri[(i + 1) % 3]);
         let (ina, inb) = (a.cam.z >= NEAR, b.cam.z >= NEAR);
         if ina {
-            out.push(a);
+            out[len] = a;
+            len += 1;
         }
         if ina != inb {
             let t = (NEAR - a.cam.z) / (b.cam.z - a.cam.z);
-            out.push(ClipVert {
+            out[len] = ClipVert {
                 cam: a.cam + (b.cam - a.cam) * t,
                 n: a.n + (b.n - a.n) * t,
                 e: a.e + (b.e - a.e) * t,
-            });
+            };
+            len += 1;
         }
     }
-    out
+    (out, len)
 }
 
-fn setup(tri: [ClipVert; 3], k: &Intrinsics, w: i64, h: i64) -> Option<Prepared> {
-    let mut v = [ScreenVert {
-        u: 0.0,
-        v: 0.0,
-        inv_z: 0.0,
-        n_z: 0.0,
-        e_z: 0.0,
-    }; 3];
+fn setup(tri: [ClipVert; 3], light: f32, k: &Intrinsics, w: i64, h: i64) -> Option<Prepared> {
+    let mut v = [ScreenVert { u: 0.0, v: 0.0, inv_z: 0.0, n_z: 0.0, e_z: 0.0 }; 3];
     for (s, c) in v.iter_mut().zip(tri.iter()) {
         let px = k.project_camera(&c.cam)?;
         let iz = 1.0 / c.cam.z;
-        *s = ScreenVert {
-            u: px.u,
-            v: px.v,
-            inv_z: iz,
-            n_z: c.n * iz,
-            e_z: c.e * iz,
-        };
+        *s = ScreenVert { u: px.u, v: px.v, inv_z: iz, n_z: c.n * iz, e_z: c.e * iz };
     }
     let area = edge(&v[0], &v[1], v[2].u, v[2].v);
     if area.abs() < 1e-12 {
@@ -255,14 +246,7 @@ fn setup(tri: [ClipVert; 3], k: &Intrinsics, w: i64, h: i64) -> Option<Prepared>
     let x1 = (max(|s| s.u).floor() as i64).min(w - 1);
     let y0 = (min(|s| s.v).ceil() as i64).max(0);
     let y1 = (max(|s| s.v).floor() as i64).min(h - 1);
-    (x0 <= x1 && y0 <= y1).then_some(Prepared {
-        v,
-        area,
-        x0,
-        x1,
-        y0,
-        y1,
-    })
+    (x0 <= x1 && y0 <= y1).then_some(Prepared { v, light, area, x0, x1, y0, y1 })
 }
 
 fn edge(a: &ScreenVert, b: &ScreenVert, x: f64, y: f64) -> f64 {
@@ -290,11 +274,7 @@ fn raster(t: &Prepared, ya: i64, yb: i64, band_y0: i64, w: usize, band: &mut [Te
             if inv_z as f32 > texel.inv_z {
                 let n = (w0 * a.n_z + w1 * b.n_z + w2 * c.n_z) / inv_z;
                 let e = (w0 * a.e_z + w1 * b.e_z + w2 * c.e_z) / inv_z;
-                *texel = Texel {
-                    inv_z: inv_z as f32,
-                    n: n as f32,
-                    e: e as f32,
-                };
+                *texel = Texel { inv_z: inv_z as f32, n: n as f32, e: e as f32, light: t.light };
             }
         }
     }
@@ -319,17 +299,11 @@ mod tests {
             let world = World::build(&scenario).unwrap();
             let mut renderer = Renderer::new(&world);
             let k = small(&scenario.intrinsics());
-            for (n, e, yaw, pitch) in [
-                (-50.0, 30.0, 20.0, -60.0),
-                (40.0, -70.0, -150.0, -35.0),
-                (0.0, 0.0, 90.0, -89.0),
-            ] {
+            for (n, e, yaw, pitch) in
+                [(-50.0, 30.0, 20.0, -60.0), (40.0, -70.0, -150.0, -35.0), (0.0, 0.0, 90.0, -89.0)]
+            {
                 let centre = world.surface_point(n, e);
-                renderer.markers = vec![Marker {
-                    centre,
-                    radius_m: 0.35,
-                    rgb: [255, 0, 255],
-                }];
+                renderer.markers = vec![Marker { centre, radius_m: 0.35, rgb: [255, 0, 255] }];
                 // Camera 30 m above and back along the view direction.
                 let angles = GimbalAngles::from_degrees(yaw, pitch, 0.0);
                 let dir = GimbalChain::YawPitchRoll.rotation(angles) * Vec3::x();
@@ -363,6 +337,32 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn body_mounted_nadir_camera_has_north_up() {
+        let scenario = Scenario::load("indoor-floor").unwrap();
+        let world = World::build(&scenario).unwrap();
+        let mut renderer = Renderer::new(&world);
+        let k = Intrinsics::from_hfov(64, 48, 70f64.to_radians());
+        let centre = Vec3::new(1.0, 2.0, 0.0);
+        renderer.markers =
+            vec![Marker { centre: centre + Vec3::new(0.3, 0.0, 0.0), radius_m: 0.05, rgb: [255, 0, 255] }];
+        let attitude = mavloc_geometry::body_rotation(0.0, 0.0, 0.0);
+        let pose = CameraPose::from_gimbal(
+            centre - Vec3::new(0.0, 0.0, 1.0),
+            GimbalChain::YawPitchRoll,
+            GimbalAngles::from_degrees(0.0, -90.0, 0.0),
+            Mount::Body { attitude },
+        );
+        let frame = renderer.render(&pose, &k);
+        let hits: Vec<(usize, usize)> = (0..48 * 64)
+            .filter(|i| frame.rgb[3 * i..3 * i + 3] == [255, 0, 255])
+            .map(|i| (i % 64, i / 64))
+            .collect();
+        assert!(!hits.is_empty());
+        let (u, v) = hits[hits.len() / 2];
+        assert!(v < 20 && (u as i64 - 32).abs() <= 2, "north marker at ({u}, {v})");
     }
 
     #[test]
@@ -403,9 +403,6 @@ mod tests {
             CameraPose::looking_at(Vec3::new(-90.0, 10.0, -45.0), &world.surface_point(-20.0, 0.0)).unwrap();
         let frame = renderer.render(&pose, &k);
         let inside = frame.mask.iter().filter(|&&m| m == 255).count();
-        assert!(
-            inside > 100 && inside < frame.mask.len() - 100,
-            "the view straddles the border"
-        );
+        assert!(inside > 100 && inside < frame.mask.len() - 100, "the view straddles the border");
     }
 }

@@ -33,6 +33,9 @@ pub struct Scenario {
     pub mission: MissionSpec,
     #[serde(default)]
     pub noise: NoiseSpec,
+    /// Ranges of random views (`mavloc sim render --views N`), indoor scenarios.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<crate::views::ViewSpec>,
     /// Folder relative paths in the file are resolved against (not serialised).
     #[serde(skip)]
     pub base_dir: Option<PathBuf>,
@@ -171,10 +174,7 @@ impl Scenario {
         self.origin.validate()?;
         let t = &self.terrain;
         if !(t.cell_m > 0.0 && t.size_m >= 2.0 * t.cell_m && t.size_m / t.cell_m <= 4000.0) {
-            return Err(format!(
-                "terrain: size_m {} / cell_m {} is not a usable grid",
-                t.size_m, t.cell_m
-            ));
+            return Err(format!("terrain: size_m {} / cell_m {} is not a usable grid", t.size_m, t.cell_m));
         }
         if !self.ground.metres_per_texel.is_finite() || self.ground.metres_per_texel <= 0.0 {
             return Err("ground.metres_per_texel must be positive".into());
@@ -191,10 +191,7 @@ impl Scenario {
             return Err("mission: speed, frame rate, waypoint spacing and altitude must be positive".into());
         }
         if !(0.0..1.0).contains(&self.noise.drop_rate) {
-            return Err(format!(
-                "noise.drop_rate {} must be in [0, 1)",
-                self.noise.drop_rate
-            ));
+            return Err(format!("noise.drop_rate {} must be in [0, 1)", self.noise.drop_rate));
         }
         Ok(())
     }

@@ -31,21 +31,9 @@ impl HeightField {
         let east0 = -((cols - 1) as f64) * cell / 2.0;
         let heights = (0..rows * cols)
             .into_par_iter()
-            .map(|k| {
-                f(
-                    north0 + (k / cols) as f64 * cell,
-                    east0 + (k % cols) as f64 * cell,
-                ) as f32
-            })
+            .map(|k| f(north0 + (k / cols) as f64 * cell, east0 + (k % cols) as f64 * cell) as f32)
             .collect();
-        HeightField {
-            north0,
-            east0,
-            cell,
-            rows,
-            cols,
-            heights,
-        }
+        HeightField { north0, east0, cell, rows, cols, heights }
     }
 
     /// Height of vertex `(i, j)`.
@@ -55,11 +43,7 @@ impl HeightField {
 
     /// Local NED position of vertex `(i, j)`.
     pub fn vertex(&self, i: usize, j: usize) -> Vec3 {
-        Vec3::new(
-            self.north0 + i as f64 * self.cell,
-            self.east0 + j as f64 * self.cell,
-            -self.at(i, j),
-        )
+        Vec3::new(self.north0 + i as f64 * self.cell, self.east0 + j as f64 * self.cell, -self.at(i, j))
     }
 
     /// Whether (north, east) lies on the grid.
@@ -106,9 +90,7 @@ impl HeightField {
     pub fn range(&self) -> (f64, f64) {
         self.heights
             .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &h| {
-                (lo.min(h as f64), hi.max(h as f64))
-            })
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &h| (lo.min(h as f64), hi.max(h as f64)))
     }
 }
 

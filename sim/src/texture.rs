@@ -31,11 +31,7 @@ impl Level {
                 rgb.push(acc);
             }
         }
-        Level {
-            width: w,
-            height: h,
-            rgb,
-        }
+        Level { width: w, height: h, rgb }
     }
 
     /// Mirrored-repeat index: ... 2 1 0 | 0 1 2 ... n-1 | n-1 n-2 ...
@@ -84,10 +80,7 @@ impl Texture {
             let next = levels.last().expect("non-empty").halve();
             levels.push(next);
         }
-        Texture {
-            metres_per_texel,
-            levels,
-        }
+        Texture { metres_per_texel, levels }
     }
 
     /// Loads an image file (PNG, JPEG).
@@ -103,10 +96,8 @@ impl Texture {
     pub fn from_image(img: image::DynamicImage, metres_per_texel: f64) -> Result<Texture, String> {
         let rgba = img.to_rgba8();
         let (w, h) = (rgba.width() as usize, rgba.height() as usize);
-        let nodata: Vec<bool> = rgba
-            .pixels()
-            .map(|p| p[3] < 255 || (p[0] == 255 && p[1] == 255 && p[2] == 255))
-            .collect();
+        let nodata: Vec<bool> =
+            rgba.pixels().map(|p| p[3] < 255 || (p[0] == 255 && p[1] == 255 && p[2] == 255)).collect();
         // Flood from the border through no-data.
         let mut outside = vec![false; w * h];
         let mut queue: Vec<usize> = (0..w * h)
@@ -139,9 +130,7 @@ impl Texture {
         let inside: Vec<bool> = outside.iter().map(|o| !o).collect();
         let (x0, y0, cw, ch) = largest_rectangle(w, h, &inside);
         if cw < 4 || ch < 4 {
-            return Err(format!(
-                "texture has no area free of no-data larger than {cw}x{ch} px"
-            ));
+            return Err(format!("texture has no area free of no-data larger than {cw}x{ch} px"));
         }
         let mut rgb = Vec::with_capacity(cw * ch);
         let mut hole = Vec::with_capacity(cw * ch);
@@ -162,7 +151,10 @@ impl Texture {
         let ratio = (footprint / self.metres_per_texel).max(1.0);
         let level = (ratio.log2().floor() as usize).min(self.levels.len() - 1);
         let scale = self.metres_per_texel * (1u64 << level) as f64;
-        self.levels[level].bilinear(east / scale, -north / scale)
+        // The texture is centred on the local origin, so a texture that covers a scene
+        // (the indoor floor) covers it without a mirror line through its middle.
+        let l = &self.levels[level];
+        l.bilinear(east / scale + l.width as f64 / 2.0, -north / scale + l.height as f64 / 2.0)
     }
 }
 
@@ -261,12 +253,7 @@ mod tests {
         img.put_pixel(5, 5, image::Rgba([255, 255, 255, 255]));
         let t = Texture::from_image(image::DynamicImage::ImageRgba8(img), 1.0).unwrap();
         let l = &t.levels[0];
-        assert!(
-            l.width * l.height >= 48 && l.width * l.height < 64,
-            "{}x{}",
-            l.width,
-            l.height
-        );
+        assert!(l.width * l.height >= 48 && l.width * l.height < 64, "{}x{}", l.width, l.height);
         assert!(l.rgb.iter().all(|p| p[0] == 100.0), "no white left");
     }
 
@@ -293,18 +280,15 @@ mod tests {
         let mut rgb = Vec::new();
         for y in 0..4 {
             for x in 0..4 {
-                rgb.push([
-                    if y >= 2 { 255.0 } else { 0.0 },
-                    if x >= 2 { 255.0 } else { 0.0 },
-                    0.0,
-                ]);
+                rgb.push([if y >= 2 { 255.0 } else { 0.0 }, if x >= 2 { 255.0 } else { 0.0 }, 0.0]);
             }
         }
         let t = Texture::from_rgb(4, 4, rgb, 1.0);
-        // east 3.5 m -> column 3.5 (right), north -3.5 m -> row 3.5 (bottom).
-        let c = t.sample(-3.5, 3.5, 0.1);
+        // The centre of the texture is at the origin: east +1.5 m -> column 3.5 (right),
+        // north -1.5 m -> row 3.5 (bottom).
+        let c = t.sample(-1.5, 1.5, 0.1);
         assert!(c[1] > 200.0 && c[0] > 200.0, "{c:?}");
-        let c = t.sample(-0.5, 0.5, 0.1);
+        let c = t.sample(1.5, -1.5, 0.1);
         assert!(c[1] < 50.0 && c[0] < 50.0, "{c:?}");
     }
 }

@@ -35,13 +35,7 @@ pub struct RegionShape {
 
 impl RegionShape {
     fn radius(&self, theta: f64) -> f64 {
-        self.r0
-            * (1.0
-                + self
-                    .lobes
-                    .iter()
-                    .map(|(k, a, p)| a * (k * theta + p).sin())
-                    .sum::<f64>())
+        self.r0 * (1.0 + self.lobes.iter().map(|(k, a, p)| a * (k * theta + p).sin()).sum::<f64>())
     }
 
     /// Normalised radial coordinate: < 1 inside, 1 on the border.
@@ -115,11 +109,7 @@ impl World {
                 let region = RegionShape {
                     centre: (0.0, 0.0),
                     r0: 60.0,
-                    lobes: vec![
-                        (2.0, 0.10, phase(1)),
-                        (3.0, 0.08, phase(2)),
-                        (6.0, 0.04, phase(3)),
-                    ],
+                    lobes: vec![(2.0, 0.10, phase(1)), (3.0, 0.08, phase(2)), (6.0, 0.04, phase(3))],
                 };
                 let hills = fbm(seed, 4);
                 let terrain = HeightField::from_fn(size, size, cell, |n, e| {
@@ -132,14 +122,16 @@ impl World {
         };
 
         let ground = match scenario.ground.texture.as_str() {
-            "" => procedural_floor(seed, 1024, scenario.ground.metres_per_texel),
+            // Big enough to cover the 8 x 8 m floor once: a mirrored repeat inside the floor
+            // would make two places look alike.
+            "" => {
+                let mpt = scenario.ground.metres_per_texel;
+                let size = ((8.2 / mpt).ceil() as usize).clamp(64, 2048);
+                procedural_floor(seed, size, mpt)
+            }
             name => load_texture(scenario, name)?,
         };
-        let detail = detail_texture(
-            seed.wrapping_add(17),
-            256,
-            scenario.ground.metres_per_texel.min(0.05),
-        );
+        let detail = detail_texture(seed.wrapping_add(17), 256, scenario.ground.metres_per_texel.min(0.05));
 
         let mut world = World {
             frame: LocalFrame::new(scenario.origin),
@@ -182,39 +174,46 @@ impl World {
     /// Colour of the visible surface at (north, east), for a pixel covering about
     /// `footprint` metres of ground.
     pub fn shade(&self, n: f64, e: f64, footprint: f64) -> [f32; 3] {
-        if let Target::Water { level } = self.target {
-            if self.terrain.height(n, e) < level {
-                // Nearly uniform water with faint, large ripples: little for SIFT to hold.
-                let r = self.detail.sample(n * 0.05, e * 0.05, footprint * 0.05)[0] / 255.0 - 0.5;
-                let k = 1.0 + 0.04 * r;
-                return [WATER_RGB[0] * k, WATER_RGB[1] * k, WATER_RGB[2] * k];
-            }
+        let light = self.light(&self.terrain.normal(n, e));
+        self.shade_pixel(n, e, footprint, light).0
+    }
+
+    /// Sun lighting factor of a surface with upward normal `normal` (NED).
+    pub fn light(&self, normal: &Vec3) -> f32 {
+        if matches!(self.scenario.kind, WorldKind::IndoorFloor) {
+            1.0 // diffuse indoor light
+        } else {
+            (0.55 + 0.6 * normal.dot(&self.sun).max(0.0)) as f32
         }
+    }
+
+    /// Colour and target membership of the surface at (north, east) under lighting
+    /// `light`: the renderer's per-pixel call, which evaluates the terrain only once.
+    pub fn shade_pixel(&self, n: f64, e: f64, footprint: f64, light: f32) -> ([f32; 3], bool) {
+        let target = match &self.target {
+            Target::Water { level } => {
+                if self.terrain.height(n, e) < *level {
+                    // Nearly uniform water with faint, large ripples: little for SIFT to hold.
+                    let r = self.detail.sample(n * 0.05, e * 0.05, footprint * 0.05)[0] / 255.0 - 0.5;
+                    let k = 1.0 + 0.04 * r;
+                    return ([WATER_RGB[0] * k, WATER_RGB[1] * k, WATER_RGB[2] * k], true);
+                }
+                false
+            }
+            Target::Region(r) => r.rho(n, e) < 1.0,
+            Target::None => false,
+        };
         if matches!(self.scenario.kind, WorldKind::IndoorFloor)
             && (n.abs() > self.floor_half || e.abs() > self.floor_half)
         {
-            return [118.0, 116.0, 112.0]; // plain margin around the printed floor
+            return ([118.0, 116.0, 112.0], false); // plain margin around the printed floor
         }
         let base = self.ground.sample(n, e, footprint);
         let d = self.detail.sample(n, e, footprint);
         let detail = 0.85 + 0.3 * d[0] / 255.0;
-        let light = if matches!(self.scenario.kind, WorldKind::IndoorFloor) {
-            1.0
-        } else {
-            let normal = self.terrain.normal(n, e);
-            (0.55 + 0.6 * normal.dot(&self.sun).max(0.0)) as f32
-        };
-        let darken = if matches!(self.target, Target::Region(_)) && self.is_target(n, e) {
-            REGION_DARKEN
-        } else {
-            1.0
-        };
+        let darken = if target { REGION_DARKEN } else { 1.0 };
         let k = detail * light * darken;
-        [
-            (base[0] * k).min(255.0),
-            (base[1] * k).min(255.0),
-            (base[2] * k).min(255.0),
-        ]
+        ([(base[0] * k).min(255.0), (base[1] * k).min(255.0), (base[2] * k).min(255.0)], target)
     }
 
     /// Colour of a ray that hits nothing.
@@ -284,10 +283,8 @@ fn marching_squares(half: f64, step: f64, f: impl Fn(f64, f64) -> f64 + Sync) ->
     use std::collections::HashMap;
     let count = (2.0 * half / step).floor() as usize + 1;
     let coord = |i: usize| -half + i as f64 * step;
-    let values: Vec<f64> = (0..count * count)
-        .into_par_iter()
-        .map(|k| f(coord(k / count), coord(k % count)))
-        .collect();
+    let values: Vec<f64> =
+        (0..count * count).into_par_iter().map(|k| f(coord(k / count), coord(k % count))).collect();
     let v = |i: usize, j: usize| values[i * count + j];
     // An edge is identified by its lower vertex and direction (0: along north, 1: along east).
     type Edge = (usize, usize, u8);
@@ -296,26 +293,16 @@ fn marching_squares(half: f64, step: f64, f: impl Fn(f64, f64) -> f64 + Sync) ->
         let (i2, j2) = if dir == 0 { (i + 1, j) } else { (i, j + 1) };
         let (a, b) = (v(i, j), v(i2, j2));
         let t = if a != b { a / (a - b) } else { 0.5 };
-        (
-            coord(i) + t * (coord(i2) - coord(i)),
-            coord(j) + t * (coord(j2) - coord(j)),
-        )
+        (coord(i) + t * (coord(i2) - coord(i)), coord(j) + t * (coord(j2) - coord(j)))
     };
     let mut links: HashMap<Edge, Vec<Edge>> = HashMap::new();
     for i in 0..count - 1 {
         for j in 0..count - 1 {
             // Corners: 0 (i,j), 1 (i,j+1), 2 (i+1,j+1), 3 (i+1,j); edges between them.
-            let inside = [
-                v(i, j) < 0.0,
-                v(i, j + 1) < 0.0,
-                v(i + 1, j + 1) < 0.0,
-                v(i + 1, j) < 0.0,
-            ];
+            let inside = [v(i, j) < 0.0, v(i, j + 1) < 0.0, v(i + 1, j + 1) < 0.0, v(i + 1, j) < 0.0];
             let edges: [Edge; 4] = [(i, j, 1), (i, j + 1, 0), (i + 1, j, 1), (i, j, 0)];
-            let crossing: Vec<Edge> = (0..4)
-                .filter(|&k| inside[k] != inside[(k + 1) % 4])
-                .map(|k| edges[k])
-                .collect();
+            let crossing: Vec<Edge> =
+                (0..4).filter(|&k| inside[k] != inside[(k + 1) % 4]).map(|k| edges[k]).collect();
             let pairs: Vec<(Edge, Edge)> = match crossing.len() {
                 2 => vec![(crossing[0], crossing[1])],
                 4 => {
@@ -351,10 +338,7 @@ fn marching_squares(half: f64, step: f64, f: impl Fn(f64, f64) -> f64 + Sync) ->
         let mut prev = start;
         let mut cur = start;
         loop {
-            let next = links[&cur]
-                .iter()
-                .copied()
-                .find(|e| *e != prev && !used.contains(e));
+            let next = links[&cur].iter().copied().find(|e| *e != prev && !used.contains(e));
             match next {
                 Some(n) => {
                     line.push(point(n));
@@ -426,11 +410,9 @@ fn procedural_floor(seed: u32, size: usize, metres_per_texel: f64) -> Texture {
         })
         .collect();
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed as u64);
-    for _ in 0..900 {
-        let (cx, cy) = (
-            rng.random_range(0.0..size as f64),
-            rng.random_range(0.0..size as f64),
-        );
+    let blobs = 900 * size * size / (1024 * 1024);
+    for _ in 0..blobs {
+        let (cx, cy) = (rng.random_range(0.0..size as f64), rng.random_range(0.0..size as f64));
         let r = rng.random_range(3.0..28.0f64);
         let colour = [
             rng.random_range(0.0..255.0f32),
@@ -472,14 +454,8 @@ mod tests {
         for (n, e) in ring {
             assert!((n.hypot(*e) - 10.0).abs() < 0.02, "({n}, {e})");
         }
-        let length: f64 = ring
-            .windows(2)
-            .map(|w| (w[1].0 - w[0].0).hypot(w[1].1 - w[0].1))
-            .sum();
-        assert!(
-            (length - 2.0 * std::f64::consts::PI * 10.0).abs() < 0.5,
-            "{length}"
-        );
+        let length: f64 = ring.windows(2).map(|w| (w[1].0 - w[0].0).hypot(w[1].1 - w[0].1)).sum();
+        assert!((length - 2.0 * std::f64::consts::PI * 10.0).abs() < 0.5, "{length}");
     }
 
     #[test]
@@ -503,11 +479,8 @@ mod tests {
         let world = World::build(&Scenario::load("cliff").unwrap()).unwrap();
         let ring = world.ground_truth.iter().max_by_key(|l| l.len()).unwrap();
         let downs: Vec<f64> = ring.iter().map(|p| p.z).collect();
-        let (lo, hi) = downs
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &d| {
-                (a.min(d), b.max(d))
-            });
+        let (lo, hi) =
+            downs.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &d| (a.min(d), b.max(d)));
         assert!(hi - lo > 15.0, "border spans {:.1} m of height", hi - lo);
     }
 

@@ -6,12 +6,8 @@ use mavloc_sim::{render_dataset, Dataset, RenderOptions, Scenario};
 fn render(name: &str, frames: usize, noise: Option<NoiseSpec>) -> (tempfile::TempDir, Dataset) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join(name);
-    let opts = RenderOptions {
-        frames: Some(frames),
-        size: Some((160, 120)),
-        noise,
-        ..RenderOptions::default()
-    };
+    let opts =
+        RenderOptions { frames: Some(frames), size: Some((160, 120)), noise, ..RenderOptions::default() };
     let mut calls = 0;
     let summary = render_dataset(&Scenario::load(name).unwrap(), &opts, &out, |_, _| calls += 1).unwrap();
     assert_eq!(calls, frames, "progress after every frame");
@@ -38,22 +34,16 @@ fn every_scenario_renders_and_parses_back() {
         let scenario = Scenario::load(ds.dir.join("scenario.toml").to_str().unwrap()).unwrap();
         assert_eq!(scenario.camera.width, 160, "scenario.toml records the overrides");
         if name != "indoor-floor" {
-            assert!(
-                !ds.ground_truth.is_empty() && ds.ground_truth[0].len() > 100,
-                "{name}"
-            );
+            assert!(!ds.ground_truth.is_empty() && ds.ground_truth[0].len() > 100, "{name}");
             let geo: serde_json::Value =
                 serde_json::from_str(&std::fs::read_to_string(ds.dir.join("ground_truth.geojson")).unwrap())
                     .unwrap();
             assert_eq!(geo["type"], "FeatureCollection");
             // The masks see the target somewhere along the flight.
-            let seen = ds.records.iter().any(|r| {
-                image::open(ds.mask_path(r))
-                    .unwrap()
-                    .to_luma8()
-                    .pixels()
-                    .any(|p| p[0] == 255)
-            });
+            let seen = ds
+                .records
+                .iter()
+                .any(|r| image::open(ds.mask_path(r)).unwrap().to_luma8().pixels().any(|p| p[0] == 255));
             assert!(seen, "{name}: no target in any mask");
         }
     }
@@ -61,10 +51,7 @@ fn every_scenario_renders_and_parses_back() {
 
 #[test]
 fn noise_is_applied_to_measured_only() {
-    let noise = NoiseSpec {
-        gimbal_offset_deg: [0.0, 2.0, 0.0],
-        ..NoiseSpec::default()
-    };
+    let noise = NoiseSpec { gimbal_offset_deg: [0.0, 2.0, 0.0], ..NoiseSpec::default() };
     let (_dir, ds) = render("coastline", 6, Some(noise));
     let mut pitch_diff = 0.0;
     for r in &ds.records {
@@ -83,15 +70,28 @@ fn noise_is_applied_to_measured_only() {
 #[test]
 fn refuses_to_overwrite_and_reports_broken_telemetry() {
     let (dir, ds) = render("cliff", 2, None);
-    let opts = RenderOptions {
-        frames: Some(1),
-        size: Some((64, 48)),
-        ..RenderOptions::default()
-    };
+    let opts = RenderOptions { frames: Some(1), size: Some((64, 48)), ..RenderOptions::default() };
     let err = render_dataset(&Scenario::load("cliff").unwrap(), &opts, &ds.dir, |_, _| {}).unwrap_err();
     assert!(err.contains("not empty") && err.contains("--force"), "{err}");
     std::fs::write(ds.dir.join("telemetry.jsonl"), "{\"frame\": 0, \"t\": oops}\n").unwrap();
     let err = Dataset::open(&ds.dir).unwrap_err();
     assert!(err.contains("telemetry.jsonl line 1"), "{err}");
     drop(dir);
+}
+
+#[test]
+fn indoor_views_are_labelled_and_varied() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("views");
+    let opts = RenderOptions { views: Some(5), size: Some((96, 72)), ..RenderOptions::default() };
+    render_dataset(&Scenario::load("indoor-floor").unwrap(), &opts, &out, |_, _| {}).unwrap();
+    let ds = Dataset::open(&out).unwrap();
+    assert_eq!(ds.records.len(), 5);
+    for r in &ds.records {
+        assert!(r.truth.position[0].abs() <= 4.0 && r.truth.position[1].abs() <= 4.0);
+        assert!(r.appearance.is_some(), "each view records its photometric change");
+    }
+    let err = render_dataset(&Scenario::load("coastline").unwrap(), &opts, &dir.path().join("x"), |_, _| {})
+        .unwrap_err();
+    assert!(err.contains("indoor"), "{err}");
 }

@@ -100,28 +100,21 @@ mod tests {
         let sigma = 0.5f64.to_radians();
         let noise = Normal::new(0.0, sigma).unwrap();
         let landmark = Vec3::new(0.0, 0.0, 0.0);
-        let mut ukf = Ukf::new(
-            Vec3::new(-15.0, 12.0, 0.0),
-            Matrix3::identity() * 400.0,
-            UkfParams::default(),
-        )
-        .unwrap();
+        let mut ukf =
+            Ukf::new(Vec3::new(-15.0, 12.0, 0.0), Matrix3::identity() * 400.0, UkfParams::default()).unwrap();
         for k in 0..200 {
             let east = -20.0 + 0.2 * k as f64;
             let observer = Vec3::new(30.0, east, -30.0);
             let b = bearing_between(&observer, &landmark).unwrap();
             let z = Vector2::new(b.yaw + noise.sample(&mut rng), b.pitch + noise.sample(&mut rng));
-            ukf.update(&BearingModel { observer }, &z, &bearing_noise(sigma))
-                .unwrap();
+            ukf.update(&BearingModel { observer }, &z, &bearing_noise(sigma)).unwrap();
         }
         assert!((ukf.state() - landmark).norm() < 0.5, "{}", ukf.state());
     }
 
     #[test]
     fn residual_wraps_yaw_only() {
-        let m = BearingModel {
-            observer: Vec3::zeros(),
-        };
+        let m = BearingModel { observer: Vec3::zeros() };
         let r = m.residual(&Vector2::new(3.1, 0.2), &Vector2::new(-3.1, 0.1));
         assert!((r.x - (6.2 - std::f64::consts::TAU)).abs() < 1e-12);
         assert!((r.y - 0.1).abs() < 1e-12);

@@ -41,11 +41,7 @@ pub struct UkfParams {
 
 impl Default for UkfParams {
     fn default() -> Self {
-        UkfParams {
-            alpha: 0.7,
-            beta: 2.0,
-            kappa: 0.0,
-        }
+        UkfParams { alpha: 0.7, beta: 2.0, kappa: 0.0 }
     }
 }
 
@@ -153,15 +149,9 @@ impl<const N: usize> Ukf<N> {
         }
         let p = symmetrise(&p);
         if (0..N).any(|i| p[(i, i)] < 0.0) {
-            return Err(FilterError::NotPositiveDefinite(
-                "initial covariance has a negative variance",
-            ));
+            return Err(FilterError::NotPositiveDefinite("initial covariance has a negative variance"));
         }
-        Ok(Ukf {
-            x,
-            p,
-            w: Weights::new(N, params)?,
-        })
+        Ok(Ukf { x, p, w: Weights::new(N, params)? })
     }
 
     /// State mean.
@@ -270,12 +260,7 @@ impl<const N: usize> Ukf<N> {
         let s_chol = Cholesky::new(s)
             .filter(|c| c.l_dirty().diagonal().iter().all(|&d| d > 1e-150))
             .ok_or(FilterError::NotPositiveDefinite("innovation covariance"))?;
-        Ok(PredictedMeasurement {
-            z: z_hat,
-            s,
-            cross,
-            s_chol,
-        })
+        Ok(PredictedMeasurement { z: z_hat, s, cross, s_chol })
     }
 
     /// Update with measurement `z` from an already predicted measurement (eq. 4.9-4.10),
@@ -300,11 +285,7 @@ impl<const N: usize> Ukf<N> {
         }
         self.x = x;
         self.p = p;
-        Ok(UpdateReport {
-            innovation: y,
-            predicted: pred.z,
-            mahalanobis: pred.mahalanobis(&y),
-        })
+        Ok(UpdateReport { innovation: y, predicted: pred.z, mahalanobis: pred.mahalanobis(&y) })
     }
 
     /// Predicts the measurement and updates with `z` in one call.
@@ -356,11 +337,7 @@ fn matrix_sqrt<const N: usize>(p: &SMatrix<f64, N, N>) -> SMatrix<f64, N, N> {
     let (values, mut l) = eigen(p);
     let floor = scale * 1e-12;
     for (j, &e) in values.iter().enumerate() {
-        let s = if e.is_finite() {
-            e.max(floor).sqrt()
-        } else {
-            floor.sqrt()
-        };
+        let s = if e.is_finite() { e.max(floor).sqrt() } else { floor.sqrt() };
         l.column_mut(j).scale_mut(s);
     }
     l
@@ -451,12 +428,8 @@ mod tests {
 
     #[test]
     fn mahalanobis_matches_hand_computation() {
-        let ukf = Ukf::new(
-            Vector2::new(0.0, 0.0),
-            Matrix2::new(4.0, 0.0, 0.0, 1.0),
-            UkfParams::default(),
-        )
-        .unwrap();
+        let ukf =
+            Ukf::new(Vector2::new(0.0, 0.0), Matrix2::new(4.0, 0.0, 0.0, 1.0), UkfParams::default()).unwrap();
         let h = LinearH::<2, 2>(Matrix2::identity());
         let pred = ukf.predict_measurement(&h, &Matrix2::zeros()).unwrap();
         // S = P; y = (2, 1): d^2 = 4/4 + 1/1 = 2.
@@ -467,26 +440,13 @@ mod tests {
     fn rejects_bad_input_without_panicking() {
         let p = Matrix2::identity();
         assert!(Ukf::new(Vector2::new(f64::NAN, 0.0), p, UkfParams::default()).is_err());
-        assert!(Ukf::new(
-            Vector2::zeros(),
-            Matrix2::new(-1.0, 0.0, 0.0, 1.0),
-            UkfParams::default()
-        )
-        .is_err());
-        let bad = UkfParams {
-            alpha: 0.0,
-            ..UkfParams::default()
-        };
-        assert!(matches!(
-            Ukf::new(Vector2::zeros(), p, bad),
-            Err(FilterError::BadParameters(_))
-        ));
+        assert!(Ukf::new(Vector2::zeros(), Matrix2::new(-1.0, 0.0, 0.0, 1.0), UkfParams::default()).is_err());
+        let bad = UkfParams { alpha: 0.0, ..UkfParams::default() };
+        assert!(matches!(Ukf::new(Vector2::zeros(), p, bad), Err(FilterError::BadParameters(_))));
         let mut ukf = Ukf::new(Vector2::zeros(), p, UkfParams::default()).unwrap();
         let h = LinearH::<2, 2>(Matrix2::identity());
         let before = *ukf.state();
-        assert!(ukf
-            .update(&h, &Vector2::new(f64::INFINITY, 0.0), &Matrix2::identity())
-            .is_err());
+        assert!(ukf.update(&h, &Vector2::new(f64::INFINITY, 0.0), &Matrix2::identity()).is_err());
         assert_eq!(*ukf.state(), before, "a refused update leaves the state alone");
         // A singular innovation covariance is refused, not divided by.
         let zero = Ukf::new(Vector2::zeros(), Matrix2::zeros(), UkfParams::default()).unwrap();

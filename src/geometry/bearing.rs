@@ -26,10 +26,7 @@ impl Bearing {
         if !(horizontal > 0.0 || d.z != 0.0) || !d.iter().all(|c| c.is_finite()) {
             return None;
         }
-        Some(Bearing {
-            yaw: d.y.atan2(d.x),
-            pitch: (-d.z).atan2(horizontal),
-        })
+        Some(Bearing { yaw: d.y.atan2(d.x), pitch: (-d.z).atan2(horizontal) })
     }
 
     /// Unit direction vector in the local frame.
@@ -88,14 +85,8 @@ mod tests {
 
     #[test]
     fn residual_wraps_across_south() {
-        let a = Bearing {
-            yaw: PI - 0.01,
-            pitch: 0.0,
-        };
-        let b = Bearing {
-            yaw: -PI + 0.01,
-            pitch: 0.0,
-        };
+        let a = Bearing { yaw: PI - 0.01, pitch: 0.0 };
+        let b = Bearing { yaw: -PI + 0.01, pitch: 0.0 };
         assert!((a.residual(&b)[0] + 0.02).abs() < 1e-12);
     }
 

@@ -104,10 +104,7 @@ impl Intrinsics {
         if p.z.is_nan() || p.z <= 0.0 {
             return None;
         }
-        let px = Pixel {
-            u: self.fx * p.x / p.z + self.cx,
-            v: self.fy * p.y / p.z + self.cy,
-        };
+        let px = Pixel { u: self.fx * p.x / p.z + self.cx, v: self.fy * p.y / p.z + self.cy };
         (px.u.is_finite() && px.v.is_finite()).then_some(px)
     }
 
@@ -145,10 +142,9 @@ impl CameraPose {
     pub fn from_gimbal(position: Vec3, chain: GimbalChain, angles: GimbalAngles, mount: Mount) -> Self {
         let attitude = match mount {
             Mount::Earth => chain.rotation(angles),
-            Mount::VehicleHeading { vehicle_yaw } => chain.rotation(GimbalAngles {
-                yaw: angles.yaw + vehicle_yaw,
-                ..angles
-            }),
+            Mount::VehicleHeading { vehicle_yaw } => {
+                chain.rotation(GimbalAngles { yaw: angles.yaw + vehicle_yaw, ..angles })
+            }
             Mount::Body { attitude } => attitude * chain.rotation(angles),
         };
         CameraPose { position, attitude }
@@ -158,17 +154,8 @@ impl CameraPose {
     /// `None` if the two coincide.
     pub fn looking_at(position: Vec3, target: &Vec3) -> Option<Self> {
         let b = Bearing::from_direction(&(target - position))?;
-        let angles = GimbalAngles {
-            yaw: b.yaw,
-            pitch: b.pitch,
-            roll: 0.0,
-        };
-        Some(CameraPose::from_gimbal(
-            position,
-            GimbalChain::YawPitchRoll,
-            angles,
-            Mount::Earth,
-        ))
+        let angles = GimbalAngles { yaw: b.yaw, pitch: b.pitch, roll: 0.0 };
+        Some(CameraPose::from_gimbal(position, GimbalChain::YawPitchRoll, angles, Mount::Earth))
     }
 
     /// Rotation "local <- camera (OpenCV axes)".
@@ -202,11 +189,7 @@ impl CameraPose {
     /// The seed's previous method: where the pixel's ray meets the ground plane
     /// `down = ground_down` (seed eq. 2.7-2.10).
     pub fn ground_intersection(&self, k: &Intrinsics, px: Pixel, ground_down: f64) -> Option<Vec3> {
-        ground_plane_point(
-            &self.position,
-            &(self.local_from_camera() * k.ray(px)),
-            ground_down,
-        )
+        ground_plane_point(&self.position, &(self.local_from_camera() * k.ray(px)), ground_down)
     }
 }
 
@@ -290,15 +273,10 @@ mod tests {
                 let mount = match m {
                     0 => Mount::Earth,
                     1 => Mount::VehicleHeading { vehicle_yaw: vy },
-                    _ => Mount::Body {
-                        attitude: body_rotation(vr, vp, vy),
-                    },
+                    _ => Mount::Body { attitude: body_rotation(vr, vp, vy) },
                 };
                 let angles = GimbalAngles { yaw, pitch, roll };
-                (
-                    CameraPose::from_gimbal(Vec3::new(n, e, d), chain, angles, mount),
-                    chain,
-                )
+                (CameraPose::from_gimbal(Vec3::new(n, e, d), chain, angles, mount), chain)
             })
     }
 

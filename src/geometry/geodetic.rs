@@ -20,11 +20,7 @@ pub struct Geodetic {
 
 impl Geodetic {
     pub fn new(lat_deg: f64, lon_deg: f64, alt_m: f64) -> Self {
-        Geodetic {
-            lat_deg,
-            lon_deg,
-            alt_m,
-        }
+        Geodetic { lat_deg, lon_deg, alt_m }
     }
 
     /// Checks the coordinates are on the globe; the message names the bad one.
@@ -80,11 +76,7 @@ impl LocalFrame {
             o.alt_m,
             Ellipsoid::WGS84,
         );
-        Geodetic {
-            lat_deg: lat.to_degrees(),
-            lon_deg: lon.to_degrees(),
-            alt_m: alt,
-        }
+        Geodetic { lat_deg: lat.to_degrees(), lon_deg: lon.to_degrees(), alt_m: alt }
     }
 }
 
@@ -109,14 +101,8 @@ mod tests {
 
     #[test]
     fn validate_rejects_off_globe() {
-        assert!(Geodetic::new(91.0, 0.0, 0.0)
-            .validate()
-            .unwrap_err()
-            .contains("latitude"));
-        assert!(Geodetic::new(0.0, 181.0, 0.0)
-            .validate()
-            .unwrap_err()
-            .contains("longitude"));
+        assert!(Geodetic::new(91.0, 0.0, 0.0).validate().unwrap_err().contains("latitude"));
+        assert!(Geodetic::new(0.0, 181.0, 0.0).validate().unwrap_err().contains("longitude"));
         assert!(Geodetic::new(45.0, 7.0, 300.0).validate().is_ok());
     }
 

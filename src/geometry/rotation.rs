@@ -57,17 +57,9 @@ impl GimbalChain {
                 if m[(2, 1)].hypot(m[(2, 2)]) < 1e-9 {
                     // Gimbal lock: R = Rz(yaw -+ roll) Ry(+-90deg); choose roll = 0.
                     let yaw = (-m[(0, 1)]).atan2(m[(1, 1)]);
-                    GimbalAngles {
-                        yaw,
-                        pitch,
-                        roll: 0.0,
-                    }
+                    GimbalAngles { yaw, pitch, roll: 0.0 }
                 } else {
-                    GimbalAngles {
-                        yaw: m[(1, 0)].atan2(m[(0, 0)]),
-                        pitch,
-                        roll: m[(2, 1)].atan2(m[(2, 2)]),
-                    }
+                    GimbalAngles { yaw: m[(1, 0)].atan2(m[(0, 0)]), pitch, roll: m[(2, 1)].atan2(m[(2, 2)]) }
                 }
             }
             GimbalChain::YawRollPitch => {
@@ -77,11 +69,7 @@ impl GimbalChain {
                 if m[(2, 0)].hypot(m[(2, 2)]) < 1e-9 {
                     // Gimbal lock (roll +-90 deg): choose pitch = 0.
                     let yaw = m[(1, 0)].atan2(m[(0, 0)]);
-                    GimbalAngles {
-                        yaw,
-                        pitch: 0.0,
-                        roll,
-                    }
+                    GimbalAngles { yaw, pitch: 0.0, roll }
                 } else {
                     GimbalAngles {
                         yaw: (-m[(0, 1)]).atan2(m[(1, 1)]),
@@ -111,11 +99,7 @@ pub struct GimbalAngles {
 impl GimbalAngles {
     /// From degrees, as gimbals and ground stations report them.
     pub fn from_degrees(yaw: f64, pitch: f64, roll: f64) -> Self {
-        GimbalAngles {
-            yaw: yaw.to_radians(),
-            pitch: pitch.to_radians(),
-            roll: roll.to_radians(),
-        }
+        GimbalAngles { yaw: yaw.to_radians(), pitch: pitch.to_radians(), roll: roll.to_radians() }
     }
 }
 
@@ -190,16 +174,8 @@ mod tests {
     fn gimbal_lock_still_round_trips_the_rotation() {
         for chain in GimbalChain::ALL {
             let a = match chain {
-                GimbalChain::YawPitchRoll => GimbalAngles {
-                    yaw: 0.4,
-                    pitch: -FRAC_PI_2,
-                    roll: 0.3,
-                },
-                GimbalChain::YawRollPitch => GimbalAngles {
-                    yaw: 0.4,
-                    pitch: 0.3,
-                    roll: FRAC_PI_2,
-                },
+                GimbalChain::YawPitchRoll => GimbalAngles { yaw: 0.4, pitch: -FRAC_PI_2, roll: 0.3 },
+                GimbalChain::YawRollPitch => GimbalAngles { yaw: 0.4, pitch: 0.3, roll: FRAC_PI_2 },
             };
             let r = chain.rotation(a);
             let back = chain.rotation(chain.angles(&r));

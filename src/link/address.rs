@@ -40,18 +40,14 @@ impl LinkAddress {
         };
         // The port or baud rate is after the last colon, so IPv6-free hosts and device
         // paths keep their own characters.
-        let (head, tail) = rest
-            .rsplit_once(':')
-            .ok_or_else(|| format!("`{s}` lacks a `:port` (or `:baud` for serial)"))?;
+        let (head, tail) =
+            rest.rsplit_once(':').ok_or_else(|| format!("`{s}` lacks a `:port` (or `:baud` for serial)"))?;
         if head.is_empty() {
             return Err(format!("`{s}` has an empty host or device"));
         }
         match make {
             None => match tail.parse::<u32>() {
-                Ok(baud) if baud > 0 => Ok(LinkAddress::Serial {
-                    device: head.to_string(),
-                    baud,
-                }),
+                Ok(baud) if baud > 0 => Ok(LinkAddress::Serial { device: head.to_string(), baud }),
                 _ => Err(format!("`{s}`: baud rate `{tail}` is not a positive integer")),
             },
             Some(make) => match tail.parse::<u16>() {
@@ -93,25 +89,16 @@ mod tests {
         }
         assert_eq!(
             LinkAddress::parse("serial:/dev/ttyAMA0:921600").unwrap(),
-            LinkAddress::Serial {
-                device: "/dev/ttyAMA0".into(),
-                baud: 921600
-            }
+            LinkAddress::Serial { device: "/dev/ttyAMA0".into(), baud: 921600 }
         );
     }
 
     #[test]
     fn errors_say_what_is_wrong() {
-        assert!(LinkAddress::parse("udp:1.2.3.4:5")
-            .unwrap_err()
-            .contains("unknown scheme"));
-        assert!(LinkAddress::parse("udpin:0.0.0.0:70000")
-            .unwrap_err()
-            .contains("port"));
+        assert!(LinkAddress::parse("udp:1.2.3.4:5").unwrap_err().contains("unknown scheme"));
+        assert!(LinkAddress::parse("udpin:0.0.0.0:70000").unwrap_err().contains("port"));
         assert!(LinkAddress::parse("udpin:0.0.0.0").unwrap_err().contains("port"));
-        assert!(LinkAddress::parse("serial:/dev/ttyS0:fast")
-            .unwrap_err()
-            .contains("baud"));
+        assert!(LinkAddress::parse("serial:/dev/ttyS0:fast").unwrap_err().contains("baud"));
         assert!(LinkAddress::parse("14540").unwrap_err().contains("scheme"));
         assert!(LinkAddress::parse("tcpout::5760").unwrap_err().contains("empty"));
     }

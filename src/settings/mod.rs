@@ -78,11 +78,7 @@ pub struct Layers {
 impl Layers {
     /// The process environment and the given file and overrides.
     pub fn from_process(file: Option<PathBuf>, overrides: Vec<String>) -> Layers {
-        Layers {
-            file,
-            env: std::env::vars().collect(),
-            overrides,
-        }
+        Layers { file, env: std::env::vars().collect(), overrides }
     }
 }
 
@@ -156,12 +152,7 @@ fn unknown_key(key: &str, value: Option<String>, origin: &str) -> Problem {
         Some(s) => format!("unknown key; did you mean `{s}`?"),
         None => "unknown key; `mavloc config show` lists every key".to_string(),
     };
-    Problem {
-        key: key.to_string(),
-        value,
-        expected,
-        origin: origin.to_string(),
-    }
+    Problem { key: key.to_string(), value, expected, origin: origin.to_string() }
 }
 
 /// Reads a value written on the command line or in the environment: TOML syntax if it
@@ -169,15 +160,11 @@ fn unknown_key(key: &str, value: Option<String>, origin: &str) -> Problem {
 fn parse_loose(raw: &str) -> toml::Value {
     let doc = format!("v = {raw}");
     match doc.parse::<toml::Table>() {
-        Ok(mut t) => t
-            .remove("v")
-            .unwrap_or_else(|| toml::Value::String(raw.to_string())),
+        Ok(mut t) => t.remove("v").unwrap_or_else(|| toml::Value::String(raw.to_string())),
         Err(_) => {
             // Environment lists may be written without brackets: `0.1,0,0,0,0`.
-            let items: Option<Vec<toml::Value>> = raw
-                .split(',')
-                .map(|s| s.trim().parse::<f64>().ok().map(toml::Value::Float))
-                .collect();
+            let items: Option<Vec<toml::Value>> =
+                raw.split(',').map(|s| s.trim().parse::<f64>().ok().map(toml::Value::Float)).collect();
             match items {
                 Some(v) if raw.contains(',') => toml::Value::Array(v),
                 _ => toml::Value::String(raw.to_string()),
@@ -276,10 +263,8 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     // Layer 1: the file.
     let mut file_text = None;
     if let Some(path) = &layers.file {
-        let text = std::fs::read_to_string(path).map_err(|source| SettingsError::Read {
-            path: path.clone(),
-            source,
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| SettingsError::Read { path: path.clone(), source })?;
         let doc: toml::Table = text.parse().map_err(|e: toml::de::Error| SettingsError::Syntax {
             path: path.clone(),
             message: e.to_string(),
@@ -368,11 +353,7 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     if !problems.is_empty() {
         return Err(SettingsError::Invalid(problems));
     }
-    Ok(Loaded {
-        settings,
-        origins,
-        file: layers.file.clone(),
-    })
+    Ok(Loaded { settings, origins, file: layers.file.clone() })
 }
 
 /// Turns a deserialisation error (an enum value that is not one of the variants, an
@@ -380,23 +361,11 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
 fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> SettingsError {
     let msg = e.to_string();
     // The config crate phrases these as "... for key `section.key` ...".
-    let key = msg
-        .split('`')
-        .nth(1)
-        .filter(|k| k.contains('.'))
-        .map(str::to_string);
+    let key = msg.split('`').nth(1).filter(|k| k.contains('.')).map(str::to_string);
     match key {
         Some(key) => {
-            let origin = origins
-                .get(&key)
-                .cloned()
-                .unwrap_or_else(|| "the merged configuration".into());
-            SettingsError::Invalid(vec![Problem {
-                key,
-                value: None,
-                expected: msg,
-                origin,
-            }])
+            let origin = origins.get(&key).cloned().unwrap_or_else(|| "the merged configuration".into());
+            SettingsError::Invalid(vec![Problem { key, value: None, expected: msg, origin }])
         }
         None => SettingsError::Merge(msg),
     }
@@ -404,10 +373,7 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
 
 /// Range and consistency checks on merged settings.
 pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem> {
-    let mut v = Validator {
-        origins,
-        problems: Vec::new(),
-    };
+    let mut v = Validator { origins, problems: Vec::new() };
 
     // [daemon]
     v.range("daemon.max_frame_age_s", s.daemon.max_frame_age_s, 0.01, 60.0);
@@ -425,20 +391,10 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
         v.problem("mavlink.connection", quote(&s.mavlink.connection), e);
     }
     v.range_int("mavlink.component_id", s.mavlink.component_id.into(), 1, 255);
-    v.range_int(
-        "mavlink.autopilot_system_id",
-        s.mavlink.autopilot_system_id.into(),
-        1,
-        255,
-    );
+    v.range_int("mavlink.autopilot_system_id", s.mavlink.autopilot_system_id.into(), 1, 255);
     v.range_int("mavlink.gcs_system_id", s.mavlink.gcs_system_id.into(), 1, 255);
     v.range("mavlink.heartbeat_hz", s.mavlink.heartbeat_hz, 0.2, 10.0);
-    v.range(
-        "mavlink.autopilot_timeout_s",
-        s.mavlink.autopilot_timeout_s,
-        0.5,
-        60.0,
-    );
+    v.range("mavlink.autopilot_timeout_s", s.mavlink.autopilot_timeout_s, 0.5, 60.0);
 
     // [camera]
     v.range_int("camera.width", s.camera.width.into(), 16, 8192);
@@ -457,10 +413,9 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
             v.range(key, val, 1.0, 100_000.0);
         }
     }
-    for (key, val, size) in [
-        ("camera.cx", s.camera.cx, s.camera.width),
-        ("camera.cy", s.camera.cy, s.camera.height),
-    ] {
+    for (key, val, size) in
+        [("camera.cx", s.camera.cx, s.camera.width), ("camera.cy", s.camera.cy, s.camera.height)]
+    {
         if val != -1.0 {
             v.range(key, val, 0.0, size as f64);
         }
@@ -496,12 +451,7 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range_int("area.downscale", a.downscale.into(), 1, 8);
     v.range_int("area.band_px", a.band_px.into(), 1, 2000);
     v.range_int("area.l_max", a.l_max.into(), 1, 20_000);
-    v.range_int(
-        "area.turnover",
-        a.turnover.into(),
-        0,
-        a.l_max.saturating_sub(1).into(),
-    );
+    v.range_int("area.turnover", a.turnover.into(), 0, a.l_max.saturating_sub(1).into());
     v.range_int("area.feature_factor", a.feature_factor.into(), 1, 100);
     v.range("area.ratio_test", a.ratio_test, 0.05, 1.0);
     v.range("area.mahalanobis_max", a.mahalanobis_max, 0.5, 1e6);
@@ -546,10 +496,7 @@ struct Validator<'a> {
 
 impl Validator<'_> {
     fn origin(&self, key: &str) -> String {
-        self.origins
-            .get(key)
-            .cloned()
-            .unwrap_or_else(|| "the built-in defaults".into())
+        self.origins.get(key).cloned().unwrap_or_else(|| "the built-in defaults".into())
     }
 
     fn problem(&mut self, key: &str, value: String, expected: impl Into<String>) {
@@ -564,21 +511,13 @@ impl Validator<'_> {
 
     fn range(&mut self, key: &str, value: f64, min: f64, max: f64) {
         if !(value.is_finite() && value >= min && value <= max) {
-            self.problem(
-                key,
-                value.to_string(),
-                format!("out of range; allowed {min} ..= {max}"),
-            );
+            self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
         }
     }
 
     fn range_int(&mut self, key: &str, value: i64, min: i64, max: i64) {
         if value < min || value > max {
-            self.problem(
-                key,
-                value.to_string(),
-                format!("out of range; allowed {min} ..= {max}"),
-            );
+            self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
         }
     }
 

@@ -12,10 +12,7 @@ fn write_temp(text: &str) -> tempfile::NamedTempFile {
 }
 
 fn load_file(path: &Path) -> Result<Loaded, SettingsError> {
-    load(&Layers {
-        file: Some(path.to_path_buf()),
-        ..Layers::default()
-    })
+    load(&Layers { file: Some(path.to_path_buf()), ..Layers::default() })
 }
 
 fn problems(r: Result<Loaded, SettingsError>) -> Vec<Problem> {
@@ -76,12 +73,7 @@ fn out_of_range_value_names_key_value_range_and_file() {
     let p = problems(load_file(f.path()));
     assert_eq!(p.len(), 1);
     let msg = p[0].to_string();
-    for needle in [
-        "area.ukf_alpha",
-        "1.5",
-        "0.001 ..= 1",
-        &f.path().display().to_string(),
-    ] {
+    for needle in ["area.ukf_alpha", "1.5", "0.001 ..= 1", &f.path().display().to_string()] {
         assert!(msg.contains(needle), "`{needle}` missing from: {msg}");
     }
 }
@@ -91,16 +83,8 @@ fn wrong_type_and_unknown_section_are_refused() {
     let f = write_temp("[area]\nl_max = \"lots\"\n[aera]\nx = 1\n");
     let p = problems(load_file(f.path()));
     let text: Vec<String> = p.iter().map(|p| p.to_string()).collect();
-    assert!(
-        text.iter()
-            .any(|m| m.contains("area.l_max") && m.contains("expected an integer")),
-        "{text:?}"
-    );
-    assert!(
-        text.iter()
-            .any(|m| m.contains("aera") && m.contains("unknown section")),
-        "{text:?}"
-    );
+    assert!(text.iter().any(|m| m.contains("area.l_max") && m.contains("expected an integer")), "{text:?}");
+    assert!(text.iter().any(|m| m.contains("aera") && m.contains("unknown section")), "{text:?}");
 }
 
 #[test]
@@ -108,10 +92,7 @@ fn bad_enum_value_names_the_key() {
     let f = write_temp("[gimbal]\nchain = \"pitch-yaw-roll\"\n");
     let err = load_file(f.path()).unwrap_err().to_string();
     assert!(err.contains("gimbal.chain"), "{err}");
-    assert!(
-        err.contains("expected one of yaw-pitch-roll, yaw-roll-pitch"),
-        "{err}"
-    );
+    assert!(err.contains("expected one of yaw-pitch-roll, yaw-roll-pitch"), "{err}");
     assert!(err.contains("\"pitch-yaw-roll\""), "{err}");
 }
 
@@ -120,10 +101,7 @@ fn all_problems_are_reported_together() {
     let f = write_temp("[area]\nukf_alpha = 2.0\nratio_test = 0.0\n[indoor]\nlanding_frames = 1\n");
     let p = problems(load_file(f.path()));
     let keys: Vec<&str> = p.iter().map(|p| p.key.as_str()).collect();
-    assert_eq!(
-        keys,
-        ["area.ratio_test", "area.ukf_alpha", "indoor.landing_frames"]
-    );
+    assert_eq!(keys, ["area.ratio_test", "area.ukf_alpha", "indoor.landing_frames"]);
 }
 
 #[test]
@@ -145,10 +123,7 @@ fn layers_env_over_file_and_cli_over_env() {
     let layers = Layers {
         file: Some(f.path().to_path_buf()),
         env: env.clone(),
-        overrides: vec![
-            "area.l_max=500".into(),
-            "mavlink.connection=udpout:127.0.0.1:14550".into(),
-        ],
+        overrides: vec!["area.l_max=500".into(), "mavlink.connection=udpout:127.0.0.1:14550".into()],
     };
     let loaded = load(&layers).unwrap();
     let s = &loaded.settings;
@@ -161,11 +136,7 @@ fn layers_env_over_file_and_cli_over_env() {
     assert!(loaded.origins["camera.distortion"].contains("MAVLOC_CAMERA__DISTORTION"));
 
     // Without the override the environment wins over the file.
-    let loaded = load(&Layers {
-        overrides: vec![],
-        ..layers
-    })
-    .unwrap();
+    let loaded = load(&Layers { overrides: vec![], ..layers }).unwrap();
     assert_eq!(loaded.settings.area.l_max, 400);
 }
 
@@ -173,32 +144,16 @@ fn layers_env_over_file_and_cli_over_env() {
 fn unknown_environment_key_names_the_variable() {
     let mut env = BTreeMap::new();
     env.insert("MAVLOC_AREA__LMAX".to_string(), "300".to_string());
-    let p = problems(load(&Layers {
-        env,
-        ..Layers::default()
-    }));
+    let p = problems(load(&Layers { env, ..Layers::default() }));
     let msg = p[0].to_string();
-    assert!(
-        msg.contains("MAVLOC_AREA__LMAX") && msg.contains("area.l_max"),
-        "{msg}"
-    );
+    assert!(msg.contains("MAVLOC_AREA__LMAX") && msg.contains("area.l_max"), "{msg}");
 }
 
 #[test]
 fn bad_command_line_override_is_refused() {
-    let p = problems(load(&Layers {
-        overrides: vec!["area.downscale=16".into()],
-        ..Layers::default()
-    }));
-    assert!(
-        p[0].to_string().contains("command line") && p[0].to_string().contains("1 ..= 8"),
-        "{}",
-        p[0]
-    );
-    let p = problems(load(&Layers {
-        overrides: vec!["nonsense".into()],
-        ..Layers::default()
-    }));
+    let p = problems(load(&Layers { overrides: vec!["area.downscale=16".into()], ..Layers::default() }));
+    assert!(p[0].to_string().contains("command line") && p[0].to_string().contains("1 ..= 8"), "{}", p[0]);
+    let p = problems(load(&Layers { overrides: vec!["nonsense".into()], ..Layers::default() }));
     assert!(p[0].expected.contains("section.key=value"));
 }
 
@@ -221,11 +176,7 @@ fn syntax_error_and_missing_file_name_the_file() {
 
 #[test]
 fn effective_rendering_parses_back() {
-    let loaded = load(&Layers {
-        overrides: vec!["indoor.k=7".into()],
-        ..Layers::default()
-    })
-    .unwrap();
+    let loaded = load(&Layers { overrides: vec!["indoor.k=7".into()], ..Layers::default() }).unwrap();
     let text = render_effective(&loaded);
     assert!(text.contains("k = 7  # from command line"));
     let f = write_temp(&text);
@@ -247,18 +198,12 @@ fn intrinsics_follow_the_camera_settings() {
 fn enum_names_match_the_schema() {
     for (key, names) in ENUM_KEYS {
         for name in *names {
-            let loaded = load(&Layers {
-                overrides: vec![format!("{key}={name}")],
-                ..Layers::default()
-            });
+            let loaded = load(&Layers { overrides: vec![format!("{key}={name}")], ..Layers::default() });
             assert!(loaded.is_ok(), "{key}={name}: {:?}", loaded.err());
         }
         let (section, field) = key.split_once('.').unwrap();
         let table = toml::Table::try_from(Settings::default()).unwrap();
         let default = table[section][field].as_str().unwrap().to_string();
-        assert!(
-            names.contains(&default.as_str()),
-            "{key} default {default} not listed"
-        );
+        assert!(names.contains(&default.as_str()), "{key} default {default} not listed");
     }
 }
