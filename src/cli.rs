@@ -73,7 +73,7 @@ pub struct DemoArgs {
 pub enum SimCommand {
     /// Render a synthetic dataset (frames, masks, telemetry, ground truth, QGC plan) from
     /// a scenario: coastline, cliff, indoor-floor, or a scenario file.
-    Render(RenderArgs),
+    Render(Box<RenderArgs>),
     /// Write a scenario's mission as a QGroundControl .plan file (stdout without --out).
     Plan {
         /// Scenario name or file.

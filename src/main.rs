@@ -79,7 +79,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
 }
 
 /// `mavloc sim render`: a dataset from a scenario, with a progress bar.
-fn sim_render(args: RenderArgs) -> anyhow::Result<ExitCode> {
+fn sim_render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
     use anyhow::anyhow;
     use mavloc_sim::{render_dataset, RenderOptions, Scenario};
     let scenario = Scenario::load(&args.scenario).map_err(|e| anyhow!(e))?;
