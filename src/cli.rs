@@ -149,12 +149,23 @@ pub struct RenderArgs {
 
 #[derive(Debug, Args)]
 pub struct AreaArgs {
-    /// Dataset folder (the simulation-world format).
+    /// Dataset folder (the simulation-world format, see README).
     #[arg(long)]
     pub dataset: PathBuf,
-    /// Output folder for landmarks, border and traces.
+    /// Output folder: landmarks.csv, landmarks.ply, area.geojson, area.kml, border.csv,
+    /// summary.json (and trace.csv with --trace).
     #[arg(long)]
     pub out: PathBuf,
+    /// `ukf` (the seed's method) or `ground-plane` (the previous method, sec. 2.1);
+    /// default: `area.method` of the configuration.
+    #[arg(long, value_parser = ["ukf", "ground-plane"])]
+    pub method: Option<String>,
+    /// Write every landmark update to trace.csv (seed fig. 6.2).
+    #[arg(long)]
+    pub trace: bool,
+    /// Process at most this many frames.
+    #[arg(long)]
+    pub frames: Option<usize>,
 }
 
 #[derive(Debug, Subcommand)]
@@ -184,12 +195,18 @@ pub enum IndoorCommand {
 
 #[derive(Debug, Subcommand)]
 pub enum EvalCommand {
-    /// Area results: distances of landmarks to the ground-truth border.
+    /// Area results: distances of landmarks and border line to the ground-truth border
+    /// (seed tables 6.3/6.5/6.6).
     Area {
+        /// The dataset the result was computed from (its ground_truth.csv is used).
         #[arg(long)]
         dataset: PathBuf,
+        /// The output folder of `mavloc area`.
         #[arg(long)]
         result: PathBuf,
+        /// Print one JSON object instead of the table.
+        #[arg(long)]
+        json: bool,
     },
     /// Indoor results: x, y error against ground truth.
     Indoor {

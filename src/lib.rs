@@ -8,6 +8,9 @@
 //!   local NED, body, gimbal, camera), gimbal kinematic chains, pinhole camera, pixel <->
 //!   bearing, the ground-plane projection (the area seed's previous method), geodesy.
 //!   It is its own crate so the simulator (`sim/`) shares it without a dependency cycle.
+//! * [`area`]: the area pipeline (seed 1): band, SIFT, landmark library with one UKF each,
+//!   the ground-plane baseline, border-line fit, evaluation, dataset runner.
+//! * [`output`]: result files (CSV, PLY, GeoJSON, KML), written atomically.
 //! * [`filter`]: a generic unscented Kalman filter (const-generic dimensions, models as
 //!   traits, numerically guarded) and the static-landmark bearing model.
 //! * [`settings`]: the layered, validated configuration (`config/mavloc.toml`).
@@ -21,9 +24,11 @@
 
 pub use mavloc_geometry as geometry;
 
+pub mod area;
 pub mod cli;
 pub mod demo;
 pub mod filter;
 pub mod link;
 pub mod logging;
+pub mod output;
 pub mod settings;

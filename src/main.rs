@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::Parser;
-use mavloc::cli::{Cli, Command, ConfigCommand, RenderArgs, SimCommand};
+use mavloc::cli::{AreaArgs, Cli, Command, ConfigCommand, EvalCommand, RenderArgs, SimCommand};
 use mavloc::settings::{self, Layers, Loaded};
 
 fn main() -> ExitCode {
@@ -72,9 +72,16 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim { command: SimCommand::Render(args) } => sim_render(args),
         Command::Sim { command: SimCommand::Plan { scenario, out } } => sim_plan(&scenario, out),
         Command::Sim { command: SimCommand::Vehicle { .. } } => not_yet("sim vehicle", 7),
-        Command::Area(_) => not_yet("area", 4),
+        Command::Area(args) => {
+            let loaded = load(config_file(cli.config), cli.overrides)?;
+            mavloc::logging::init(&loaded.settings.daemon.log);
+            area_run(args, &loaded.settings)
+        }
         Command::Indoor { .. } => not_yet("indoor", 5),
-        Command::Eval { .. } => not_yet("eval", 4),
+        Command::Eval { command: EvalCommand::Area { dataset, result, json } } => {
+            eval_area(&dataset, &result, json)
+        }
+        Command::Eval { command: EvalCommand::Indoor { .. } } => not_yet("eval indoor", 5),
     }
 }
 
@@ -161,6 +168,87 @@ fn sim_plan(scenario: &str, out: Option<PathBuf>) -> anyhow::Result<ExitCode> {
             println!("{}: {} waypoints", path.display(), mission.waypoints.len());
         }
         None => print!("{text}"),
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `mavloc area`: the area pipeline over a dataset, with a progress bar and a summary.
+fn area_run(args: AreaArgs, settings: &mavloc::settings::Settings) -> anyhow::Result<ExitCode> {
+    use mavloc::area::offline::{run, RunOptions};
+    use mavloc::settings::AreaMethod;
+    let method = match args.method.as_deref() {
+        Some("ground-plane") => AreaMethod::GroundPlane,
+        Some(_) => AreaMethod::Ukf,
+        None => settings.area.method,
+    };
+    let opts = RunOptions {
+        dataset: args.dataset,
+        out: args.out,
+        method,
+        trace: args.trace,
+        max_frames: args.frames,
+    };
+    let bar = progress_bar("area");
+    let summary = run(&opts, settings, |done, total| {
+        bar.set_length(total);
+        bar.set_position(done);
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "{}: {} frames ({} skipped) in {:.1} s, {:.1} frames/s; {} landmarks, {} border line{} ({})",
+        opts.out.display(),
+        summary.frames,
+        summary.skipped_frames,
+        summary.elapsed_s,
+        summary.frames_per_s,
+        summary.landmarks,
+        summary.border_lines,
+        if summary.border_lines == 1 { "" } else { "s" },
+        summary.method
+    );
+    if summary.method == "ukf" {
+        println!(
+            "per frame: band {:.1} ms, SIFT {:.1} ms, match+estimate {:.1} ms, purge+add {:.1} ms",
+            summary.band_ms, summary.sift_ms, summary.match_estimate_ms, summary.purge_add_ms
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn progress_bar(what: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(0);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+/// `mavloc eval area`: the seed's table for a result folder.
+fn eval_area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    use anyhow::Context;
+    let ds = mavloc_sim::Dataset::open(dataset).map_err(|e| anyhow::anyhow!(e))?;
+    if ds.ground_truth.is_empty() {
+        anyhow::bail!("{} has no ground truth (ground_truth.csv)", dataset.display());
+    }
+    let lpath = result.join("landmarks.csv");
+    let text = std::fs::read_to_string(&lpath).with_context(|| format!("cannot read {}", lpath.display()))?;
+    let landmarks = mavloc::output::parse_landmarks_csv(&text, &lpath.display().to_string())
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let border = std::fs::read_to_string(result.join("border.csv"))
+        .map(|t| mavloc::area::offline::parse_border_csv(&t))
+        .unwrap_or_default();
+    let fps = std::fs::read_to_string(result.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<mavloc::area::offline::RunSummary>(&t).ok())
+        .map_or(f64::NAN, |s| s.frames_per_s);
+    let e = mavloc::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
+    if json {
+        println!("{}", serde_json::to_string(&e)?);
+    } else {
+        print!("{e}");
     }
     Ok(ExitCode::SUCCESS)
 }

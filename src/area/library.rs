@@ -1,0 +1,322 @@
+//! The library of landmarks (area seed sec. 5.1, fig. 5.2): each landmark holds its
+//! descriptors and its own UKF; "Match and Estimate" (sec. 5.4, fig. 5.10-5.11, eq.
+//! 5.9-5.11), "Purge" (sec. 5.5, eq. 5.19-5.21) and "Add" (sec. 5.3, eq. 5.8).
+
+use nalgebra::{Matrix2, Matrix3, Vector2};
+use opencv::core::{self, DMatch, Mat, Vector};
+use opencv::features2d::BFMatcher;
+use opencv::prelude::*;
+
+use super::features::Features;
+use crate::filter::{BearingModel, MeasurementModel, Ukf, UkfParams};
+use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
+use crate::output::LandmarkRecord;
+
+const DESCRIPTOR_LEN: usize = 128;
+
+/// One landmark: descriptors seen so far (capped) and its position filter.
+pub struct Landmark {
+    pub id: u64,
+    pub ukf: Ukf<3>,
+    /// Descriptors, `DESCRIPTOR_LEN` floats each. The first is kept for good; the others
+    /// are a ring of the most recent, so the landmark follows slow appearance changes and
+    /// the per-frame matching cost is bounded.
+    descriptors: Vec<f32>,
+    next_slot: usize,
+    /// Features added (size in eq. 5.20), including the one that created it.
+    pub observations: u32,
+    pub first_frame: u64,
+    pub last_frame: u64,
+}
+
+impl Landmark {
+    fn descriptor_count(&self) -> usize {
+        self.descriptors.len() / DESCRIPTOR_LEN
+    }
+
+    fn add_descriptor(&mut self, d: &[f32], cap: usize) {
+        if self.descriptor_count() < cap {
+            self.descriptors.extend_from_slice(d);
+        } else if cap > 1 {
+            // Slots 1..cap form the ring; slot 0 is the first sighting.
+            let slot = 1 + self.next_slot % (cap - 1);
+            self.descriptors[slot * DESCRIPTOR_LEN..(slot + 1) * DESCRIPTOR_LEN].copy_from_slice(d);
+            self.next_slot += 1;
+        }
+    }
+
+    /// Quality `Q = size / age` (eq. 5.20), age in frames including the current one.
+    pub fn quality(&self, frame: u64) -> f64 {
+        self.observations as f64 / (frame.saturating_sub(self.first_frame) + 1) as f64
+    }
+
+    /// Largest standard deviation (eq. 5.21).
+    pub fn sigma_max(&self) -> f64 {
+        self.ukf.max_std()
+    }
+
+    pub fn record(&self) -> LandmarkRecord {
+        LandmarkRecord {
+            id: self.id,
+            position: *self.ukf.state(),
+            sigma_max_m: self.sigma_max(),
+            observations: self.observations,
+            first_frame: self.first_frame,
+            last_frame: self.last_frame,
+        }
+    }
+}
+
+/// Parameters of the library (from `[area]` in the configuration).
+#[derive(Clone, Debug)]
+pub struct LibraryParams {
+    pub l_max: usize,
+    pub turnover: usize,
+    pub ratio: f32,
+    pub mahalanobis_max: f64,
+    pub convergence_m: f64,
+    pub min_observations: u32,
+    pub bearing_noise: Matrix2<f64>,
+    pub bearing_sd_rad: f64,
+    pub ukf: UkfParams,
+    pub init_sigma_m: f64,
+    pub ground_down_m: f64,
+    pub max_descriptors: usize,
+}
+
+/// One update of one landmark, for outlier analysis (seed fig. 6.2).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TraceEntry {
+    pub frame: u64,
+    pub landmark: u64,
+    pub pixel: Pixel,
+    /// Measured bearing (yaw, pitch), radians.
+    pub measurement: [f64; 2],
+    /// Predicted bearing before the update.
+    pub prediction: [f64; 2],
+    /// Mahalanobis distance of the innovation (eq. 5.11).
+    pub mahalanobis: f64,
+    pub accepted: bool,
+    /// State mean and covariance after the step (unchanged when refused).
+    pub mean: [f64; 3],
+    /// Covariance entries nn, ne, nd, ee, ed, dd.
+    pub covariance: [f64; 6],
+}
+
+/// Counts of one match-and-estimate step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MatchStats {
+    /// Landmarks with a voted match.
+    pub matched: usize,
+    /// Matches refused by the Mahalanobis gate.
+    pub gated: usize,
+    /// Matches lost to another landmark claiming the same feature.
+    pub conflicts: usize,
+    /// Filter updates applied.
+    pub updated: usize,
+}
+
+/// The library of landmarks.
+pub struct Library {
+    pub params: LibraryParams,
+    pub landmarks: Vec<Landmark>,
+    next_id: u64,
+    matcher: core::Ptr<BFMatcher>,
+}
+
+impl Library {
+    pub fn new(params: LibraryParams) -> opencv::Result<Library> {
+        Ok(Library {
+            params,
+            landmarks: Vec::new(),
+            next_id: 0,
+            matcher: BFMatcher::create(core::NORM_L2, false)?,
+        })
+    }
+
+    /// Match and Estimate: every landmark's descriptors against the frame's (brute force,
+    /// two nearest, Lowe ratio), majority vote per landmark (fig. 5.11), one feature per
+    /// landmark (a feature claimed twice goes to the landmark with more votes), Mahalanobis
+    /// gate on the predicted bearing (eq. 5.11), UKF update. Returns which features were
+    /// used (matched, even if gated) so they are not added again as new landmarks.
+    pub fn match_and_estimate(
+        &mut self,
+        frame: u64,
+        features: &Features,
+        pose: &CameraPose,
+        k: &Intrinsics,
+        trace: Option<&mut Vec<TraceEntry>>,
+    ) -> opencv::Result<(MatchStats, Vec<bool>)> {
+        let mut used = vec![false; features.len()];
+        let mut stats = MatchStats::default();
+        if self.landmarks.is_empty() || features.len() < 2 {
+            return Ok((stats, used));
+        }
+        // All landmark descriptors as one query matrix, with each row's owner.
+        let total: usize = self.landmarks.iter().map(Landmark::descriptor_count).sum();
+        let mut flat = Vec::with_capacity(total * DESCRIPTOR_LEN);
+        let mut owner = Vec::with_capacity(total);
+        for (li, l) in self.landmarks.iter().enumerate() {
+            flat.extend_from_slice(&l.descriptors);
+            owner.extend(std::iter::repeat_n(li, l.descriptor_count()));
+        }
+        let query = Mat::from_slice(&flat)?.reshape(1, total as i32)?.try_clone()?;
+        let mut knn = Vector::<Vector<DMatch>>::new();
+        self.matcher.knn_train_match(&query, &features.descriptors, &mut knn, 2, &core::no_array(), false)?;
+
+        // Votes: per landmark, feature -> (votes, best distance).
+        let mut votes: Vec<Vec<(usize, u32, f32)>> = vec![Vec::new(); self.landmarks.len()];
+        for pair in knn.iter() {
+            if pair.len() < 2 {
+                continue;
+            }
+            let (m1, m2) = (pair.get(0)?, pair.get(1)?);
+            if m1.distance >= self.params.ratio * m2.distance {
+                continue;
+            }
+            let (li, fi) = (owner[m1.query_idx as usize], m1.train_idx as usize);
+            match votes[li].iter_mut().find(|(f, _, _)| *f == fi) {
+                Some(v) => {
+                    v.1 += 1;
+                    v.2 = v.2.min(m1.distance);
+                }
+                None => votes[li].push((fi, 1, m1.distance)),
+            }
+        }
+        // Each landmark's winner; then each feature to its strongest claimant.
+        let mut claims: Vec<(usize, usize, u32, f32)> = votes
+            .iter()
+            .enumerate()
+            .filter_map(|(li, v)| {
+                v.iter()
+                    .max_by(|a, b| a.1.cmp(&b.1).then(b.2.total_cmp(&a.2)))
+                    .map(|&(fi, n, d)| (li, fi, n, d))
+            })
+            .collect();
+        claims.sort_by(|a, b| b.2.cmp(&a.2).then(a.3.total_cmp(&b.3)));
+        let mut taken = vec![false; features.len()];
+        let mut trace = trace;
+        for (li, fi, _, _) in claims {
+            if taken[fi] {
+                stats.conflicts += 1;
+                continue;
+            }
+            taken[fi] = true;
+            used[fi] = true;
+            stats.matched += 1;
+            let px = features.pixels[fi];
+            let b = pose.pixel_bearing(k, px);
+            let z = Vector2::new(b.yaw, b.pitch);
+            let model = BearingModel { observer: pose.position };
+            let landmark = &mut self.landmarks[li];
+            let Ok(pred) = landmark.ukf.predict_measurement(&model, &self.params.bearing_noise) else {
+                stats.gated += 1;
+                continue;
+            };
+            let y = model.residual(&z, &pred.z);
+            let d = pred.mahalanobis(&y);
+            let accepted =
+                d <= self.params.mahalanobis_max && landmark.ukf.update_predicted(&model, &pred, &z).is_ok();
+            if accepted {
+                stats.updated += 1;
+                let row = features.descriptors.at_row::<f32>(fi as i32)?;
+                landmark.add_descriptor(row, self.params.max_descriptors);
+                landmark.observations += 1;
+                landmark.last_frame = frame;
+            } else {
+                stats.gated += 1;
+            }
+            if let Some(t) = trace.as_deref_mut() {
+                let p = landmark.ukf.covariance();
+                let m = landmark.ukf.state();
+                t.push(TraceEntry {
+                    frame,
+                    landmark: landmark.id,
+                    pixel: px,
+                    measurement: [z.x, z.y],
+                    prediction: [pred.z.x, pred.z.y],
+                    mahalanobis: d,
+                    accepted,
+                    mean: [m.x, m.y, m.z],
+                    covariance: [p[(0, 0)], p[(0, 1)], p[(0, 2)], p[(1, 1)], p[(1, 2)], p[(2, 2)]],
+                });
+            }
+        }
+        Ok((stats, used))
+    }
+
+    /// Whether a landmark counts as a result (eq. 5.21 below the threshold, and seen often
+    /// enough that the covariance reflects measurements rather than one lucky update).
+    pub fn converged(&self, l: &Landmark) -> bool {
+        l.observations >= self.params.min_observations && l.sigma_max() < self.params.convergence_m
+    }
+
+    /// Purge (eq. 5.19-5.20): above `L_max - T`, remove the worst by quality; converged
+    /// ones among them are returned as results.
+    pub fn purge(&mut self, frame: u64) -> (usize, Vec<LandmarkRecord>) {
+        let keep = self.params.l_max.saturating_sub(self.params.turnover);
+        if self.landmarks.len() <= keep {
+            return (0, Vec::new());
+        }
+        let excess = self.landmarks.len() - keep;
+        // Worst first: lowest quality, oldest last sighting breaking ties.
+        self.landmarks.sort_by(|a, b| {
+            a.quality(frame).total_cmp(&b.quality(frame)).then(a.last_frame.cmp(&b.last_frame))
+        });
+        let removed: Vec<Landmark> = self.landmarks.drain(..excess).collect();
+        let results = removed.iter().filter(|l| self.converged(l)).map(Landmark::record).collect();
+        (excess, results)
+    }
+
+    /// Add (eq. 5.8): up to `L_max - L` new landmarks from the strongest unused features,
+    /// initialised on the ground plane (sec. 5.3) with a covariance long along the viewing
+    /// ray (where the ground-plane guess is uncertain) and narrow across it (where the
+    /// bearing pins it down), so the filter converges from a wrong ground height.
+    pub fn add(
+        &mut self,
+        frame: u64,
+        features: &Features,
+        used: &[bool],
+        pose: &CameraPose,
+        k: &Intrinsics,
+    ) -> usize {
+        let room = self.params.l_max.saturating_sub(self.landmarks.len());
+        if room == 0 {
+            return 0;
+        }
+        let mut order: Vec<usize> = (0..features.len()).filter(|&i| !used[i]).collect();
+        order.sort_by(|&a, &b| features.responses[b].total_cmp(&features.responses[a]));
+        let mut added = 0;
+        for fi in order {
+            if added == room {
+                break;
+            }
+            let px = features.pixels[fi];
+            let Some(ground) = pose.ground_intersection(k, px, self.params.ground_down_m) else { continue };
+            let ray = ground - pose.position;
+            let range = ray.norm();
+            if !(range.is_finite() && range > 0.5) {
+                continue;
+            }
+            let d: Vec3 = ray / range;
+            let across = (3.0 * range * self.params.bearing_sd_rad).max(0.3);
+            let along = self.params.init_sigma_m.max(across);
+            let p0 =
+                Matrix3::identity() * across.powi(2) + d * d.transpose() * (along.powi(2) - across.powi(2));
+            let Ok(ukf) = Ukf::new(ground, p0, self.params.ukf) else { continue };
+            let Ok(row) = features.descriptors.at_row::<f32>(fi as i32) else { continue };
+            self.landmarks.push(Landmark {
+                id: self.next_id,
+                ukf,
+                descriptors: row.to_vec(),
+                next_slot: 0,
+                observations: 1,
+                first_frame: frame,
+                last_frame: frame,
+            });
+            self.next_id += 1;
+            added += 1;
+        }
+        added
+    }
+}

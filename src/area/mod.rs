@@ -1,0 +1,180 @@
+//! Area localisation (area seed `area-localization-thesis.txt`, ch. 4-5): the 3D border of
+//! an area the camera sees, from SIFT landmarks in a band around the segmented area, each
+//! estimated by its own UKF from bearing measurements.
+//!
+//! One frame at a time, no look-ahead, as fig. 5.1: [`features`] (process new image,
+//! sec. 5.2) -> [`library`] match and estimate (sec. 5.4) -> purge (sec. 5.5) -> add
+//! (sec. 5.3). [`baseline`] is the seed's previous method (sec. 2.1) for comparison,
+//! [`border`] fits a 3D border line to the results (the seed's future work, ch. 9),
+//! [`eval`] measures results as the seed does (ch. 6), and [`offline`] runs a dataset.
+//!
+//! The pipeline is a plain synchronous library: it takes a grey frame, its target mask and
+//! the camera pose the telemetry gives, and returns what changed. It knows nothing of
+//! files, MAVLink or tokio.
+
+pub mod baseline;
+pub mod border;
+pub mod eval;
+pub mod features;
+pub mod library;
+pub mod offline;
+
+use std::time::{Duration, Instant};
+
+use opencv::core::Mat;
+use opencv::prelude::*;
+
+use crate::filter::{bearing_noise, UkfParams};
+use crate::geometry::{CameraPose, Intrinsics};
+use crate::output::LandmarkRecord;
+use crate::settings::Area as AreaSettings;
+use features::FeatureExtractor;
+use library::{Library, LibraryParams, MatchStats, TraceEntry};
+
+/// Why a frame could not be processed.
+#[derive(Debug, thiserror::Error)]
+pub enum AreaError {
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+    #[error("{0}")]
+    Input(String),
+}
+
+/// One frame for the pipeline, at the processing resolution.
+pub struct FrameInput<'a> {
+    pub index: u64,
+    /// 8-bit grey frame.
+    pub grey: &'a Mat,
+    /// 8-bit target mask (non-zero inside the target area), same size.
+    pub mask: &'a Mat,
+    /// Camera pose from the (time-aligned) telemetry.
+    pub pose: CameraPose,
+}
+
+/// What one frame did.
+#[derive(Clone, Debug, Default)]
+pub struct FrameReport {
+    pub features: usize,
+    pub stats: MatchStats,
+    pub purged: usize,
+    pub added: usize,
+    /// Landmarks that converged and were purged this frame: results.
+    pub converged: Vec<LandmarkRecord>,
+    /// Library size after the frame.
+    pub landmarks: usize,
+    /// Per-update history, when tracing is on.
+    pub trace: Vec<TraceEntry>,
+    pub timing: StageTiming,
+}
+
+/// Time spent per stage.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StageTiming {
+    pub band: Duration,
+    pub sift: Duration,
+    pub match_estimate: Duration,
+    pub purge_add: Duration,
+}
+
+impl std::ops::AddAssign for StageTiming {
+    fn add_assign(&mut self, o: StageTiming) {
+        self.band += o.band;
+        self.sift += o.sift;
+        self.match_estimate += o.match_estimate;
+        self.purge_add += o.purge_add;
+    }
+}
+
+/// The area pipeline.
+pub struct AreaPipeline {
+    k: Intrinsics,
+    extractor: FeatureExtractor,
+    library: Library,
+    trace: bool,
+}
+
+impl AreaPipeline {
+    /// A pipeline for frames with intrinsics `k` (at the processing resolution, i.e. after
+    /// the configured downscale).
+    pub fn new(s: &AreaSettings, k: Intrinsics) -> Result<AreaPipeline, AreaError> {
+        k.validate().map_err(AreaError::Input)?;
+        let band = (s.band_px as f64 / s.downscale.max(1) as f64).round().max(1.0) as i32;
+        let l_max = s.l_max as i32;
+        let extractor = FeatureExtractor::new(l_max, l_max * s.feature_factor as i32, band)?;
+        let sd = s.bearing_noise_deg.to_radians();
+        let library = Library::new(LibraryParams {
+            l_max: s.l_max as usize,
+            turnover: s.turnover as usize,
+            ratio: s.ratio_test as f32,
+            mahalanobis_max: s.mahalanobis_max,
+            convergence_m: s.convergence_m,
+            min_observations: s.min_observations,
+            bearing_noise: bearing_noise(sd),
+            bearing_sd_rad: sd,
+            ukf: UkfParams { alpha: s.ukf_alpha, beta: s.ukf_beta, kappa: s.ukf_kappa },
+            init_sigma_m: s.init_sigma_m,
+            ground_down_m: s.ground_down_m,
+            max_descriptors: s.max_descriptors as usize,
+        })?;
+        Ok(AreaPipeline { k, extractor, library, trace: false })
+    }
+
+    /// Records every update for outlier analysis (seed fig. 6.2).
+    pub fn with_trace(mut self, on: bool) -> Self {
+        self.trace = on;
+        self
+    }
+
+    pub fn intrinsics(&self) -> &Intrinsics {
+        &self.k
+    }
+
+    /// Landmarks currently tracked.
+    pub fn tracked(&self) -> usize {
+        self.library.landmarks.len()
+    }
+
+    /// Processes one frame (seed fig. 5.1).
+    pub fn process(&mut self, input: &FrameInput) -> Result<FrameReport, AreaError> {
+        let (w, h) = (input.grey.cols(), input.grey.rows());
+        if (w, h) != (self.k.width as i32, self.k.height as i32) {
+            return Err(AreaError::Input(format!(
+                "frame {} is {w}x{h} but the pipeline expects {}x{}",
+                input.index, self.k.width, self.k.height
+            )));
+        }
+        if (input.mask.cols(), input.mask.rows()) != (w, h) {
+            return Err(AreaError::Input(format!(
+                "mask of frame {} has another size than the frame",
+                input.index
+            )));
+        }
+        let mut report = FrameReport::default();
+        let t0 = Instant::now();
+        let band = self.extractor.band(input.mask)?;
+        let t1 = Instant::now();
+        let first = self.library.landmarks.is_empty();
+        let features = self.extractor.extract(input.grey, &band, first)?;
+        let t2 = Instant::now();
+        report.features = features.len();
+        let trace = if self.trace { Some(&mut report.trace) } else { None };
+        let (stats, used) =
+            self.library.match_and_estimate(input.index, &features, &input.pose, &self.k, trace)?;
+        report.stats = stats;
+        let t3 = Instant::now();
+        let (purged, converged) = self.library.purge(input.index);
+        report.purged = purged;
+        report.converged = converged;
+        report.added = self.library.add(input.index, &features, &used, &input.pose, &self.k);
+        report.landmarks = self.library.landmarks.len();
+        report.timing =
+            StageTiming { band: t1 - t0, sift: t2 - t1, match_estimate: t3 - t2, purge_add: t3.elapsed() };
+        Ok(report)
+    }
+
+    /// Landmarks still in the library that have converged: results at the end of a run
+    /// or on demand (the library is not changed).
+    pub fn converged_now(&self) -> Vec<LandmarkRecord> {
+        self.library.landmarks.iter().filter(|l| self.library.converged(l)).map(|l| l.record()).collect()
+    }
+}

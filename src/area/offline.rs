@@ -1,0 +1,237 @@
+//! `mavloc area`: the area pipeline (or the ground-plane baseline) over a recorded dataset,
+//! with results written as the run goes.
+//!
+//! Results (`landmarks.csv`, `.ply`, `area.geojson`, `area.kml`, `summary.json`) are
+//! rewritten atomically every `CHECKPOINT_FRAMES` frames and at the end, so a crash leaves
+//! the last complete set readable. `trace.csv` (with `--trace`) is appended and flushed
+//! every frame.
+
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use opencv::imgcodecs;
+use opencv::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::border::{self, BorderParams};
+use super::features::prepare;
+use super::{baseline, AreaPipeline, FrameInput, StageTiming};
+use crate::geometry::{CameraPose, GimbalAngles, LocalFrame};
+use crate::output::{self, LandmarkRecord};
+use crate::settings::{AreaMethod, Settings};
+use mavloc_sim::dataset::{Dataset, PoseRecord};
+
+const CHECKPOINT_FRAMES: u64 = 100;
+/// The baseline keeps one border pixel in this many along each contour.
+const BASELINE_STEP_PX: usize = 8;
+
+/// What a run did; also written as `summary.json`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct RunSummary {
+    pub method: String,
+    pub frames: u64,
+    pub skipped_frames: u64,
+    pub elapsed_s: f64,
+    pub frames_per_s: f64,
+    pub landmarks: usize,
+    pub border_lines: usize,
+    pub band_ms: f64,
+    pub sift_ms: f64,
+    pub match_estimate_ms: f64,
+    pub purge_add_ms: f64,
+    pub complete: bool,
+}
+
+/// Options of a run.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub dataset: PathBuf,
+    pub out: PathBuf,
+    pub method: AreaMethod,
+    pub trace: bool,
+    /// Stop after this many frames.
+    pub max_frames: Option<usize>,
+}
+
+/// The measured camera pose of a record, with the configured static gimbal corrections.
+pub fn measured_pose(r: &PoseRecord, ds: &Dataset, s: &Settings) -> CameraPose {
+    let g = r.gimbal();
+    let corrected = GimbalAngles {
+        yaw: g.yaw + s.gimbal.yaw_offset_deg.to_radians(),
+        pitch: g.pitch + s.gimbal.pitch_offset_deg.to_radians(),
+        roll: g.roll + s.gimbal.roll_offset_deg.to_radians(),
+    };
+    let corrected_record = PoseRecord {
+        gimbal_deg: [corrected.yaw.to_degrees(), corrected.pitch.to_degrees(), corrected.roll.to_degrees()],
+        ..*r
+    };
+    corrected_record.camera_pose(ds.camera.chain, ds.camera.gimbal_frame)
+}
+
+fn write_results(
+    out: &Path,
+    frame: &LocalFrame,
+    name: &str,
+    landmarks: &[LandmarkRecord],
+    summary: &mut RunSummary,
+) -> std::io::Result<()> {
+    let points: Vec<_> = landmarks.iter().map(|l| l.position).collect();
+    let borders = border::fit(&points, &BorderParams::default());
+    summary.landmarks = landmarks.len();
+    summary.border_lines = borders.len();
+    output::write_atomic(&out.join("landmarks.csv"), output::landmarks_csv(landmarks).as_bytes())?;
+    output::write_atomic(&out.join("landmarks.ply"), output::landmarks_ply(landmarks).as_bytes())?;
+    output::write_atomic(
+        &out.join("area.geojson"),
+        output::area_geojson(frame, landmarks, &borders).as_bytes(),
+    )?;
+    output::write_atomic(
+        &out.join("area.kml"),
+        output::area_kml(frame, name, landmarks, &borders).as_bytes(),
+    )?;
+    output::write_atomic(&out.join("border.csv"), border_csv(&borders).as_bytes())?;
+    let json = serde_json::to_string_pretty(summary).expect("summary serialises");
+    output::write_atomic(&out.join("summary.json"), json.as_bytes())
+}
+
+fn border_csv(lines: &[Vec<crate::geometry::Vec3>]) -> String {
+    let mut s = String::from("line,index,north,east,down\n");
+    for (li, l) in lines.iter().enumerate() {
+        for (i, p) in l.iter().enumerate() {
+            s.push_str(&format!("{li},{i},{:.4},{:.4},{:.4}\n", p.x, p.y, p.z));
+        }
+    }
+    s
+}
+
+/// Reads `border.csv` back.
+pub fn parse_border_csv(text: &str) -> Vec<Vec<crate::geometry::Vec3>> {
+    let mut lines: Vec<Vec<crate::geometry::Vec3>> = Vec::new();
+    for row in text.lines().skip(1) {
+        let c: Vec<f64> = row.split(',').filter_map(|v| v.trim().parse().ok()).collect();
+        if c.len() == 5 {
+            let li = c[0] as usize;
+            while lines.len() <= li {
+                lines.push(Vec::new());
+            }
+            lines[li].push(crate::geometry::Vec3::new(c[2], c[3], c[4]));
+        }
+    }
+    lines
+}
+
+/// Runs the configured method over a dataset. `progress(done, total)` after each frame.
+pub fn run(
+    opts: &RunOptions,
+    s: &Settings,
+    mut progress: impl FnMut(u64, u64),
+) -> anyhow::Result<RunSummary> {
+    let ds = Dataset::open(&opts.dataset).map_err(|e| anyhow::anyhow!(e))?;
+    fs::create_dir_all(&opts.out)?;
+    let k_full = ds.camera.intrinsics();
+    let downscale = s.area.downscale.max(1);
+    let k = k_full.downscaled(downscale);
+    let frame = LocalFrame::new(ds.camera.origin);
+    let name = format!("mavloc area: {}", opts.dataset.display());
+    let method = match opts.method {
+        AreaMethod::Ukf => "ukf",
+        AreaMethod::GroundPlane => "ground-plane",
+    };
+    let mut pipeline = match opts.method {
+        AreaMethod::Ukf => Some(AreaPipeline::new(&s.area, k)?.with_trace(opts.trace)),
+        AreaMethod::GroundPlane => None,
+    };
+    let mut trace_file = if opts.trace {
+        let mut f = std::io::BufWriter::new(fs::File::create(opts.out.join("trace.csv"))?);
+        writeln!(
+            f,
+            "frame,landmark,u,v,meas_yaw,meas_pitch,pred_yaw,pred_pitch,mahalanobis,accepted,\
+             north,east,down,p_nn,p_ne,p_nd,p_ee,p_ed,p_dd"
+        )?;
+        Some(f)
+    } else {
+        None
+    };
+
+    let total = opts.max_frames.unwrap_or(usize::MAX).min(ds.records.len()) as u64;
+    let mut results: Vec<LandmarkRecord> = Vec::new();
+    let mut summary = RunSummary { method: method.into(), ..RunSummary::default() };
+    let mut timing = StageTiming::default();
+    let start = Instant::now();
+    for (i, record) in ds.records.iter().take(total as usize).enumerate() {
+        let frame_path = ds.frame_path(record);
+        let mask_path = ds.mask_path(record);
+        let img = imgcodecs::imread(&frame_path, imgcodecs::IMREAD_COLOR)?;
+        let mask = imgcodecs::imread(&mask_path, imgcodecs::IMREAD_GRAYSCALE)?;
+        if img.empty()
+            || mask.empty()
+            || (img.cols(), img.rows()) != (k_full.width as i32, k_full.height as i32)
+        {
+            tracing::warn!(frame = record.frame, path = %frame_path.display(), "unreadable or wrongly sized frame or mask, skipped");
+            summary.skipped_frames += 1;
+            progress(i as u64 + 1, total);
+            continue;
+        }
+        let (grey, small_mask) = prepare(&img, &mask, downscale)?;
+        let pose = measured_pose(&record.measured, &ds, s);
+        match pipeline.as_mut() {
+            Some(p) => {
+                let report =
+                    p.process(&FrameInput { index: record.frame, grey: &grey, mask: &small_mask, pose })?;
+                timing += report.timing;
+                results.extend(report.converged);
+                if let Some(f) = trace_file.as_mut() {
+                    for t in &report.trace {
+                        writeln!(
+                            f,
+                            "{},{},{:.3},{:.3},{:.6},{:.6},{:.6},{:.6},{:.4},{},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5}",
+                            t.frame, t.landmark, t.pixel.u, t.pixel.v, t.measurement[0], t.measurement[1],
+                            t.prediction[0], t.prediction[1], t.mahalanobis, t.accepted as u8,
+                            t.mean[0], t.mean[1], t.mean[2], t.covariance[0], t.covariance[1], t.covariance[2],
+                            t.covariance[3], t.covariance[4], t.covariance[5]
+                        )?;
+                    }
+                    f.flush()?;
+                }
+            }
+            None => {
+                let pts =
+                    baseline::border_points(&small_mask, &pose, &k, s.area.ground_down_m, BASELINE_STEP_PX)?;
+                for p in pts {
+                    let id = results.len() as u64;
+                    results.push(LandmarkRecord {
+                        id,
+                        position: p,
+                        sigma_max_m: f64::NAN,
+                        observations: 1,
+                        first_frame: record.frame,
+                        last_frame: record.frame,
+                    });
+                }
+            }
+        }
+        summary.frames += 1;
+        if summary.frames.is_multiple_of(CHECKPOINT_FRAMES) {
+            summary.elapsed_s = start.elapsed().as_secs_f64();
+            summary.frames_per_s = summary.frames as f64 / summary.elapsed_s;
+            write_results(&opts.out, &frame, &name, &results, &mut summary)?;
+        }
+        progress(i as u64 + 1, total);
+    }
+    if let Some(p) = pipeline.as_ref() {
+        results.extend(p.converged_now());
+    }
+    summary.elapsed_s = start.elapsed().as_secs_f64();
+    summary.frames_per_s =
+        if summary.elapsed_s > 0.0 { summary.frames as f64 / summary.elapsed_s } else { 0.0 };
+    let per_frame = |d: std::time::Duration| d.as_secs_f64() * 1000.0 / summary.frames.max(1) as f64;
+    summary.band_ms = per_frame(timing.band);
+    summary.sift_ms = per_frame(timing.sift);
+    summary.match_estimate_ms = per_frame(timing.match_estimate);
+    summary.purge_add_ms = per_frame(timing.purge_add);
+    summary.complete = true;
+    write_results(&opts.out, &frame, &name, &results, &mut summary)?;
+    Ok(summary)
+}
