@@ -91,7 +91,7 @@ fn run_refuses_a_bad_mavlink_address() {
 
 #[test]
 fn unfinished_commands_say_so_plainly() {
-    let a = mavloc().args(["area", "--dataset", "d", "--out", "o"]).assert().code(2);
+    let a = mavloc().args(["indoor", "train", "--dataset", "d", "--out", "o"]).assert().code(2);
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("not implemented yet"), "{err}");
 }
@@ -100,4 +100,18 @@ fn unfinished_commands_say_so_plainly() {
 fn demo_prints_its_report() {
     let out = stdout_of(mavloc().args(["demo", "--seed", "2"]));
     assert!(out.contains("converged") && out.contains("result            PASS"), "{out}");
+}
+
+#[test]
+fn area_on_a_missing_dataset_names_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = mavloc()
+        .args(["area", "--dataset"])
+        .arg(dir.path().join("nope"))
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("nope/camera.toml"), "{err}");
 }

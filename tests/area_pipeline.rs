@@ -1,0 +1,82 @@
+//! The area pipeline end to end on short rendered flights with the seed's noise (gimbal
+//! 0.5 deg, position 0.5/0.5/2 m): accuracy bounds that catch a regression, and the
+//! ground-plane baseline on the same data for comparison. Small frames (480x270, band
+//! 13 px) keep it quick; the full-size figures are in the README.
+
+use mavloc::area::eval::{evaluate, AreaEvaluation};
+use mavloc::area::offline::{parse_border_csv, run, RunOptions};
+use mavloc::output::parse_landmarks_csv;
+use mavloc::settings::{AreaMethod, Settings};
+use mavloc_sim::{render_dataset, Dataset, RenderOptions, Scenario};
+
+fn render(dir: &std::path::Path, name: &str, frames: usize) -> std::path::PathBuf {
+    let out = dir.join(name);
+    let opts = RenderOptions { frames: Some(frames), size: Some((480, 270)), ..RenderOptions::default() };
+    render_dataset(&Scenario::load(name).unwrap(), &opts, &out, |_, _| {}).unwrap();
+    out
+}
+
+fn settings() -> Settings {
+    let mut s = Settings::default();
+    s.area.downscale = 1;
+    s.area.band_px = 13;
+    s
+}
+
+fn run_and_eval(dataset: &std::path::Path, out: &std::path::Path, method: AreaMethod) -> AreaEvaluation {
+    let opts =
+        RunOptions { dataset: dataset.into(), out: out.into(), method, trace: false, max_frames: None };
+    let summary = run(&opts, &settings(), |_, _| {}).unwrap();
+    assert!(summary.complete);
+    let landmarks =
+        parse_landmarks_csv(&std::fs::read_to_string(out.join("landmarks.csv")).unwrap(), "landmarks.csv")
+            .unwrap();
+    let border = parse_border_csv(&std::fs::read_to_string(out.join("border.csv")).unwrap());
+    let ds = Dataset::open(dataset).unwrap();
+    for f in ["landmarks.ply", "area.geojson", "area.kml", "summary.json"] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    evaluate(&landmarks, &ds.ground_truth, &border, summary.frames_per_s)
+}
+
+/// On the flat coastline the ground-plane assumption holds exactly at the shore, so the
+/// baseline is good there too (it is printed, not asserted against).
+#[test]
+fn coastline_short_flight_is_accurate() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = render(dir.path(), "coastline", 240);
+    let ukf = run_and_eval(&ds, &dir.path().join("ukf"), AreaMethod::Ukf);
+    let plane = run_and_eval(&ds, &dir.path().join("plane"), AreaMethod::GroundPlane);
+    println!("coastline ukf:\n{ukf}\ncoastline ground plane:\n{plane}");
+    assert!(ukf.landmarks >= 60, "{ukf}");
+    assert_eq!(ukf.gt20, 0, "{ukf}");
+    assert!(ukf.mean_m <= 2.0, "{ukf}");
+    assert!(ukf.border_mean_m <= 2.0, "{ukf}");
+}
+
+#[test]
+fn cliff_short_flight_is_accurate_where_the_ground_plane_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = render(dir.path(), "cliff", 360);
+    let ukf = run_and_eval(&ds, &dir.path().join("ukf"), AreaMethod::Ukf);
+    let plane = run_and_eval(&ds, &dir.path().join("plane"), AreaMethod::GroundPlane);
+    println!("cliff ukf:\n{ukf}\ncliff ground plane:\n{plane}");
+    assert!(ukf.landmarks >= 30, "{ukf}");
+    assert_eq!(ukf.gt20, 0, "{ukf}");
+    assert!(ukf.mean_m <= 3.0, "{ukf}");
+    assert!(plane.mean_m > 2.0 * ukf.mean_m, "ukf {:.2} m vs ground plane {:.2} m", ukf.mean_m, plane.mean_m);
+}
+
+#[test]
+fn trace_records_every_update() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = render(dir.path(), "coastline", 30);
+    let out = dir.path().join("traced");
+    let opts =
+        RunOptions { dataset: ds, out: out.clone(), method: AreaMethod::Ukf, trace: true, max_frames: None };
+    run(&opts, &settings(), |_, _| {}).unwrap();
+    let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
+    let rows: Vec<&str> = trace.lines().skip(1).collect();
+    assert!(rows.len() > 100, "{} updates traced", rows.len());
+    assert!(rows.iter().all(|r| r.split(',').count() == 19));
+}
