@@ -30,6 +30,19 @@ pub struct Landmark {
 }
 
 impl Landmark {
+    /// A landmark from its first sighting: filter and descriptor.
+    pub fn new(id: u64, ukf: Ukf<3>, descriptor: &[f32], frame: u64) -> Landmark {
+        Landmark {
+            id,
+            ukf,
+            descriptors: descriptor.to_vec(),
+            next_slot: 0,
+            observations: 1,
+            first_frame: frame,
+            last_frame: frame,
+        }
+    }
+
     fn descriptor_count(&self) -> usize {
         self.descriptors.len() / DESCRIPTOR_LEN
     }
@@ -84,6 +97,27 @@ pub struct LibraryParams {
     pub max_descriptors: usize,
 }
 
+impl LibraryParams {
+    /// From the `[area]` configuration.
+    pub fn from_settings(a: &crate::settings::Area) -> LibraryParams {
+        let sd = a.bearing_noise_deg.to_radians();
+        LibraryParams {
+            l_max: a.l_max as usize,
+            turnover: a.turnover as usize,
+            ratio: a.ratio_test as f32,
+            mahalanobis_max: a.mahalanobis_max,
+            convergence_m: a.convergence_m,
+            min_observations: a.min_observations,
+            bearing_noise: crate::filter::bearing_noise(sd),
+            bearing_sd_rad: sd,
+            ukf: UkfParams { alpha: a.ukf_alpha, beta: a.ukf_beta, kappa: a.ukf_kappa },
+            init_sigma_m: a.init_sigma_m,
+            ground_down_m: a.ground_down_m,
+            max_descriptors: a.max_descriptors as usize,
+        }
+    }
+}
+
 /// One update of one landmark, for outlier analysis (seed fig. 6.2).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TraceEntry {
@@ -132,6 +166,13 @@ impl Library {
             next_id: 0,
             matcher: BFMatcher::create(core::NORM_L2, false)?,
         })
+    }
+
+    /// Adds a landmark, giving it the next id.
+    pub fn push(&mut self, mut l: Landmark) {
+        l.id = self.next_id;
+        self.next_id += 1;
+        self.landmarks.push(l);
     }
 
     /// Match and Estimate: every landmark's descriptors against the frame's (brute force,
@@ -305,16 +346,7 @@ impl Library {
                 Matrix3::identity() * across.powi(2) + d * d.transpose() * (along.powi(2) - across.powi(2));
             let Ok(ukf) = Ukf::new(ground, p0, self.params.ukf) else { continue };
             let Ok(row) = features.descriptors.at_row::<f32>(fi as i32) else { continue };
-            self.landmarks.push(Landmark {
-                id: self.next_id,
-                ukf,
-                descriptors: row.to_vec(),
-                next_slot: 0,
-                observations: 1,
-                first_frame: frame,
-                last_frame: frame,
-            });
-            self.next_id += 1;
+            self.push(Landmark::new(self.next_id, ukf, row, frame));
             added += 1;
         }
         added

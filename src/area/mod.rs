@@ -24,7 +24,6 @@ use std::time::{Duration, Instant};
 use opencv::core::Mat;
 use opencv::prelude::*;
 
-use crate::filter::{bearing_noise, UkfParams};
 use crate::geometry::{CameraPose, Intrinsics};
 use crate::output::LandmarkRecord;
 use crate::settings::Area as AreaSettings;
@@ -101,21 +100,7 @@ impl AreaPipeline {
         let band = (s.band_px as f64 / s.downscale.max(1) as f64).round().max(1.0) as i32;
         let l_max = s.l_max as i32;
         let extractor = FeatureExtractor::new(l_max, l_max * s.feature_factor as i32, band)?;
-        let sd = s.bearing_noise_deg.to_radians();
-        let library = Library::new(LibraryParams {
-            l_max: s.l_max as usize,
-            turnover: s.turnover as usize,
-            ratio: s.ratio_test as f32,
-            mahalanobis_max: s.mahalanobis_max,
-            convergence_m: s.convergence_m,
-            min_observations: s.min_observations,
-            bearing_noise: bearing_noise(sd),
-            bearing_sd_rad: sd,
-            ukf: UkfParams { alpha: s.ukf_alpha, beta: s.ukf_beta, kappa: s.ukf_kappa },
-            init_sigma_m: s.init_sigma_m,
-            ground_down_m: s.ground_down_m,
-            max_descriptors: s.max_descriptors as usize,
-        })?;
+        let library = Library::new(LibraryParams::from_settings(s))?;
         Ok(AreaPipeline { k, extractor, library, trace: false })
     }
 

@@ -41,6 +41,9 @@ pub struct RunSummary {
     pub sift_ms: f64,
     pub match_estimate_ms: f64,
     pub purge_add_ms: f64,
+    /// Median pipeline time of frames 45-54 and 495-504 (does cost grow with flight time?).
+    pub frame_ms_at_50: Option<f64>,
+    pub frame_ms_at_500: Option<f64>,
     pub complete: bool,
 }
 
@@ -159,6 +162,7 @@ pub fn run(
     let mut results: Vec<LandmarkRecord> = Vec::new();
     let mut summary = RunSummary { method: method.into(), ..RunSummary::default() };
     let mut timing = StageTiming::default();
+    let mut frame_ms = Vec::new();
     let start = Instant::now();
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
         let frame_path = ds.frame_path(record);
@@ -178,8 +182,10 @@ pub fn run(
         let pose = measured_pose(&record.measured, &ds, s);
         match pipeline.as_mut() {
             Some(p) => {
+                let t = Instant::now();
                 let report =
                     p.process(&FrameInput { index: record.frame, grey: &grey, mask: &small_mask, pose })?;
+                frame_ms.push(t.elapsed().as_secs_f64() * 1000.0);
                 timing += report.timing;
                 results.extend(report.converged);
                 if let Some(f) = trace_file.as_mut() {
@@ -231,6 +237,13 @@ pub fn run(
     summary.sift_ms = per_frame(timing.sift);
     summary.match_estimate_ms = per_frame(timing.match_estimate);
     summary.purge_add_ms = per_frame(timing.purge_add);
+    let window = |from: usize| -> Option<f64> {
+        let mut w: Vec<f64> = frame_ms.get(from..from + 10)?.to_vec();
+        w.sort_by(f64::total_cmp);
+        Some(w[w.len() / 2])
+    };
+    summary.frame_ms_at_50 = window(45);
+    summary.frame_ms_at_500 = window(495);
     summary.complete = true;
     write_results(&opts.out, &frame, &name, &results, &mut summary)?;
     Ok(summary)

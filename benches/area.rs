@@ -1,0 +1,127 @@
+//! Where the area pipeline's time goes, per stage, at the working resolution (960x540,
+//! band 25 px, L_max 200): band (distance transform vs the seed's dilation), SIFT in the
+//! band, match-and-estimate against a full library, the UKF updates alone, purge, and a
+//! whole frame at steady state. Frames come from the coastline mission.
+
+use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
+use mavloc::area::features::{prepare, FeatureExtractor};
+use mavloc::area::library::{Landmark, LibraryParams};
+use mavloc::area::{AreaPipeline, FrameInput};
+use mavloc::filter::{bearing_noise, BearingModel, Ukf, UkfParams};
+use mavloc::geometry::{bearing_between, CameraPose, Vec3};
+use mavloc::settings::Settings;
+use mavloc_sim::{Mission, Renderer, Scenario, World};
+use nalgebra::{Matrix3, Vector2};
+use opencv::core::Mat;
+use opencv::prelude::*;
+
+struct Frame {
+    grey: Mat,
+    mask: Mat,
+    pose: CameraPose,
+}
+
+fn frames(count: usize) -> (Vec<Frame>, mavloc::geometry::Intrinsics) {
+    let scenario = Scenario::load("coastline").unwrap();
+    let world = World::build(&scenario).unwrap();
+    let mission = Mission::plan(&world).unwrap();
+    let renderer = Renderer::new(&world);
+    let k = scenario.intrinsics().downscaled(2);
+    let out = (0..count)
+        .map(|i| {
+            let state = mission.state(20.0 + i as f64 / mission.frame_rate);
+            let pose = mission.camera_pose(&state);
+            let f = renderer.render(&pose, &k);
+            let rgb =
+                Mat::from_slice(&f.rgb).unwrap().reshape(3, f.height as i32).unwrap().try_clone().unwrap();
+            let mut bgr = Mat::default();
+            opencv::imgproc::cvt_color(&rgb, &mut bgr, opencv::imgproc::COLOR_RGB2BGR, 0).unwrap();
+            let mask =
+                Mat::from_slice(&f.mask).unwrap().reshape(1, f.height as i32).unwrap().try_clone().unwrap();
+            let (grey, mask) = prepare(&bgr, &mask, 1).unwrap();
+            Frame { grey, mask, pose }
+        })
+        .collect();
+    (out, k)
+}
+
+fn stages(c: &mut Criterion) {
+    let s = Settings::default();
+    let (frames, k) = frames(40);
+    let band_px = (s.area.band_px / s.area.downscale) as i32;
+    let mut ex =
+        FeatureExtractor::new(s.area.l_max as i32, (s.area.l_max * s.area.feature_factor) as i32, band_px)
+            .unwrap();
+    let f0 = &frames[0];
+    c.bench_function("area_band_distance_transform", |b| b.iter(|| ex.band(&f0.mask).unwrap()));
+    c.bench_function("area_band_dilation_seed", |b| b.iter(|| ex.band_by_dilation(&f0.mask).unwrap()));
+    let band = ex.band(&f0.mask).unwrap();
+    c.bench_function("area_sift_in_band_2000", |b| b.iter(|| ex.extract(&f0.grey, &band, false).unwrap()));
+
+    // A library at steady state: run the pipeline over the first 39 frames.
+    let mut pipeline = AreaPipeline::new(&s.area, k).unwrap();
+    for (i, f) in frames.iter().take(39).enumerate() {
+        pipeline
+            .process(&FrameInput { index: i as u64, grey: &f.grey, mask: &f.mask, pose: f.pose })
+            .unwrap();
+    }
+    let last = &frames[39];
+    c.bench_function("area_whole_frame_steady_state", |b| {
+        b.iter(|| {
+            pipeline
+                .process(&FrameInput { index: 39, grey: &last.grey, mask: &last.mask, pose: last.pose })
+                .unwrap()
+        })
+    });
+
+    // UKF updates of a full library (200 landmarks), without matching.
+    let truth: Vec<Vec3> =
+        (0..200).map(|i| Vec3::new(60.0 + (i % 20) as f64, (i / 20) as f64 * 3.0, 0.0)).collect();
+    let observer = Vec3::new(0.0, 0.0, -30.0);
+    let r = bearing_noise(0.5f64.to_radians());
+    let filters: Vec<Ukf<3>> = truth
+        .iter()
+        .map(|t| {
+            Ukf::new(t + Vec3::new(3.0, -2.0, 1.0), Matrix3::identity() * 25.0, UkfParams::default()).unwrap()
+        })
+        .collect();
+    c.bench_function("area_ukf_update_200_landmarks", |b| {
+        b.iter_batched(
+            || filters.clone(),
+            |mut fs| {
+                for (f, t) in fs.iter_mut().zip(&truth) {
+                    let bt = bearing_between(&observer, t).unwrap();
+                    let _ = f.update(&BearingModel { observer }, &Vector2::new(bt.yaw, bt.pitch), &r);
+                }
+                fs
+            },
+            BatchSize::SmallInput,
+        )
+    });
+
+    // Purge 20 of 220 landmarks.
+    let descriptor = vec![0.5f32; 128];
+    c.bench_function("area_purge_220_to_180", |b| {
+        b.iter_batched(
+            || {
+                let mut lib =
+                    mavloc::area::library::Library::new(LibraryParams::from_settings(&s.area)).unwrap();
+                for (i, f) in filters.iter().chain(filters.iter().take(20)).enumerate() {
+                    let mut l = Landmark::new(0, f.clone(), &descriptor, (i % 50) as u64);
+                    l.observations = (i % 7) as u32 + 1;
+                    lib.push(l);
+                }
+                lib
+            },
+            |mut lib| lib.purge(60),
+            BatchSize::SmallInput,
+        )
+    });
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(20);
+    targets = stages
+}
+criterion_main!(benches);
