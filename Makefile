@@ -3,7 +3,7 @@
 #   make test   every check CI runs (fmt, clippy, all tests)
 # Both first run `make deps`, which installs only what is missing.
 
-APT_PACKAGES := libopencv-dev clang libclang-dev
+APT_PACKAGES := libopencv-dev clang libclang-dev fonts-dejavu-core
 PYTHON ?= python3
 PYMAVLINK_VERSION := 2.4.50
 CARGO ?= cargo

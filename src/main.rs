@@ -245,10 +245,22 @@ fn eval_area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCo
         .and_then(|t| serde_json::from_str::<mavloc::area::offline::RunSummary>(&t).ok())
         .map_or(f64::NAN, |s| s.frames_per_s);
     let e = mavloc::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
+    let title = format!("{} vs {}", result.display(), dataset.display());
+    let plots = [result.join("histogram.png"), result.join("views.png")];
+    let points: Vec<_> = landmarks.iter().map(|l| l.position).collect();
+    let drawn = mavloc::output::plot::distance_histogram(&plots[0], &e.distances, &title).and_then(|_| {
+        mavloc::output::plot::landmark_views(&plots[1], &points, &ds.ground_truth, &border, &title)
+    });
+    if let Err(why) = &drawn {
+        eprintln!("mavloc eval area: plots not written: {why}");
+    }
     if json {
         println!("{}", serde_json::to_string(&e)?);
     } else {
         print!("{e}");
+        if drawn.is_ok() {
+            println!("plots: {}, {}", plots[0].display(), plots[1].display());
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

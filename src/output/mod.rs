@@ -4,6 +4,8 @@
 //! the old one, so a crash or power cut at any moment leaves either the previous complete
 //! file or the new complete file, never a torn one.
 
+pub mod plot;
+
 use std::fmt::Write as _;
 use std::fs;
 use std::io::Write;
