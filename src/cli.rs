@@ -118,11 +118,11 @@ pub struct RenderArgs {
     #[arg(long)]
     pub gimbal_sd_deg: Option<f64>,
     /// Position noise SD north,east,down in metres (seed table 6.2: 0.5,0.5,2).
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    pub position_sd_m: Option<Vec<f64>>,
+    #[arg(long, value_parser = parse_triple, value_name = "N,E,D")]
+    pub position_sd_m: Option<[f64; 3]>,
     /// Static gimbal offsets yaw,pitch,roll in degrees (seed sec. 6.10).
-    #[arg(long, value_delimiter = ',', num_args = 3, allow_hyphen_values = true)]
-    pub gimbal_offset_deg: Option<Vec<f64>>,
+    #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
+    pub gimbal_offset_deg: Option<[f64; 3]>,
     /// Gimbal telemetry lags the frames by this many seconds (seed sec. 5.6.1).
     #[arg(long)]
     pub gimbal_lag_s: Option<f64>,
@@ -229,6 +229,15 @@ pub enum ConfigCommand {
     Show,
 }
 
+/// Parses `a,b,c` into three numbers.
+fn parse_triple(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>().map_err(|_| format!("`{p}` is not a number")))
+        .collect::<Result<_, _>>()?;
+    <[f64; 3]>::try_from(v).map_err(|v| format!("expected three comma-separated numbers, got {}", v.len()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -237,5 +246,30 @@ mod tests {
     #[test]
     fn cli_definition_is_consistent() {
         Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn triples_parse() {
+        assert_eq!(parse_triple("0,2,-1.5").unwrap(), [0.0, 2.0, -1.5]);
+        assert!(parse_triple("1,2").unwrap_err().contains("three"));
+        assert!(parse_triple("1,x,2").unwrap_err().contains("`x`"));
+        let cli = Cli::try_parse_from([
+            "mavloc",
+            "sim",
+            "render",
+            "--scenario",
+            "cliff",
+            "--out",
+            "o",
+            "--gimbal-offset-deg",
+            "0,-2,0",
+        ])
+        .unwrap();
+        match cli.command {
+            Command::Sim { command: SimCommand::Render(r) } => {
+                assert_eq!(r.gimbal_offset_deg, Some([0.0, -2.0, 0.0]))
+            }
+            _ => panic!("wrong command"),
+        }
     }
 }

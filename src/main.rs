@@ -98,11 +98,11 @@ fn sim_render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
         noise.gimbal_yaw_sd_deg = sd;
         noise.gimbal_pitch_sd_deg = sd;
     }
-    if let Some(v) = &args.position_sd_m {
-        noise.position_sd_m = [v[0], v[1], v[2]];
+    if let Some(v) = args.position_sd_m {
+        noise.position_sd_m = v;
     }
-    if let Some(v) = &args.gimbal_offset_deg {
-        noise.gimbal_offset_deg = [v[0], v[1], v[2]];
+    if let Some(v) = args.gimbal_offset_deg {
+        noise.gimbal_offset_deg = v;
     }
     if let Some(lag) = args.gimbal_lag_s {
         noise.gimbal_lag_s = lag;
