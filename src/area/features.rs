@@ -17,7 +17,17 @@ use crate::geometry::Pixel;
 pub struct Features {
     pub pixels: Vec<Pixel>,
     pub responses: Vec<f32>,
+    /// Distance of each keypoint to the target area, pixels.
+    pub border_px: Vec<f32>,
     pub descriptors: Mat,
+}
+
+/// The band around the target area and every pixel's distance to the area.
+pub struct Band {
+    /// 8-bit, 255 in the band.
+    pub mask: Mat,
+    /// Euclidean distance to the nearest target pixel (0 inside it), `CV_32F`.
+    pub distance: Mat,
 }
 
 impl Features {
@@ -64,20 +74,20 @@ impl FeatureExtractor {
     /// Computed as the pixels outside the target whose Euclidean distance to it is at most
     /// the band width (an exact distance transform): the same set as dilating with a disk,
     /// in time independent of the band width (a 51 px disk dilation costs ten times more).
-    pub fn band(&self, mask: &Mat) -> opencv::Result<Mat> {
+    pub fn band(&self, mask: &Mat) -> opencv::Result<Band> {
         let mut outside = Mat::default();
         imgproc::threshold(mask, &mut outside, 127.0, 255.0, imgproc::THRESH_BINARY_INV)?;
-        let mut dist = Mat::default();
+        let mut distance = Mat::default();
         imgproc::distance_transform(
             &outside,
-            &mut dist,
+            &mut distance,
             imgproc::DIST_L2,
             imgproc::DIST_MASK_PRECISE,
             core::CV_32F,
         )?;
         let mut band = Mat::default();
-        core::in_range(&dist, &Scalar::all(0.5), &Scalar::all(self.band_px as f64 + 1e-3), &mut band)?;
-        Ok(band)
+        core::in_range(&distance, &Scalar::all(0.5), &Scalar::all(self.band_px as f64 + 1e-3), &mut band)?;
+        Ok(Band { mask: band, distance })
     }
 
     /// The band by morphological dilation, as the seed builds it (fig. 5.6-5.7); kept to
@@ -106,10 +116,17 @@ impl FeatureExtractor {
     }
 
     /// SIFT keypoints and descriptors inside `band` of the grey frame.
-    pub fn extract(&mut self, grey: &Mat, band: &Mat, first: bool) -> opencv::Result<Features> {
+    pub fn extract(&mut self, grey: &Mat, band: &Band, first: bool) -> opencv::Result<Features> {
+        let distance = &band.distance;
+        let band = &band.mask;
         let mut points = Mat::default();
         core::find_non_zero(band, &mut points)?;
-        let empty = Features { pixels: Vec::new(), responses: Vec::new(), descriptors: Mat::default() };
+        let empty = Features {
+            pixels: Vec::new(),
+            responses: Vec::new(),
+            border_px: Vec::new(),
+            descriptors: Mat::default(),
+        };
         if points.empty() {
             return Ok(empty);
         }
@@ -129,12 +146,17 @@ impl FeatureExtractor {
         sift.detect_and_compute(&grey_roi, &band_roi, &mut kps, &mut descriptors, false)?;
         let mut pixels = Vec::with_capacity(kps.len());
         let mut responses = Vec::with_capacity(kps.len());
+        let mut border_px = Vec::with_capacity(kps.len());
         for kp in kps.iter() {
             let pt = kp.pt();
-            pixels.push(Pixel::new((pt.x + roi.x as f32) as f64, (pt.y + roi.y as f32) as f64));
+            let (x, y) = (pt.x + roi.x as f32, pt.y + roi.y as f32);
+            pixels.push(Pixel::new(x as f64, y as f64));
             responses.push(kp.response());
+            let (xi, yi) =
+                ((x.round() as i32).clamp(0, grey.cols() - 1), (y.round() as i32).clamp(0, grey.rows() - 1));
+            border_px.push(*distance.at_2d::<f32>(yi, xi)?);
         }
-        Ok(Features { pixels, responses, descriptors })
+        Ok(Features { pixels, responses, border_px, descriptors })
     }
 }
 
@@ -176,7 +198,7 @@ mod tests {
         let mut mask = blank(60, 40, 0.0).unwrap();
         imgproc::rectangle(&mut mask, Rect::new(20, 10, 20, 20), Scalar::all(255.0), -1, imgproc::LINE_8, 0)
             .unwrap();
-        let band = ex.band(&mask).unwrap();
+        let band = ex.band(&mask).unwrap().mask;
         let at = |m: &Mat, x: i32, y: i32| *m.at_2d::<u8>(y, x).unwrap();
         assert_eq!(at(&band, 30, 20), 0, "inside the target is not band");
         assert_eq!(at(&band, 17, 20), 255, "3 px left of the target is band");
@@ -191,7 +213,7 @@ mod tests {
             .unwrap();
         imgproc::rectangle(&mut mask, Rect::new(120, 20, 50, 30), Scalar::all(255.0), -1, imgproc::LINE_8, 0)
             .unwrap();
-        let (a, b) = (ex.band(&mask).unwrap(), ex.band_by_dilation(&mask).unwrap());
+        let (a, b) = (ex.band(&mask).unwrap().mask, ex.band_by_dilation(&mask).unwrap());
         let mut diff = Mat::default();
         core::bitwise_xor(&a, &b, &mut diff, &core::no_array()).unwrap();
         let differing = core::count_non_zero(&diff).unwrap();
@@ -204,7 +226,8 @@ mod tests {
     fn empty_band_gives_no_features() {
         let mut ex = FeatureExtractor::new(10, 100, 5).unwrap();
         let grey = blank(64, 48, 90.0).unwrap();
-        let f = ex.extract(&grey, &blank(64, 48, 0.0).unwrap(), true).unwrap();
+        let none = ex.band(&blank(64, 48, 0.0).unwrap()).unwrap();
+        let f = ex.extract(&grey, &none, true).unwrap();
         assert!(f.is_empty());
     }
 }

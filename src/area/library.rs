@@ -95,6 +95,8 @@ pub struct LibraryParams {
     pub init_sigma_m: f64,
     pub ground_down_m: f64,
     pub max_descriptors: usize,
+    /// New landmarks are taken closest to the border first, in steps of this many pixels.
+    pub border_step_px: f32,
 }
 
 impl LibraryParams {
@@ -114,6 +116,7 @@ impl LibraryParams {
             init_sigma_m: a.init_sigma_m,
             ground_down_m: a.ground_down_m,
             max_descriptors: a.max_descriptors as usize,
+            border_step_px: (a.band_px as f32 / a.downscale.max(1) as f32 / 10.0).max(1.0),
         }
     }
 }
@@ -325,8 +328,14 @@ impl Library {
         if room == 0 {
             return 0;
         }
+        // Closest to the area's border first (in steps of a tenth of the band), then the
+        // strongest: a landmark near the border says more about where the border is.
+        let step = (self.params.border_step_px).max(1.0);
+        let bucket = |i: usize| (features.border_px[i] / step).floor() as i64;
         let mut order: Vec<usize> = (0..features.len()).filter(|&i| !used[i]).collect();
-        order.sort_by(|&a, &b| features.responses[b].total_cmp(&features.responses[a]));
+        order.sort_by(|&a, &b| {
+            bucket(a).cmp(&bucket(b)).then(features.responses[b].total_cmp(&features.responses[a]))
+        });
         let mut added = 0;
         for fi in order {
             if added == room {
