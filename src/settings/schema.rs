@@ -238,7 +238,7 @@ impl Default for Area {
             ukf_kappa: 0.0,
             init_sigma_m: 20.0,
             ground_down_m: 0.0,
-            max_descriptors: 32,
+            max_descriptors: 8,
         }
     }
 }
