@@ -64,9 +64,15 @@ pub struct RunArgs {
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Random seed of the simulated noise.
+    /// Seed of the simulated worlds and noise.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Output folder for datasets, results and plots.
+    #[arg(long, default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Frames per flight (6 per second of flight).
+    #[arg(long, default_value_t = 360)]
+    pub frames: usize,
 }
 
 #[derive(Debug, Subcommand)]

@@ -55,7 +55,15 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Demo(args) => {
             let loaded = load(config_file(cli.config), cli.overrides)?;
             mavloc::logging::init(&loaded.settings.daemon.log);
-            let report = mavloc::demo::run(&loaded.settings, args.seed)?;
+            let opts = mavloc::demo::DemoOptions {
+                out: args.out,
+                frames: args.frames,
+                width: 960,
+                height: 540,
+                seed: args.seed,
+            };
+            let report =
+                mavloc::demo::run(&loaded.settings, &opts, |stage| eprintln!("mavloc demo: {stage}"))?;
             print!("{report}");
             Ok(if report.passed() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }

@@ -98,8 +98,10 @@ fn unfinished_commands_say_so_plainly() {
 
 #[test]
 fn demo_prints_its_report() {
-    let out = stdout_of(mavloc().args(["demo", "--seed", "2"]));
-    assert!(out.contains("converged") && out.contains("result            PASS"), "{out}");
+    let dir = tempfile::tempdir().unwrap();
+    let out = stdout_of(mavloc().args(["demo", "--frames", "60", "--out"]).arg(dir.path()));
+    assert!(out.contains("coastline") && out.contains("cliff") && out.contains("result PASS"), "{out}");
+    assert!(dir.path().join("coastline/ukf/views.png").exists());
 }
 
 #[test]

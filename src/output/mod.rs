@@ -153,7 +153,10 @@ pub fn area_geojson(frame: &LocalFrame, landmarks: &[LandmarkRecord], borders: &
 
 /// `area.kml`: the same for QGroundControl (Plan view: File > Import KML) and Google Earth.
 /// Written by hand: KML is a few fixed elements, and a crate would add a dependency tree
-/// for nothing QGC needs. Altitudes are absolute (WGS84 ellipsoid heights as given).
+/// for nothing QGC needs. KML's absolute altitudes are above mean sea level, mavloc's are
+/// WGS84 ellipsoid heights (tens of metres apart, and no geoid model is at hand), so the
+/// geometry is clamped to the ground for display and each landmark's ellipsoid height is in
+/// its description; `area.geojson` carries the 3D coordinates (RFC 7946 uses the ellipsoid).
 pub fn area_kml(
     frame: &LocalFrame,
     name: &str,
@@ -170,7 +173,7 @@ pub fn area_kml(
     for (i, line) in borders.iter().enumerate() {
         let _ = write!(
             s,
-            "<Placemark><name>border {i}</name><styleUrl>#border</styleUrl><LineString><altitudeMode>absolute</altitudeMode><coordinates>"
+            "<Placemark><name>border {i}</name><styleUrl>#border</styleUrl><LineString><altitudeMode>clampToGround</altitudeMode><coordinates>"
         );
         for p in line {
             let g = frame.to_geodetic(p);
@@ -183,9 +186,9 @@ pub fn area_kml(
         let g = frame.to_geodetic(&l.position);
         let _ = writeln!(
             s,
-            "<Placemark><name>{}</name><description>sigma {:.2} m, {} observations</description><styleUrl>#landmark</styleUrl>\
-             <Point><altitudeMode>absolute</altitudeMode><coordinates>{:.8},{:.8},{:.3}</coordinates></Point></Placemark>",
-            l.id, l.sigma_max_m, l.observations, g.lon_deg, g.lat_deg, g.alt_m
+            "<Placemark><name>{}</name><description>sigma {:.2} m, {} observations, ellipsoid height {:.2} m</description><styleUrl>#landmark</styleUrl>\
+             <Point><altitudeMode>clampToGround</altitudeMode><coordinates>{:.8},{:.8},{:.3}</coordinates></Point></Placemark>",
+            l.id, l.sigma_max_m, l.observations, g.alt_m, g.lon_deg, g.lat_deg, g.alt_m
         );
     }
     s.push_str("</Folder>\n</Document>\n</kml>\n");
