@@ -160,7 +160,7 @@ impl Mission {
         let heading = velocity.y.atan2(velocity.x);
         match self.gimbal_frame {
             GimbalFrame::Earth => {
-                let target = crate::world::nearest_on_polylines(&self.border, &position)
+                let target = mavloc_geometry::nearest_on_polylines(&self.border, &position)
                     .map(|(q, _)| q)
                     .unwrap_or(Vec3::new(position.x, position.y, 0.0));
                 let b = Bearing::from_direction(&(target - position))

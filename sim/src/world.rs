@@ -6,7 +6,7 @@
 //! region function draped on the terrain; both traced by marching squares on a grid
 //! finer than the terrain's.
 
-use mavloc_geometry::{LocalFrame, Vec3};
+use mavloc_geometry::{nearest_on_polylines, LocalFrame, Vec3};
 use noise::{Fbm, MultiFractal, NoiseFn, Perlin};
 
 use crate::scenario::{Scenario, WorldKind};
@@ -251,28 +251,6 @@ impl World {
     pub fn nearest_border_point(&self, p: &Vec3) -> Option<(Vec3, f64)> {
         nearest_on_polylines(&self.ground_truth, p)
     }
-}
-
-/// Nearest point to `p` on a set of polylines and the distance to it.
-pub fn nearest_on_polylines(lines: &[Vec<Vec3>], p: &Vec3) -> Option<(Vec3, f64)> {
-    let mut best: Option<(Vec3, f64)> = None;
-    for line in lines {
-        for w in line.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            let ab = b - a;
-            let t = if ab.norm_squared() > 0.0 {
-                ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let q = a + ab * t;
-            let d = (p - q).norm();
-            if best.is_none_or(|(_, bd)| d < bd) {
-                best = Some((q, d));
-            }
-        }
-    }
-    best
 }
 
 /// Zero contours of `f` over the square `[-half, half]^2` sampled every `step` metres,

@@ -25,25 +25,9 @@ pub struct AreaEvaluation {
     pub distances: Vec<f64>,
 }
 
-/// Minimal distance from `p` to a set of polylines.
+/// Minimal distance from `p` to a set of polylines (infinite when there are none).
 pub fn distance_to(lines: &[Vec<Vec3>], p: &Vec3) -> f64 {
-    let mut best = f64::INFINITY;
-    for line in lines {
-        for w in line.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            let ab = b - a;
-            let t = if ab.norm_squared() > 0.0 {
-                ((p - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            best = best.min((p - (a + ab * t)).norm());
-        }
-        if line.len() == 1 {
-            best = best.min((p - line[0]).norm());
-        }
-    }
-    best
+    crate::geometry::nearest_on_polylines(lines, p).map_or(f64::INFINITY, |(_, d)| d)
 }
 
 fn stats(v: &[f64]) -> (f64, f64, f64) {
