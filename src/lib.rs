@@ -10,9 +10,11 @@
 //!   It is its own crate so the simulator (`sim/`) shares it without a dependency cycle.
 //! * [`area`]: the area pipeline (seed 1): band, SIFT, landmark library with one UKF each,
 //!   the ground-plane baseline, border-line fit, evaluation, dataset runner.
+//! * [`indoor`]: the indoor pipeline (seed 2); so far the landing trigger.
 //! * [`output`]: result files (CSV, PLY, GeoJSON, KML), written atomically.
 //! * [`filter`]: a generic unscented Kalman filter (const-generic dimensions, models as
-//!   traits, numerically guarded) and the static-landmark bearing model.
+//!   traits, numerically guarded), the static-landmark bearing model, and the 2D particle
+//!   filter of the indoor pipeline.
 //! * [`settings`]: the layered, validated configuration (`config/mavloc.toml`).
 //! * [`link`]: the MAVLink side; so far connection addresses.
 //! * [`demo`]: the end-to-end demonstration `make demo` runs.
@@ -28,6 +30,7 @@ pub mod area;
 pub mod cli;
 pub mod demo;
 pub mod filter;
+pub mod indoor;
 pub mod link;
 pub mod logging;
 pub mod output;

@@ -1,10 +1,12 @@
-//! Filters: a generic unscented Kalman filter ([`ukf`]) and the bearing-only landmark
-//! model the area pipeline runs in it ([`bearing`]).
+//! Filters: a generic unscented Kalman filter ([`ukf`]), the bearing-only landmark model
+//! the area pipeline runs in it ([`bearing`]), and the 2D particle filter of the indoor
+//! pipeline ([`particle`]).
 //!
 //! Models are traits ([`ProcessModel`], [`MeasurementModel`]) and dimensions are const
 //! generics, so a state/measurement size mismatch is a compile error, not a runtime one.
 
 pub mod bearing;
+pub mod particle;
 pub mod ukf;
 
 pub use bearing::{bearing_noise, BearingModel, StaticLandmark};
