@@ -107,7 +107,7 @@ fn stages(c: &mut Criterion) {
                 let mut lib =
                     mavloc::area::library::Library::new(LibraryParams::from_settings(&s.area)).unwrap();
                 for (i, f) in filters.iter().chain(filters.iter().take(20)).enumerate() {
-                    let mut l = Landmark::new(0, f.clone(), &descriptor, (i % 50) as u64);
+                    let mut l = Landmark::new(f.clone(), &descriptor, (i % 50) as u64);
                     l.observations = (i % 7) as u32 + 1;
                     lib.push(l);
                 }

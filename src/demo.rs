@@ -34,7 +34,6 @@ pub struct ScenarioResult {
     pub summary: RunSummary,
     pub ukf: AreaEvaluation,
     pub ground_plane: AreaEvaluation,
-    pub render_s: f64,
 }
 
 /// The demo's report.
@@ -119,7 +118,6 @@ pub fn run(
         let dir = opts.out.join(name);
         let dataset = dir.join("dataset");
         progress(&format!("rendering {name}"));
-        let t = Instant::now();
         let scenario = mavloc_sim::Scenario::load(name).map_err(|e| anyhow::anyhow!(e))?;
         let render = mavloc_sim::RenderOptions {
             frames: Some(opts.frames),
@@ -130,7 +128,6 @@ pub fn run(
         };
         mavloc_sim::render_dataset(&scenario, &render, &dataset, |_, _| {})
             .map_err(|e| anyhow::anyhow!(e))?;
-        let render_s = t.elapsed().as_secs_f64();
         progress(&format!("localising the {name} border"));
         let ukf_dir = dir.join("ukf");
         let summary = run_area(
@@ -164,7 +161,6 @@ pub fn run(
             summary,
             ukf,
             ground_plane,
-            render_s,
         });
     }
     Ok(DemoReport { scenarios, out: opts.out.clone(), elapsed_s: start.elapsed().as_secs_f64() })

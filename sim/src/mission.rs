@@ -39,7 +39,6 @@ pub struct State {
 /// A flight: waypoints and a way to sample the state at any time.
 #[derive(Clone, Debug)]
 pub struct Mission {
-    pub kind: WorldKind,
     pub waypoints: Vec<Vec3>,
     /// Ground point each waypoint's camera looks at (region of interest).
     pub rois: Vec<Vec3>,
@@ -113,7 +112,6 @@ impl Mission {
             cumulative.push(cumulative[k - 1] + d);
         }
         Ok(Mission {
-            kind: s.kind,
             waypoints,
             rois,
             speed: m.speed_m_s,

@@ -171,13 +171,6 @@ impl World {
         Vec3::new(n, e, -self.surface_height(n, e))
     }
 
-    /// Colour of the visible surface at (north, east), for a pixel covering about
-    /// `footprint` metres of ground.
-    pub fn shade(&self, n: f64, e: f64, footprint: f64) -> [f32; 3] {
-        let light = self.light(&self.terrain.normal(n, e));
-        self.shade_pixel(n, e, footprint, light).0
-    }
-
     /// Sun lighting factor of a surface with upward normal `normal` (NED).
     pub fn light(&self, normal: &Vec3) -> f32 {
         if matches!(self.scenario.kind, WorldKind::IndoorFloor) {
@@ -467,6 +460,6 @@ mod tests {
         let s = Scenario::load("cliff").unwrap();
         let (a, b) = (World::build(&s).unwrap(), World::build(&s).unwrap());
         assert_eq!(a.ground_truth[0].len(), b.ground_truth[0].len());
-        assert_eq!(a.shade(3.0, -4.0, 0.1), b.shade(3.0, -4.0, 0.1));
+        assert_eq!(a.shade_pixel(3.0, -4.0, 0.1, 1.0), b.shade_pixel(3.0, -4.0, 0.1, 1.0));
     }
 }

@@ -184,7 +184,8 @@ pub fn prepare(frame: &Mat, mask: &Mat, downscale: u32) -> opencv::Result<(Mat, 
 }
 
 /// A blank 8-bit image, for tests.
-pub fn blank(width: i32, height: i32, value: f64) -> opencv::Result<Mat> {
+#[cfg(test)]
+pub(crate) fn blank(width: i32, height: i32, value: f64) -> opencv::Result<Mat> {
     Mat::new_rows_cols_with_default(height, width, core::CV_8UC1, Scalar::all(value))
 }
 

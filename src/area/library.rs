@@ -30,10 +30,11 @@ pub struct Landmark {
 }
 
 impl Landmark {
-    /// A landmark from its first sighting: filter and descriptor.
-    pub fn new(id: u64, ukf: Ukf<3>, descriptor: &[f32], frame: u64) -> Landmark {
+    /// A landmark from its first sighting: filter and descriptor. Its id is given when
+    /// it joins a library ([`Library::push`]).
+    pub fn new(ukf: Ukf<3>, descriptor: &[f32], frame: u64) -> Landmark {
         Landmark {
-            id,
+            id: 0,
             ukf,
             descriptors: descriptor.to_vec(),
             next_slot: 0,
@@ -355,7 +356,7 @@ impl Library {
                 Matrix3::identity() * across.powi(2) + d * d.transpose() * (along.powi(2) - across.powi(2));
             let Ok(ukf) = Ukf::new(ground, p0, self.params.ukf) else { continue };
             let Ok(row) = features.descriptors.at_row::<f32>(fi as i32) else { continue };
-            self.push(Landmark::new(self.next_id, ukf, row, frame));
+            self.push(Landmark::new(ukf, row, frame));
             added += 1;
         }
         added

@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 use super::border::{self, BorderParams};
 use super::features::prepare;
 use super::{baseline, AreaPipeline, FrameInput, StageTiming};
-use crate::geometry::{CameraPose, GimbalAngles, LocalFrame};
+use crate::geometry::{CameraPose, LocalFrame};
 use crate::output::{self, LandmarkRecord};
 use crate::settings::{AreaMethod, Settings};
 use mavloc_sim::dataset::{Dataset, PoseRecord};
@@ -64,17 +64,16 @@ pub struct RunOptions {
 
 /// The measured camera pose of a record, with the configured static gimbal corrections.
 pub fn measured_pose(r: &PoseRecord, ds: &Dataset, s: &Settings) -> CameraPose {
-    let g = r.gimbal();
-    let corrected = GimbalAngles {
-        yaw: g.yaw + s.gimbal.yaw_offset_deg.to_radians(),
-        pitch: g.pitch + s.gimbal.pitch_offset_deg.to_radians(),
-        roll: g.roll + s.gimbal.roll_offset_deg.to_radians(),
-    };
-    let corrected_record = PoseRecord {
-        gimbal_deg: [corrected.yaw.to_degrees(), corrected.pitch.to_degrees(), corrected.roll.to_degrees()],
+    let g = &s.gimbal;
+    let corrected = PoseRecord {
+        gimbal_deg: [
+            r.gimbal_deg[0] + g.yaw_offset_deg,
+            r.gimbal_deg[1] + g.pitch_offset_deg,
+            r.gimbal_deg[2] + g.roll_offset_deg,
+        ],
         ..*r
     };
-    corrected_record.camera_pose(ds.camera.chain, ds.camera.gimbal_frame)
+    corrected.camera_pose(ds.camera.chain, ds.camera.gimbal_frame)
 }
 
 fn write_results(
