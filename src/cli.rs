@@ -176,27 +176,82 @@ pub struct AreaArgs {
 
 #[derive(Debug, Subcommand)]
 pub enum IndoorCommand {
-    /// Train a texton model from a labelled dataset.
-    Train {
-        #[arg(long)]
-        dataset: PathBuf,
-        #[arg(long)]
-        out: PathBuf,
-    },
-    /// Run a trained model over a dataset's flight.
-    Run {
-        #[arg(long)]
-        dataset: PathBuf,
-        #[arg(long)]
-        model: PathBuf,
-        #[arg(long)]
-        out: PathBuf,
-    },
-    /// Evaluate how well a floor image suits texton localisation (global loss, heat map).
-    MapEval {
-        #[arg(long)]
-        map: PathBuf,
-    },
+    /// Train a texton model from a dataset of labelled frames (`mavloc sim render
+    /// --scenario indoor-floor --views N`, or a flight with motion-capture positions).
+    Train(IndoorTrainArgs),
+    /// Run a trained model over a dataset's flight: trajectory.csv and summary.json.
+    Run(IndoorRunArgs),
+    /// Evaluate how well a floor image suits texton localisation: the global loss L(D)
+    /// over synthetic views of it, and a heat map of the per-view loss.
+    MapEval(MapEvalArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct IndoorTrainArgs {
+    /// Dataset folder of training frames.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// The model file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Label frames by homography against this orthomap image (north up) instead of the
+    /// dataset's positions (indoor seed sec. 3.2).
+    #[arg(long, requires = "map_metres_per_px")]
+    pub orthomap: Option<PathBuf>,
+    /// The orthomap's scale, metres per pixel.
+    #[arg(long)]
+    pub map_metres_per_px: Option<f64>,
+    /// North, east of the orthomap's top-left pixel, metres (default: map centred on the
+    /// origin).
+    #[arg(long, value_parser = parse_pair)]
+    pub map_origin: Option<[f64; 2]>,
+    /// Frames with fewer RANSAC inliers than this are rejected.
+    #[arg(long, default_value_t = 25)]
+    pub min_inliers: usize,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Debug, Args)]
+pub struct IndoorRunArgs {
+    #[arg(long)]
+    pub dataset: PathBuf,
+    #[arg(long)]
+    pub model: PathBuf,
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Process at most this many frames.
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Ignore the telemetry's velocity (the velocity model then fits one to its estimates).
+    #[arg(long)]
+    pub no_velocity: bool,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Debug, Args)]
+pub struct MapEvalArgs {
+    /// The floor image (north up).
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Its scale, metres per pixel.
+    #[arg(long, default_value_t = 0.005)]
+    pub metres_per_px: f64,
+    /// Synthetic views to generate.
+    #[arg(long, default_value_t = 400)]
+    pub views: usize,
+    /// Heat map PNG to write.
+    #[arg(long, default_value = "map-eval.png")]
+    pub out: PathBuf,
+    /// SD of the ideal similarity, metres (sigma_x = sigma_y, sec. 3.4.1).
+    #[arg(long, default_value_t = 0.5)]
+    pub sigma_m: f64,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
 }
 
 #[derive(Debug, Subcommand)]
@@ -214,12 +269,18 @@ pub enum EvalCommand {
         #[arg(long)]
         json: bool,
     },
-    /// Indoor results: x, y error against ground truth.
+    /// Indoor results: x, y error against ground truth (indoor seed ch. 4), lag, frames/s,
+    /// landings; writes trajectory.png.
     Indoor {
+        /// The flight dataset the result was computed from.
         #[arg(long)]
         dataset: PathBuf,
+        /// The output folder of `mavloc indoor run`.
         #[arg(long)]
         result: PathBuf,
+        /// Print one JSON object instead of the table.
+        #[arg(long)]
+        json: bool,
     },
 }
 
@@ -233,6 +294,15 @@ pub enum ConfigCommand {
     },
     /// Print the configuration in force, each non-default value with where it came from.
     Show,
+}
+
+/// Parses `a,b` into two numbers.
+fn parse_pair(s: &str) -> Result<[f64; 2], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>().map_err(|_| format!("`{p}` is not a number")))
+        .collect::<Result<_, _>>()?;
+    <[f64; 2]>::try_from(v).map_err(|v| format!("expected two comma-separated numbers, got {}", v.len()))
 }
 
 /// Parses `a,b,c` into three numbers.

@@ -4,7 +4,9 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::Parser;
-use mavloc::cli::{AreaArgs, Cli, Command, ConfigCommand, EvalCommand, RenderArgs, SimCommand};
+use mavloc::cli::{
+    AreaArgs, Cli, Command, ConfigCommand, EvalCommand, IndoorCommand, RenderArgs, SimCommand,
+};
 use mavloc::settings::{self, Layers, Loaded};
 
 fn main() -> ExitCode {
@@ -85,11 +87,17 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             mavloc::logging::init(&loaded.settings.daemon.log);
             area_run(args, &loaded.settings)
         }
-        Command::Indoor { .. } => not_yet("indoor", 5),
+        Command::Indoor { command } => {
+            let loaded = load(config_file(cli.config), cli.overrides)?;
+            mavloc::logging::init(&loaded.settings.daemon.log);
+            indoor(command, &loaded.settings)
+        }
         Command::Eval { command: EvalCommand::Area { dataset, result, json } } => {
             eval_area(&dataset, &result, json)
         }
-        Command::Eval { command: EvalCommand::Indoor { .. } } => not_yet("eval indoor", 5),
+        Command::Eval { command: EvalCommand::Indoor { dataset, result, json } } => {
+            eval_indoor(&dataset, &result, json)
+        }
     }
 }
 
@@ -268,6 +276,113 @@ fn eval_area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCo
         print!("{e}");
         if drawn.is_ok() {
             println!("plots: {}, {}", plots[0].display(), plots[1].display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `mavloc indoor ...`.
+fn indoor(command: IndoorCommand, settings: &mavloc::settings::Settings) -> anyhow::Result<ExitCode> {
+    use anyhow::anyhow;
+    use mavloc::indoor::offline;
+    match command {
+        IndoorCommand::Train(a) => {
+            let labelling = match (&a.orthomap, a.map_metres_per_px) {
+                (Some(map), Some(scale)) => offline::Labelling::Homography(
+                    mavloc::indoor::labelling::OrthoMap::load(map, scale, a.map_origin, a.min_inliers)
+                        .map_err(|e| anyhow!(e))?,
+                ),
+                _ => offline::Labelling::Telemetry,
+            };
+            let opts = offline::TrainOptions { dataset: a.dataset, out: a.out, labelling, seed: a.seed };
+            let bar = progress_bar("histograms");
+            let r = offline::train(&opts, &settings.indoor, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })
+            .map_err(|e| anyhow!(e))?;
+            bar.finish_and_clear();
+            println!(
+                "{}: {} images ({} rejected) in {:.1} s ({:.1} s of full-sampling histograms, {:.0} images/s)",
+                opts.out.display(),
+                r.images,
+                r.rejected,
+                r.seconds,
+                r.histogram_seconds,
+                (r.images + r.rejected) as f64 / r.histogram_seconds.max(1e-9)
+            );
+            let ranks: Vec<String> = r.loo_rms_m.iter().map(|v| format!("{v:.2}")).collect();
+            println!("leave-one-out RMS error per neighbour rank, m: {}", ranks.join(", "));
+            let fit: Vec<String> = r
+                .inlier_sd_m
+                .iter()
+                .zip(&r.inlier_fraction)
+                .map(|(sd, p)| format!("{:.0} % within SD {sd:.2}", p * 100.0))
+                .collect();
+            println!("per rank, right neighbours: {}", fit.join(", "));
+            println!("process noise: {}", r.process_source);
+            Ok(ExitCode::SUCCESS)
+        }
+        IndoorCommand::Run(a) => {
+            let opts = offline::RunOptions {
+                dataset: a.dataset,
+                model: a.model,
+                out: a.out,
+                max_frames: a.frames,
+                no_velocity: a.no_velocity,
+                seed: a.seed,
+            };
+            let bar = progress_bar("indoor");
+            let s = offline::run(&opts, &settings.indoor, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })
+            .map_err(|e| anyhow!(e))?;
+            bar.finish_and_clear();
+            println!(
+                "{}: {} frames ({} skipped), localiser {:.0} frames/s ({:.2} ms), reading+preparing {:.1} ms per frame; motion model {}, derotation {}",
+                opts.out.display(),
+                s.frames,
+                s.skipped_frames,
+                s.frames_per_s,
+                s.localize_ms,
+                s.prepare_ms,
+                s.motion_model,
+                if s.derotate { "on" } else { "off" }
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        IndoorCommand::MapEval(_) => not_yet("indoor map-eval", 5),
+    }
+}
+
+/// `mavloc eval indoor`: errors against ground truth, and the plot.
+fn eval_indoor(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    let (e, rows) = mavloc::indoor::eval::evaluate(dataset, result).map_err(|e| anyhow::anyhow!(e))?;
+    let plot = result.join("trajectory.png");
+    let title = format!("{} vs {}", result.display(), dataset.display());
+    let drawn = mavloc::indoor::eval::plot(&plot, &rows, &title);
+    if let Err(why) = &drawn {
+        eprintln!("mavloc eval indoor: plot not written: {why}");
+    }
+    if json {
+        println!("{}", serde_json::to_string(&e)?);
+    } else {
+        println!("frames                 {}", e.frames);
+        println!("mean |error| x, y      {:.3} m, {:.3} m", e.mean_err_x_m, e.mean_err_y_m);
+        println!("RMS error              {:.3} m (x {:.3} m, y {:.3} m)", e.rmse_m, e.rmse_x_m, e.rmse_y_m);
+        println!("RMS error after 2 s    {:.3} m", e.rmse_after_2s_m);
+        println!("largest error          {:.3} m", e.max_err_m);
+        println!(
+            "lag                    {} frames (RMS {:.3} m when shifted)",
+            e.lag_frames, e.rmse_at_lag_m
+        );
+        println!("localiser              {:.0} frames/s", e.frames_per_s);
+        if e.landing_tries > 0 {
+            println!("landings in zone       {} of {}", e.landings_in_zone, e.landing_tries);
+        }
+        if drawn.is_ok() {
+            println!("plot: {}", plot.display());
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -85,8 +85,8 @@ impl ParticleFilter {
             previous_weights: Vec::new(),
             min,
             max,
-            alpha_slow: 0.05,
-            alpha_fast: 0.5,
+            alpha_slow: 0.01,
+            alpha_fast: 0.1,
             w_slow: 0.0,
             w_fast: 0.0,
             rng: rand::rngs::StdRng::seed_from_u64(seed),
@@ -128,11 +128,35 @@ impl ParticleFilter {
     /// Measurement step: weights from the mixture over the neighbours' positions, rank `j`
     /// with covariance `ranks[j]` (Algorithm 2, lines 8-11), then systematic resampling.
     pub fn update(&mut self, neighbours: &[Vector2<f64>], ranks: &[Gaussian2]) {
+        self.update_mixture(neighbours, ranks, None, 0.0);
+    }
+
+    /// Measurement step with a robust mixture: rank `j` is right with probability
+    /// `inlier[j]` (Gaussian `ranks[j]` about the neighbour) and otherwise anywhere on the
+    /// map (density `outlier_density`). The seed's model is `inlier = 1`.
+    pub fn update_mixture(
+        &mut self,
+        neighbours: &[Vector2<f64>],
+        ranks: &[Gaussian2],
+        inlier: Option<&[f64]>,
+        outlier_density: f64,
+    ) {
         let n = self.particles.len();
+        let pi = |j: usize| inlier.and_then(|w| w.get(j)).copied().unwrap_or(1.0);
+        let floor: f64 =
+            (0..neighbours.len().min(ranks.len())).map(|j| (1.0 - pi(j)) * outlier_density).sum();
         self.last_likelihood = self
             .particles
             .iter()
-            .map(|x| neighbours.iter().zip(ranks).map(|(z, g)| g.pdf(&(z - x))).sum::<f64>())
+            .map(|x| {
+                floor
+                    + neighbours
+                        .iter()
+                        .zip(ranks)
+                        .enumerate()
+                        .map(|(j, (z, g))| pi(j) * g.pdf(&(z - x)))
+                        .sum::<f64>()
+            })
             .collect();
         let total: f64 = self.last_likelihood.iter().sum();
         if !(total.is_finite() && total > 0.0) {

@@ -1,7 +1,22 @@
-//! Indoor texton localisation (indoor seed `indoor-texton-thesis.txt`, ch. 3). So far: the
-//! texton dictionary and histograms ([`textons`], sec. 3.3.1-3.3.2) and the landing trigger
-//! ([`landing`], sec. 4.7). The particle filter lives in [`crate::filter::particle`]; k-NN,
-//! the model file, training and the CLI come next.
+//! Indoor texton localisation (indoor seed `indoor-texton-thesis.txt`, ch. 3): global x, y
+//! over a known floor from a downward camera.
+//!
+//! - [`textons`]: texton dictionary and histograms (sec. 3.3.1-3.3.2).
+//! - [`derotate`]: downscaling and, beyond the seed, derotation by the camera attitude.
+//! - [`knn`]: the k nearest training histograms (sec. 3.3.3).
+//! - [`model`]: the trained model file.
+//! - [`localizer`]: the per-frame loop around the particle filter
+//!   ([`crate::filter::particle`], sec. 3.3.4, Algorithm 2) with a velocity motion model.
+//! - [`landing`]: the landing trigger (sec. 4.7).
+//! - [`offline`]: `mavloc indoor train` and `mavloc indoor run` over datasets.
+//! - [`eval`]: `mavloc eval indoor` (ch. 4's measures).
 
+pub mod derotate;
+pub mod eval;
+pub mod knn;
+pub mod labelling;
 pub mod landing;
+pub mod localizer;
+pub mod model;
+pub mod offline;
 pub mod textons;

@@ -15,7 +15,7 @@ const FONT_PATHS: &[&str] =
     &["/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf", "/usr/share/fonts/TTF/DejaVuSans.ttf"];
 
 /// Registers the font once per process; plotting fails with a clear message without it.
-fn font() -> Result<(), String> {
+pub(crate) fn font() -> Result<(), String> {
     static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
     REGISTERED
         .get_or_init(|| {
@@ -36,7 +36,7 @@ fn font() -> Result<(), String> {
         .clone()
 }
 
-fn err<E: std::fmt::Display>(e: E) -> String {
+pub(crate) fn err<E: std::fmt::Display>(e: E) -> String {
     e.to_string()
 }
 

@@ -472,9 +472,11 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range_int("indoor.patch_h", i.patch_h.into(), 1, 64);
     v.range("indoor.learning_rate", i.learning_rate, 1e-5, 1.0);
     v.range_int("indoor.samples", i.samples.into(), 1, 1_000_000);
+    v.range_int("indoor.work_width", i.work_width.into(), 16, 8192);
     v.range_int("indoor.k", i.k.into(), 1, 100);
     v.range_int("indoor.particles", i.particles.into(), 1, 100_000);
     v.range("indoor.process_sigma_m", i.process_sigma_m, 0.0, 10.0);
+    v.range("indoor.velocity_sigma_m_s", i.velocity_sigma_m_s, 0.001, 100.0);
     v.range("indoor.landing_x_m", i.landing_x_m, -1000.0, 1000.0);
     v.range("indoor.landing_y_m", i.landing_y_m, -1000.0, 1000.0);
     v.range("indoor.landing_radius_m", i.landing_radius_m, 0.05, 100.0);

@@ -1,0 +1,239 @@
+//! Frame preparation for the texton histograms: downscale to the working resolution and,
+//! beyond the seed (its future work, indoor seed ch. 5), derotate by the camera's attitude.
+//!
+//! Derotation warps the frame to a virtual camera at the same place that looks straight
+//! down with image right = east and image up = north. For a flat floor that is the pure
+//! rotation homography `H = K_v R_v^T R_c K^-1` (`R_c` "local <- camera" of the real
+//! camera, `R_v` of the virtual one). The histogram is then taken over a disk centred on the
+//! nadir, so every frame describes the same footprint whatever the heading, roll and pitch;
+//! textons are not rotation invariant, and without this a turned vehicle sees other
+//! textons on the same floor. Parts of the disk the camera did not see are masked out.
+
+use mavloc_geometry::{Intrinsics, Rot3};
+use nalgebra::{Matrix3, Vector3};
+use opencv::core::{Mat, Scalar, Size, BORDER_CONSTANT, CV_8UC1};
+use opencv::imgproc;
+use opencv::prelude::*;
+
+use super::textons::{PatchMask, YuvImage};
+
+/// A prepared frame: the image to take patches from and where patches may be taken.
+pub struct Canvas {
+    pub img: YuvImage,
+    pub mask: PatchMask,
+}
+
+/// Prepares frames of one camera.
+#[derive(Clone, Debug)]
+pub struct Preprocessor {
+    /// The camera's intrinsics at its own resolution.
+    pub camera: Intrinsics,
+    /// The intrinsics at the working resolution.
+    pub work: Intrinsics,
+    pub derotate: bool,
+    patch: (usize, usize),
+}
+
+/// Intrinsics of the same camera at `scale` times the resolution (pixel centres kept).
+pub fn scaled(k: &Intrinsics, scale: f64) -> Intrinsics {
+    Intrinsics {
+        width: ((k.width as f64 * scale).round() as u32).max(1),
+        height: ((k.height as f64 * scale).round() as u32).max(1),
+        fx: k.fx * scale,
+        fy: k.fy * scale,
+        cx: (k.cx + 0.5) * scale - 0.5,
+        cy: (k.cy + 0.5) * scale - 0.5,
+    }
+}
+
+/// "local <- virtual camera": optical axis down, image x east, image y south.
+fn virtual_camera() -> Matrix3<f64> {
+    Matrix3::new(
+        0.0, -1.0, 0.0, //
+        1.0, 0.0, 0.0, //
+        0.0, 0.0, 1.0,
+    )
+}
+
+impl Preprocessor {
+    /// `work_width`: frames are downscaled to this width (never upscaled).
+    pub fn new(camera: Intrinsics, work_width: u32, derotate: bool, patch: (usize, usize)) -> Preprocessor {
+        let scale = (work_width as f64 / camera.width as f64).min(1.0);
+        let work = scaled(&camera, scale);
+        Preprocessor { camera, work, derotate, patch }
+    }
+
+    /// Side of the derotated canvas: the largest disk the level camera sees whole.
+    pub fn side(&self) -> usize {
+        self.work.width.min(self.work.height) as usize
+    }
+
+    /// The homography from working-resolution pixels to canvas pixels for a camera with
+    /// rotation "local <- camera (OpenCV axes)".
+    pub fn homography(&self, local_from_camera: &Rot3) -> Matrix3<f64> {
+        let k = &self.work;
+        let kw = Matrix3::new(k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0);
+        let c = (self.side() as f64 - 1.0) / 2.0;
+        // Same focal length: one canvas pixel is one working pixel at the nadir.
+        let kv = Matrix3::new(k.fx, 0.0, c, 0.0, k.fx, c, 0.0, 0.0, 1.0);
+        let kw_inv = kw.try_inverse().expect("intrinsics with non-zero focal lengths are invertible");
+        kv * virtual_camera().transpose() * local_from_camera.matrix() * kw_inv
+    }
+
+    /// Ground offset (north, east) per metre of height of a canvas pixel from the nadir.
+    pub fn canvas_offset(&self, u: f64, v: f64) -> (f64, f64) {
+        let c = (self.side() as f64 - 1.0) / 2.0;
+        (-(v - c) / self.work.fx, (u - c) / self.work.fx)
+    }
+
+    /// Prepares a BGR frame at the camera's resolution. `attitude` is the camera's
+    /// rotation "local <- camera (OpenCV axes)"; without it, or with derotation off, the
+    /// whole downscaled frame is used as the seed does.
+    pub fn prepare(&self, bgr: &Mat, attitude: Option<&Rot3>) -> opencv::Result<Canvas> {
+        if (bgr.cols(), bgr.rows()) != (self.camera.width as i32, self.camera.height as i32) {
+            return Err(opencv::Error::new(
+                opencv::core::StsBadSize,
+                format!(
+                    "frame is {}x{}, the camera is {}x{}",
+                    bgr.cols(),
+                    bgr.rows(),
+                    self.camera.width,
+                    self.camera.height
+                ),
+            ));
+        }
+        let small = if self.work.width != self.camera.width {
+            let mut out = Mat::default();
+            let size = Size::new(self.work.width as i32, self.work.height as i32);
+            imgproc::resize(bgr, &mut out, size, 0.0, 0.0, imgproc::INTER_AREA)?;
+            out
+        } else {
+            bgr.clone()
+        };
+        let (pw, ph) = self.patch;
+        match attitude.filter(|_| self.derotate) {
+            None => {
+                let img = yuv_from_bgr(&small)?;
+                let valid = vec![true; img.width * img.height];
+                let mask = PatchMask::from_valid(img.width, img.height, &valid, pw, ph);
+                Ok(Canvas { img, mask })
+            }
+            Some(r) => {
+                let h = self.homography(r);
+                let hm = Mat::from_slice_2d(&[
+                    [h[(0, 0)], h[(0, 1)], h[(0, 2)]],
+                    [h[(1, 0)], h[(1, 1)], h[(1, 2)]],
+                    [h[(2, 0)], h[(2, 1)], h[(2, 2)]],
+                ])?;
+                let side = self.side() as i32;
+                let size = Size::new(side, side);
+                let mut warped = Mat::default();
+                imgproc::warp_perspective(
+                    &small,
+                    &mut warped,
+                    &hm,
+                    size,
+                    imgproc::INTER_LINEAR,
+                    BORDER_CONSTANT,
+                    Scalar::all(0.0),
+                )?;
+                let ones =
+                    Mat::new_rows_cols_with_default(small.rows(), small.cols(), CV_8UC1, Scalar::all(255.0))?;
+                let mut seen = Mat::default();
+                imgproc::warp_perspective(
+                    &ones,
+                    &mut seen,
+                    &hm,
+                    size,
+                    imgproc::INTER_NEAREST,
+                    BORDER_CONSTANT,
+                    Scalar::all(0.0),
+                )?;
+                let img = yuv_from_bgr(&warped)?;
+                let n = side as usize;
+                let c = (n as f64 - 1.0) / 2.0;
+                let r2 = (n as f64 / 2.0).powi(2);
+                let seen = seen.data_bytes()?;
+                let valid: Vec<bool> = (0..n * n)
+                    .map(|i| {
+                        let (x, y) = ((i % n) as f64 - c, (i / n) as f64 - c);
+                        seen[i] == 255 && x * x + y * y <= r2
+                    })
+                    .collect();
+                let mask = PatchMask::from_valid(n, n, &valid, pw, ph);
+                Ok(Canvas { img, mask })
+            }
+        }
+    }
+}
+
+/// A continuous 8-bit BGR image to Y, U, V.
+pub fn yuv_from_bgr(bgr: &Mat) -> opencv::Result<YuvImage> {
+    let m = if bgr.is_continuous() { bgr.clone() } else { bgr.try_clone()? };
+    let (w, h) = (m.cols() as usize, m.rows() as usize);
+    let bytes = m.data_bytes()?;
+    Ok(YuvImage::from_bgr(w, h, bytes))
+}
+
+/// The pixel (working resolution) where the camera's nadir appears, if in front of it.
+pub fn nadir_pixel(k: &Intrinsics, local_from_camera: &Rot3) -> Option<(f64, f64)> {
+    let d = local_from_camera.inverse() * Vector3::new(0.0, 0.0, 1.0);
+    (d.z > 1e-9).then(|| (k.fx * d.x / d.z + k.cx, k.fy * d.y / d.z + k.cy))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavloc_geometry::{body_rotation, CameraPose, GimbalAngles, GimbalChain, Mount, Vec3};
+    use proptest::prelude::*;
+    use std::f64::consts::PI;
+
+    fn down_camera(roll: f64, pitch: f64, yaw: f64) -> Rot3 {
+        let pose = CameraPose::from_gimbal(
+            Vec3::zeros(),
+            GimbalChain::YawPitchRoll,
+            GimbalAngles { yaw: 0.0, pitch: -PI / 2.0, roll: 0.0 },
+            Mount::Body { attitude: body_rotation(roll, pitch, yaw) },
+        );
+        pose.local_from_camera()
+    }
+
+    proptest! {
+        /// A floor point lands where the virtual north-up nadir camera would see it.
+        #[test]
+        fn homography_maps_floor_points_to_the_virtual_view(
+            roll in -0.2f64..0.2, pitch in -0.2f64..0.2, yaw in -PI..PI,
+            north in -0.3f64..0.3, east in -0.3f64..0.3, height in 0.5f64..2.0,
+        ) {
+            let k = Intrinsics::from_hfov(320, 240, 70f64.to_radians());
+            let pre = Preprocessor::new(k, 320, true, (6, 6));
+            let r = down_camera(roll, pitch, yaw);
+            let pose = CameraPose { position: Vec3::new(0.0, 0.0, -height), attitude: r * mavloc_geometry::gimbal_from_camera().inverse() };
+            let point = Vec3::new(north, east, 0.0);
+            let px = pose.project(&k, &point).unwrap();
+            let h = pre.homography(&r);
+            let q = h * Vector3::new(px.u, px.v, 1.0);
+            let (u, v) = (q.x / q.z, q.y / q.z);
+            let (dn, de) = pre.canvas_offset(u, v);
+            prop_assert!((dn * height - north).abs() < 1e-9 && (de * height - east).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn nadir_of_a_level_camera_is_the_principal_point() {
+        let k = Intrinsics::from_hfov(320, 240, 1.2);
+        let (u, v) = nadir_pixel(&k, &down_camera(0.0, 0.0, 0.7)).unwrap();
+        assert!((u - k.cx).abs() < 1e-9 && (v - k.cy).abs() < 1e-9);
+        let (u, _) = nadir_pixel(&k, &down_camera(0.1, 0.0, 0.0)).unwrap();
+        assert!(u != k.cx);
+    }
+
+    #[test]
+    fn scaled_intrinsics_keep_the_field_of_view() {
+        let k = Intrinsics::from_hfov(640, 480, 1.2);
+        let s = scaled(&k, 0.5);
+        assert_eq!((s.width, s.height), (320, 240));
+        assert!((s.hfov() - k.hfov()).abs() < 1e-9);
+        assert!((s.cx - (s.width as f64 - 1.0) / 2.0).abs() < 1e-9);
+    }
+}

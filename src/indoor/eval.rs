@@ -1,0 +1,307 @@
+//! `mavloc eval indoor`: the indoor seed's measures (ch. 4) of a run against the dataset's
+//! ground truth: mean absolute error in x and in y, RMS error, the lag between estimate
+//! and truth (the shift, in frames, that minimises the RMS error; the seed found about 6),
+//! and landing outcomes when the result folder has `landings.csv`.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::offline::{read_trajectory, RunSummary, TrajectoryRow};
+use mavloc_sim::dataset::Dataset;
+
+/// Largest lag searched, frames.
+const MAX_LAG: i64 = 30;
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct IndoorEval {
+    pub frames: usize,
+    pub rmse_m: f64,
+    pub rmse_x_m: f64,
+    pub rmse_y_m: f64,
+    pub mean_err_x_m: f64,
+    pub mean_err_y_m: f64,
+    pub max_err_m: f64,
+    /// RMS error without the first 2 s (global localisation from a uniform start).
+    pub rmse_after_2s_m: f64,
+    /// Shift (frames) of the estimate against the truth that minimises the RMS error;
+    /// positive when the estimate trails the truth.
+    pub lag_frames: i64,
+    pub rmse_at_lag_m: f64,
+    pub frames_per_s: f64,
+    pub landings_in_zone: usize,
+    pub landing_tries: usize,
+}
+
+/// One row of `landings.csv` (written by `mavloc indoor landings`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LandingRow {
+    pub trial: usize,
+    pub zone_x: f64,
+    pub zone_y: f64,
+    pub fired: bool,
+    pub t_fire: f64,
+    pub true_x: f64,
+    pub true_y: f64,
+    pub est_x: f64,
+    pub est_y: f64,
+    pub inside: bool,
+}
+
+pub const LANDINGS_HEADER: &str = "trial,zone_x,zone_y,fired,t_fire,true_x,true_y,est_x,est_y,inside";
+
+pub fn landings_csv(rows: &[LandingRow]) -> String {
+    let mut s = format!("{LANDINGS_HEADER}\n");
+    for r in rows {
+        s.push_str(&format!(
+            "{},{:.4},{:.4},{},{:.3},{:.4},{:.4},{:.4},{:.4},{}\n",
+            r.trial,
+            r.zone_x,
+            r.zone_y,
+            r.fired as u8,
+            r.t_fire,
+            r.true_x,
+            r.true_y,
+            r.est_x,
+            r.est_y,
+            r.inside as u8
+        ));
+    }
+    s
+}
+
+pub fn read_landings(path: &Path) -> Result<Vec<LandingRow>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut lines = text.lines();
+    if lines.next().map(str::trim) != Some(LANDINGS_HEADER) {
+        return Err(format!("{}: the first line must be `{LANDINGS_HEADER}`", path.display()));
+    }
+    lines
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(i, l)| {
+            let bad = || format!("{} line {}: expected 10 numbers, got `{l}`", path.display(), i + 2);
+            let v: Vec<f64> =
+                l.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+            if v.len() != 10 {
+                return Err(bad());
+            }
+            Ok(LandingRow {
+                trial: v[0] as usize,
+                zone_x: v[1],
+                zone_y: v[2],
+                fired: v[3] != 0.0,
+                t_fire: v[4],
+                true_x: v[5],
+                true_y: v[6],
+                est_x: v[7],
+                est_y: v[8],
+                inside: v[9] != 0.0,
+            })
+        })
+        .collect()
+}
+
+fn rms(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x * x, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        (s / n as f64).sqrt()
+    }
+}
+
+/// Measures over estimate/truth pairs.
+pub fn measure(est: &[(f64, f64, f64)], truth: &[(f64, f64)]) -> IndoorEval {
+    let n = est.len().min(truth.len());
+    let errs: Vec<(f64, f64)> = (0..n).map(|i| (est[i].1 - truth[i].0, est[i].2 - truth[i].1)).collect();
+    let mut e = IndoorEval { frames: n, ..IndoorEval::default() };
+    if n == 0 {
+        return e;
+    }
+    e.rmse_x_m = rms(errs.iter().map(|d| d.0));
+    e.rmse_y_m = rms(errs.iter().map(|d| d.1));
+    e.rmse_m = rms(errs.iter().map(|d| d.0.hypot(d.1)));
+    e.mean_err_x_m = errs.iter().map(|d| d.0.abs()).sum::<f64>() / n as f64;
+    e.mean_err_y_m = errs.iter().map(|d| d.1.abs()).sum::<f64>() / n as f64;
+    e.max_err_m = errs.iter().map(|d| d.0.hypot(d.1)).fold(0.0, f64::max);
+    let t0 = est[0].0;
+    e.rmse_after_2s_m = rms((0..n).filter(|&i| est[i].0 - t0 >= 2.0).map(|i| errs[i].0.hypot(errs[i].1)));
+    let mut best = (f64::INFINITY, 0);
+    for lag in -MAX_LAG..=MAX_LAG {
+        // Estimate i against truth i - lag.
+        let pairs = (0..n as i64).filter(|&i| i - lag >= 0 && i - lag < n as i64).map(|i| {
+            let (a, b) = (est[i as usize], truth[(i - lag) as usize]);
+            (a.1 - b.0).hypot(a.2 - b.1)
+        });
+        let r = rms(pairs);
+        if r < best.0 {
+            best = (r, lag);
+        }
+    }
+    (e.rmse_at_lag_m, e.lag_frames) = best;
+    e
+}
+
+/// Evaluates a run folder against its dataset.
+pub fn evaluate(dataset: &Path, result: &Path) -> Result<(IndoorEval, Vec<TrajectoryRow>), String> {
+    let ds = Dataset::open(dataset)?;
+    let rows = read_trajectory(&result.join("trajectory.csv"))?;
+    let by_frame: std::collections::HashMap<u64, &mavloc_sim::dataset::TelemetryRecord> =
+        ds.records.iter().map(|r| (r.frame, r)).collect();
+    let mut est = Vec::with_capacity(rows.len());
+    let mut truth = Vec::with_capacity(rows.len());
+    for r in &rows {
+        let rec = by_frame
+            .get(&r.frame)
+            .ok_or_else(|| format!("trajectory frame {} is not in {}", r.frame, dataset.display()))?;
+        est.push((r.t, r.x, r.y));
+        truth.push((rec.truth.position[0], rec.truth.position[1]));
+    }
+    let mut e = measure(&est, &truth);
+    let summary = result.join("summary.json");
+    if let Ok(text) = std::fs::read_to_string(&summary) {
+        let s: RunSummary =
+            serde_json::from_str(&text).map_err(|err| format!("{}: {err}", summary.display()))?;
+        e.frames_per_s = s.frames_per_s;
+    }
+    let landings = result.join("landings.csv");
+    if landings.exists() {
+        let l = read_landings(&landings)?;
+        e.landing_tries = l.len();
+        e.landings_in_zone = l.iter().filter(|r| r.fired && r.inside).count();
+    }
+    Ok((e, rows))
+}
+
+/// Estimate against truth: x(t), y(t) with the particles' 2-sigma band, and the track.
+pub fn plot(path: &Path, rows: &[TrajectoryRow], title: &str) -> Result<(), String> {
+    use crate::output::plot::{err, font};
+    use plotters::prelude::*;
+    font()?;
+    let root = BitMapBackend::new(path, (1300, 620)).into_drawing_area();
+    root.fill(&WHITE).map_err(err)?;
+    let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
+    let (left, right) = root.split_horizontally(760);
+    let (top, bottom) = left.split_vertically(300);
+    let t_max = rows.last().map_or(1.0, |r| r.t).max(1e-3);
+    let t_min = rows.first().map_or(0.0, |r| r.t);
+    let lim = rows
+        .iter()
+        .flat_map(|r| [r.x.abs(), r.y.abs(), r.true_x.abs(), r.true_y.abs()])
+        .fold(1.0f64, f64::max)
+        * 1.1;
+    for (area, name, get) in [
+        (
+            &top,
+            "x (north), m",
+            (|r: &TrajectoryRow| (r.x, r.sigma_x, r.true_x)) as fn(&TrajectoryRow) -> (f64, f64, f64),
+        ),
+        (&bottom, "y (east), m", |r: &TrajectoryRow| (r.y, r.sigma_y, r.true_y)),
+    ] {
+        let mut chart = ChartBuilder::on(area)
+            .margin(10)
+            .x_label_area_size(35)
+            .y_label_area_size(50)
+            .build_cartesian_2d(t_min..t_max, -lim..lim)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("t, s")
+            .y_desc(name)
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(err)?;
+        let band: Vec<(f64, f64)> = rows
+            .iter()
+            .map(|r| (r.t, get(r).0 + 2.0 * get(r).1))
+            .chain(rows.iter().rev().map(|r| (r.t, get(r).0 - 2.0 * get(r).1)))
+            .collect();
+        chart
+            .draw_series(std::iter::once(Polygon::new(band, RGBColor(255, 150, 80).mix(0.25))))
+            .map_err(err)?;
+        chart
+            .draw_series(LineSeries::new(rows.iter().map(|r| (r.t, get(r).2)), BLACK.stroke_width(2)))
+            .map_err(err)?
+            .label("truth")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], BLACK.stroke_width(2)));
+        chart
+            .draw_series(LineSeries::new(
+                rows.iter().map(|r| (r.t, get(r).0)),
+                RGBColor(220, 60, 20).stroke_width(2),
+            ))
+            .map_err(err)?
+            .label("estimate (MAP), band: 2 SD of particles")
+            .legend(|(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], RGBColor(220, 60, 20).stroke_width(2))
+            });
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(err)?;
+    }
+    let mut chart = ChartBuilder::on(&right)
+        .margin(10)
+        .x_label_area_size(35)
+        .y_label_area_size(50)
+        .build_cartesian_2d(-lim..lim, -lim..lim)
+        .map_err(err)?;
+    chart
+        .configure_mesh()
+        .x_desc("y (east), m")
+        .y_desc("x (north), m")
+        .label_style(("sans-serif", 14))
+        .draw()
+        .map_err(err)?;
+    chart
+        .draw_series(LineSeries::new(rows.iter().map(|r| (r.true_y, r.true_x)), BLACK.stroke_width(2)))
+        .map_err(err)?;
+    chart
+        .draw_series(rows.iter().map(|r| Circle::new((r.y, r.x), 2, RGBColor(220, 60, 20).filled())))
+        .map_err(err)?;
+    root.present().map_err(err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lag_is_found_and_errors_are_measured() {
+        // Truth moves along x at one unit per frame; the estimate trails it by 6 frames.
+        let truth: Vec<(f64, f64)> = (0..200).map(|i| ((i as f64 * 0.1).sin(), 0.5)).collect();
+        let est: Vec<(f64, f64, f64)> =
+            (0..200).map(|i| (i as f64 / 15.0, truth[i.max(6) - 6].0, 0.5 + 0.1)).collect();
+        let e = measure(&est, &truth);
+        assert_eq!(e.lag_frames, 6);
+        assert!(e.rmse_at_lag_m < 0.1 + 1e-9 && e.rmse_m > e.rmse_at_lag_m);
+        assert!((e.mean_err_y_m - 0.1).abs() < 1e-9);
+        let same = measure(&truth.iter().map(|p| (0.0, p.0, p.1)).collect::<Vec<_>>(), &truth);
+        assert_eq!((same.lag_frames, same.rmse_m), (0, 0.0));
+    }
+
+    #[test]
+    fn landings_round_trip_and_name_bad_lines() {
+        let rows = vec![LandingRow {
+            trial: 0,
+            zone_x: 1.0,
+            zone_y: -1.0,
+            fired: true,
+            t_fire: 3.5,
+            true_x: 1.1,
+            true_y: -0.9,
+            est_x: 1.0,
+            est_y: -1.0,
+            inside: true,
+        }];
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("landings.csv");
+        std::fs::write(&p, landings_csv(&rows)).unwrap();
+        assert_eq!(read_landings(&p).unwrap(), rows);
+        std::fs::write(&p, format!("{LANDINGS_HEADER}\n1,2,3\n")).unwrap();
+        assert!(read_landings(&p).unwrap_err().contains("line 2"));
+    }
+}

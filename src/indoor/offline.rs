@@ -1,0 +1,475 @@
+//! `mavloc indoor train` and `mavloc indoor run` over datasets (indoor seed sec. 3.3).
+//!
+//! Training: frames are prepared (downscaled, derotated), a texton dictionary is learned
+//! from random patches, every frame gets a full-sampling histogram, and the per-rank
+//! measurement covariances `Sigma[j] = E[(T - P_j)(T - P_j)^T]` are fitted by leave-one-out:
+//! each training frame is queried, with a random-sampling histogram as in flight, against
+//! all the others. The seed fitted `Var(T - P_j)` on a recorded flight; the second moment
+//! about zero is used because the mixture is centred on the neighbour, so a bias belongs
+//! in the spread.
+//!
+//! Running: each frame of a flight goes through the [`Localizer`]; `trajectory.csv` and
+//! `summary.json` are rewritten atomically every `CHECKPOINT_FRAMES` frames and at the end.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use nalgebra::{Matrix2, Vector2};
+use opencv::imgcodecs;
+use opencv::prelude::*;
+use rand::SeedableRng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::derotate::{Canvas, Preprocessor};
+use super::knn::Knn;
+use super::localizer::{Localizer, LocalizerParams};
+use super::model::{from_matrix, FrameParams, Model, TrainingInfo, MODEL_FORMAT, MODEL_VERSION};
+use super::textons::{Dictionary, Learning};
+use crate::settings::{DictionaryMethod, Indoor};
+use mavloc_sim::dataset::{Dataset, TelemetryRecord};
+
+const CHECKPOINT_FRAMES: usize = 100;
+/// Frames prepared at once (bounds memory for large training sets).
+const BATCH: usize = 128;
+/// Images the dictionary learns from, spread over the dataset, and patches from each.
+const DICTIONARY_IMAGES: usize = 200;
+const PATCHES_PER_IMAGE: usize = 300;
+/// k-means iterations when `indoor.dictionary = "k-means"`.
+const KMEANS_ITERATIONS: u32 = 15;
+/// Process noise per frame when it can be neither configured nor fitted, metres.
+const FALLBACK_PROCESS_SD_M: f64 = 0.05;
+
+/// A training frame: dataset index, full-sampling and random-sampling histograms.
+type Row = (usize, Vec<f32>, Vec<f32>);
+/// The same with its (x, y) label.
+type Labelled = (usize, Vec<f32>, Vec<f32>, [f64; 2]);
+
+/// How training frames get their x, y.
+#[derive(Clone, Debug)]
+pub enum Labelling {
+    /// The dataset's true positions (simulator, or a motion-capture log).
+    Telemetry,
+    /// Homography against an orthomap image (sec. 3.2).
+    Homography(super::labelling::OrthoMap),
+}
+
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    pub dataset: PathBuf,
+    pub out: PathBuf,
+    pub labelling: Labelling,
+    pub seed: u64,
+}
+
+/// What training did.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainReport {
+    pub images: usize,
+    pub rejected: usize,
+    pub seconds: f64,
+    pub histogram_seconds: f64,
+    pub loo_rms_m: Vec<f64>,
+    /// Per rank: SD of the right neighbours' error (sqrt of half the trace of Sigma[j]),
+    /// and how often the rank is right.
+    pub inlier_sd_m: Vec<f64>,
+    pub inlier_fraction: Vec<f64>,
+    pub process_source: String,
+}
+
+fn pose_rotation(r: &TelemetryRecord, ds: &Dataset) -> mavloc_geometry::Rot3 {
+    r.measured.camera_pose(ds.camera.chain, ds.camera.gimbal_frame).local_from_camera()
+}
+
+/// Reads and prepares one frame; `None` (with a warning) when it is unreadable.
+fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<Canvas> {
+    let path = ds.frame_path(r);
+    let img = match imgcodecs::imread(&path, imgcodecs::IMREAD_COLOR) {
+        Ok(m) if !m.empty() => m,
+        _ => {
+            tracing::warn!(frame = r.frame, path = %path.display(), "unreadable frame, skipped");
+            return None;
+        }
+    };
+    match pre.prepare(&img, Some(&pose_rotation(r, ds))) {
+        Ok(c) => Some(c),
+        Err(e) => {
+            tracing::warn!(frame = r.frame, path = %path.display(), "frame skipped: {e}");
+            None
+        }
+    }
+}
+
+fn preprocessor(ds: &Dataset, s: &Indoor) -> Preprocessor {
+    Preprocessor::new(
+        ds.camera.intrinsics(),
+        s.work_width,
+        s.derotate,
+        (s.patch_w as usize, s.patch_h as usize),
+    )
+}
+
+/// Trains a model from a labelled dataset and writes it to `opts.out`.
+pub fn train(
+    opts: &TrainOptions,
+    s: &Indoor,
+    progress: impl Fn(usize, usize) + Sync,
+) -> Result<TrainReport, String> {
+    let start = Instant::now();
+    let ds = Dataset::open(&opts.dataset)?;
+    if ds.records.is_empty() {
+        return Err(format!("{} has no frames", opts.dataset.display()));
+    }
+    let pre = preprocessor(&ds, s);
+    let patch = (s.patch_w as usize, s.patch_h as usize);
+    let n = s.textons as usize;
+
+    // 1. Dictionary, from random patches of images spread over the dataset.
+    let step = ds.records.len().div_ceil(DICTIONARY_IMAGES).max(1);
+    let picked: Vec<&TelemetryRecord> = ds.records.iter().step_by(step).collect();
+    let patches: Vec<Vec<Vec<f32>>> = picked
+        .par_iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let mut rng = rand::rngs::StdRng::seed_from_u64(opts.seed.wrapping_add(i as u64));
+            load(&ds, &pre, r)
+                .map(|c| Dictionary::sample_patches(&c.img, &c.mask, patch, PATCHES_PER_IMAGE, &mut rng))
+                .unwrap_or_default()
+        })
+        .collect();
+    // The seed starts from patches of one image, then learns over the rest in random order.
+    let mut rng = rand::rngs::StdRng::seed_from_u64(opts.seed);
+    let mut samples: Vec<Vec<f32>> = patches.into_iter().flatten().collect();
+    if samples.len() > n {
+        use rand::seq::SliceRandom;
+        samples[n..].shuffle(&mut rng);
+    }
+    let learning = match s.dictionary {
+        DictionaryMethod::Competitive => {
+            Learning::Competitive { rate_millis: ((s.learning_rate * 1000.0).round() as u32).max(1) }
+        }
+        DictionaryMethod::KMeans => Learning::KMeans { iterations: KMEANS_ITERATIONS },
+    };
+    let dictionary = Dictionary::learn_from_patches(&samples, n, patch.0, patch.1, learning)?;
+    drop(samples);
+
+    // 2. Histograms: full sampling for the model, random sampling for the leave-one-out fit.
+    let hist_start = Instant::now();
+    let classifier = dictionary.classifier();
+    let total = ds.records.len();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let mut rows: Vec<Row> = Vec::with_capacity(total);
+    for (b, batch) in ds.records.chunks(BATCH).enumerate() {
+        let part: Vec<Option<Row>> = batch
+            .par_iter()
+            .enumerate()
+            .map(|(i, r)| {
+                let index = b * BATCH + i;
+                let out = load(&ds, &pre, r).map(|c| {
+                    let mut rng = rand::rngs::StdRng::seed_from_u64(opts.seed ^ (index as u64 + 1));
+                    let full = dictionary.histogram_full_serial(&c.img, Some(&c.mask));
+                    let random =
+                        classifier.histogram_random(&c.img, Some(&c.mask), s.samples as usize, &mut rng);
+                    (index, full, random)
+                });
+                progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, total);
+                out
+            })
+            .collect();
+        rows.extend(part.into_iter().flatten());
+    }
+    let histogram_seconds = hist_start.elapsed().as_secs_f64();
+
+    // 3. Labels.
+    let mut rejected = 0;
+    let (labelling_name, labelled): (&str, Vec<Labelled>) = match &opts.labelling {
+        Labelling::Telemetry => (
+            "telemetry",
+            rows.into_iter()
+                .map(|(i, f, r)| {
+                    let p = ds.records[i].truth.position;
+                    (i, f, r, [p[0], p[1]])
+                })
+                .collect(),
+        ),
+        Labelling::Homography(map) => {
+            let labels: Vec<Option<[f64; 2]>> =
+                rows.par_iter().map(|(i, _, _)| map.label(&ds, &ds.records[*i]).ok().flatten()).collect();
+            let mut out = Vec::new();
+            for ((i, f, r), l) in rows.into_iter().zip(labels) {
+                match l {
+                    Some(p) => out.push((i, f, r, p)),
+                    None => rejected += 1,
+                }
+            }
+            ("homography", out)
+        }
+    };
+    if labelled.len() < 2 {
+        return Err(format!("only {} usable labelled frames; at least 2 are needed", labelled.len()));
+    }
+    let histograms: Vec<Vec<f32>> = labelled.iter().map(|(_, f, _, _)| f.clone()).collect();
+    let positions: Vec<[f64; 2]> = labelled.iter().map(|(_, _, _, p)| *p).collect();
+
+    // 4. Sigma[j] by leave-one-out.
+    let knn = Knn::new(&histograms)?;
+    let k = (s.k as usize).min(histograms.len() - 1).max(1);
+    let diffs: Vec<Vec<Vector2<f64>>> = labelled
+        .par_iter()
+        .enumerate()
+        .map_init(
+            || (Vec::new(), Vec::new()),
+            |(scratch, found), (i, (_, _, random, p))| {
+                knn.nearest(random, k, Some(i), scratch, found);
+                found.iter().map(|nb| Vector2::from(*p) - Vector2::from(positions[nb.index])).collect()
+            },
+        )
+        .collect();
+    let mut min = [f64::INFINITY; 2];
+    let mut max = [f64::NEG_INFINITY; 2];
+    for p in &positions {
+        for c in 0..2 {
+            min[c] = min[c].min(p[c]);
+            max[c] = max[c].max(p[c]);
+        }
+    }
+    let area = ((max[0] - min[0]) * (max[1] - min[1])).max(1.0);
+    let mut measurement_cov = Vec::new();
+    let mut inlier_fraction = Vec::new();
+    let mut loo_rms_m = Vec::new();
+    for j in 0..k {
+        let errors: Vec<Vector2<f64>> = diffs.iter().filter_map(|d| d.get(j).copied()).collect();
+        loo_rms_m
+            .push((errors.iter().map(|d| d.norm_squared()).sum::<f64>() / errors.len().max(1) as f64).sqrt());
+        let (cov, pi) = super::model::fit_robust(&errors, area);
+        measurement_cov.push(from_matrix(&cov));
+        inlier_fraction.push(pi);
+    }
+
+    // 5. Process noise: configured, or fitted from the labels when they are a flight.
+    let (process, process_source) =
+        process_noise(&ds, &labelled.iter().map(|l| l.0).collect::<Vec<_>>(), &positions, s);
+
+    let model = Model {
+        format: MODEL_FORMAT.into(),
+        version: MODEL_VERSION,
+        frame: FrameParams { work_width: pre.work.width, work_fx: pre.work.fx, derotate: s.derotate },
+        dictionary,
+        histograms,
+        positions,
+        measurement_cov,
+        inlier_fraction,
+        process_cov: from_matrix(&process),
+        bounds: [min, max],
+        training: TrainingInfo {
+            dataset: opts.dataset.display().to_string(),
+            labelling: labelling_name.into(),
+            images: labelled.len(),
+            rejected,
+            process_source: process_source.clone(),
+            loo_rms_m: loo_rms_m.clone(),
+        },
+    };
+    model.validate()?;
+    model.save(&opts.out)?;
+    Ok(TrainReport {
+        images: model.positions.len(),
+        rejected,
+        seconds: start.elapsed().as_secs_f64(),
+        histogram_seconds,
+        loo_rms_m,
+        inlier_sd_m: model.measurement_cov.iter().map(|c| ((c[0][0] + c[1][1]) / 2.0).sqrt()).collect(),
+        inlier_fraction: model.inlier_fraction.clone(),
+        process_source,
+    })
+}
+
+/// The seed's process noise: the second moment of the per-frame displacement of a
+/// training flight (sec. 3.3.4). Random views are not a flight; then the configured value
+/// or a fallback is used, and the model says which.
+fn process_noise(
+    ds: &Dataset,
+    indices: &[usize],
+    positions: &[[f64; 2]],
+    s: &Indoor,
+) -> (Matrix2<f64>, String) {
+    if s.process_sigma_m > 0.0 {
+        let v = s.process_sigma_m * s.process_sigma_m;
+        return (Matrix2::identity() * v, format!("configured: {} m per frame", s.process_sigma_m));
+    }
+    let steps: Vec<Vector2<f64>> = indices
+        .windows(2)
+        .zip(positions.windows(2))
+        .filter(|(i, _)| i[1] == i[0] + 1 && ds.records[i[1]].t > ds.records[i[0]].t)
+        .map(|(_, p)| Vector2::from(p[1]) - Vector2::from(p[0]))
+        .collect();
+    let mut lengths: Vec<f64> = steps.iter().map(|d| d.norm()).collect();
+    lengths.sort_by(f64::total_cmp);
+    let is_flight = steps.len() >= 10 && lengths[lengths.len() / 2] < 0.25;
+    if is_flight {
+        let m = steps.iter().fold(Matrix2::zeros(), |acc, d| acc + d * d.transpose()) / steps.len() as f64;
+        let m = m + Matrix2::identity() * 1e-6;
+        return (m, format!("fitted on {} frame-to-frame steps of the training flight", steps.len()));
+    }
+    let v = FALLBACK_PROCESS_SD_M * FALLBACK_PROCESS_SD_M;
+    (
+        Matrix2::identity() * v,
+        format!("default {FALLBACK_PROCESS_SD_M} m per frame (the training frames are not a flight)"),
+    )
+}
+
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub dataset: PathBuf,
+    pub model: PathBuf,
+    pub out: PathBuf,
+    pub max_frames: Option<usize>,
+    /// Ignore the telemetry's velocity (the velocity model then fits it from estimates).
+    pub no_velocity: bool,
+    pub seed: u64,
+}
+
+/// What a run did; also `summary.json`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct RunSummary {
+    pub frames: usize,
+    pub skipped_frames: usize,
+    pub motion_model: String,
+    pub derotate: bool,
+    /// Frames per second of the localiser alone (histogram, k-NN, particle filter).
+    pub frames_per_s: f64,
+    /// Mean time to read, downscale and derotate a frame, ms.
+    pub prepare_ms: f64,
+    /// Mean localiser time per frame, ms.
+    pub localize_ms: f64,
+    pub complete: bool,
+}
+
+/// One row of `trajectory.csv`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryRow {
+    pub frame: u64,
+    pub t: f64,
+    pub x: f64,
+    pub y: f64,
+    pub sigma_x: f64,
+    pub sigma_y: f64,
+    pub true_x: f64,
+    pub true_y: f64,
+}
+
+pub const TRAJECTORY_HEADER: &str = "frame,t,x,y,sigma_x,sigma_y,true_x,true_y";
+
+fn write_trajectory(out: &Path, rows: &[TrajectoryRow], summary: &RunSummary) -> Result<(), String> {
+    let mut csv = String::from(TRAJECTORY_HEADER);
+    csv.push('\n');
+    for r in rows {
+        csv.push_str(&format!(
+            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}\n",
+            r.frame, r.t, r.x, r.y, r.sigma_x, r.sigma_y, r.true_x, r.true_y
+        ));
+    }
+    let write = |path: PathBuf, bytes: &[u8]| {
+        crate::output::write_atomic(&path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
+    };
+    write(out.join("trajectory.csv"), csv.as_bytes())?;
+    let json = serde_json::to_string_pretty(summary).map_err(|e| e.to_string())?;
+    write(out.join("summary.json"), json.as_bytes())
+}
+
+/// Reads `trajectory.csv`, naming the line of any malformed row.
+pub fn read_trajectory(path: &Path) -> Result<Vec<TrajectoryRow>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut lines = text.lines();
+    if lines.next().map(str::trim) != Some(TRAJECTORY_HEADER) {
+        return Err(format!("{}: the first line must be `{TRAJECTORY_HEADER}`", path.display()));
+    }
+    lines
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(i, l)| {
+            let bad = || format!("{} line {}: expected 8 numbers, got `{l}`", path.display(), i + 2);
+            let v: Vec<f64> =
+                l.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad())?;
+            if v.len() != 8 || v[0] < 0.0 {
+                return Err(bad());
+            }
+            Ok(TrajectoryRow {
+                frame: v[0] as u64,
+                t: v[1],
+                x: v[2],
+                y: v[3],
+                sigma_x: v[4],
+                sigma_y: v[5],
+                true_x: v[6],
+                true_y: v[7],
+            })
+        })
+        .collect()
+}
+
+/// Runs a model over a flight.
+pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Result<RunSummary, String> {
+    let ds = Dataset::open(&opts.dataset)?;
+    let model = Model::load(&opts.model)?;
+    let mut settings = s.clone();
+    settings.work_width = model.frame.work_width;
+    settings.derotate = model.frame.derotate;
+    settings.patch_w = model.dictionary.w as u32;
+    settings.patch_h = model.dictionary.h as u32;
+    let pre = preprocessor(&ds, &settings);
+    let rel = (pre.work.fx - model.frame.work_fx).abs() / model.frame.work_fx;
+    if rel > 0.1 {
+        tracing::warn!(
+            model_fx = model.frame.work_fx,
+            camera_fx = pre.work.fx,
+            "the camera's focal length at the working width differs from the model's by {:.0} %; textons will be seen at another scale",
+            rel * 100.0
+        );
+    }
+    let mut loc = Localizer::new(&model, LocalizerParams::from_settings(&settings, opts.seed))?;
+    std::fs::create_dir_all(&opts.out).map_err(|e| format!("cannot create {}: {e}", opts.out.display()))?;
+    let total = opts.max_frames.unwrap_or(usize::MAX).min(ds.records.len());
+    let mut summary = RunSummary {
+        motion_model: format!("{:?}", settings.motion_model).to_lowercase(),
+        derotate: settings.derotate,
+        ..RunSummary::default()
+    };
+    let (mut prepare_s, mut localize_s) = (0.0, 0.0);
+    let mut rows = Vec::with_capacity(total);
+    for (i, r) in ds.records.iter().take(total).enumerate() {
+        let t0 = Instant::now();
+        let Some(canvas) = load(&ds, &pre, r) else {
+            summary.skipped_frames += 1;
+            progress(i + 1, total);
+            continue;
+        };
+        prepare_s += t0.elapsed().as_secs_f64();
+        let v = (!opts.no_velocity).then(|| Vector2::new(r.measured.velocity[0], r.measured.velocity[1]));
+        let t1 = Instant::now();
+        let e = loc.step(r.t, &canvas, v);
+        localize_s += t1.elapsed().as_secs_f64();
+        rows.push(TrajectoryRow {
+            frame: r.frame,
+            t: r.t,
+            x: e.position.x,
+            y: e.position.y,
+            sigma_x: e.spread.0,
+            sigma_y: e.spread.1,
+            true_x: r.truth.position[0],
+            true_y: r.truth.position[1],
+        });
+        summary.frames = rows.len();
+        if rows.len() % CHECKPOINT_FRAMES == 0 {
+            write_trajectory(&opts.out, &rows, &summary)?;
+        }
+        progress(i + 1, total);
+    }
+    let n = rows.len().max(1) as f64;
+    summary.prepare_ms = prepare_s / n * 1000.0;
+    summary.localize_ms = localize_s / n * 1000.0;
+    summary.frames_per_s = if localize_s > 0.0 { rows.len() as f64 / localize_s } else { 0.0 };
+    summary.complete = true;
+    write_trajectory(&opts.out, &rows, &summary)?;
+    Ok(summary)
+}
