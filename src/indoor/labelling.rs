@@ -116,7 +116,7 @@ impl OrthoMap {
     /// The label of one dataset frame, `None` when it has too few inliers.
     pub fn label(&self, ds: &Dataset, r: &TelemetryRecord) -> Result<Option<[f64; 2]>, String> {
         let path = ds.frame_path(r);
-        let grey = imgcodecs::imread(path, imgcodecs::IMREAD_GRAYSCALE)
+        let grey = imgcodecs::imread(&path, imgcodecs::IMREAD_GRAYSCALE)
             .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
         if grey.empty() {
             return Err(format!("cannot read {}", path.display()));
