@@ -68,7 +68,7 @@ fn model(dictionary: Dictionary, count: usize) -> Model {
     Model {
         format: MODEL_FORMAT.into(),
         version: MODEL_VERSION,
-        frame: FrameParams { work_width: 320, work_fx: 228.0, derotate: true },
+        frame: FrameParams { work_width: 320, work_fx: 228.0, derotate: true, normalise: true },
         dictionary,
         histograms,
         positions,

@@ -14,7 +14,8 @@
 //!   is `argmax_i p(z_t | x_i) sum_j p(x_i | x_j^{t-1}) w_j^{t-1}`, which this implements.
 //! * Particles are redrawn uniformly over the map when measurements become less likely
 //!   than they have been (augmented MCL: short- and long-term averages of the likelihood,
-//!   Thrun et al., Probabilistic Robotics, 8.3.5), and all of them when no particle explains
+//!   Thrun et al., Probabilistic Robotics, 8.3.5, here of its logarithm and at most
+//!   `max_random` of the particles per frame), and all of them when no particle explains
 //!   the measurement, so a kidnapped vehicle is found again while a tracked one keeps its
 //!   spread honest.
 
@@ -68,8 +69,12 @@ pub struct ParticleFilter {
     /// Smoothing of the long- and short-term likelihood averages (augmented MCL).
     pub alpha_slow: f64,
     pub alpha_fast: f64,
+    /// Most particles redrawn per update, as a fraction: one frame of wrong neighbours
+    /// must not scatter a good track.
+    pub max_random: f64,
     w_slow: f64,
     w_fast: f64,
+    started: bool,
     rng: rand::rngs::StdRng,
     last_likelihood: Vec<f64>,
     last_displacement: Vector2<f64>,
@@ -87,8 +92,10 @@ impl ParticleFilter {
             max,
             alpha_slow: 0.01,
             alpha_fast: 0.1,
+            max_random: 0.1,
             w_slow: 0.0,
             w_fast: 0.0,
+            started: false,
             rng: rand::rngs::StdRng::seed_from_u64(seed),
             last_likelihood: Vec::new(),
             last_displacement: Vector2::zeros(),
@@ -167,13 +174,16 @@ impl ParticleFilter {
             self.weights = vec![1.0 / n as f64; n];
             return;
         }
-        let mean_likelihood = total / n as f64;
-        if self.w_slow == 0.0 {
-            (self.w_slow, self.w_fast) = (mean_likelihood, mean_likelihood);
+        // Averages of the log of the mean likelihood: an arithmetic average is pulled up by
+        // the rare frames whose neighbours all agree, and then every ordinary frame looks
+        // like a kidnapping.
+        let log_mean = (total / n as f64).ln();
+        if !self.started {
+            (self.w_slow, self.w_fast, self.started) = (log_mean, log_mean, true);
         }
-        self.w_slow += self.alpha_slow * (mean_likelihood - self.w_slow);
-        self.w_fast += self.alpha_fast * (mean_likelihood - self.w_fast);
-        let p_random = (1.0 - self.w_fast / self.w_slow).max(0.0);
+        self.w_slow += self.alpha_slow * (log_mean - self.w_slow);
+        self.w_fast += self.alpha_fast * (log_mean - self.w_fast);
+        let p_random = (1.0 - (self.w_fast - self.w_slow).exp()).clamp(0.0, self.max_random);
         self.weights = self.last_likelihood.iter().map(|l| l / total).collect();
         let picks = systematic(&self.weights, self.rng.random::<f64>());
         let (old, old_l) = (self.particles.clone(), self.last_likelihood.clone());
@@ -346,5 +356,30 @@ mod tests {
         assert!((est - Vector2::new(3.0, 3.0)).norm() < 0.4, "{est:?}");
         let (sx, sy) = pf.spread();
         assert!(sx < 1.5 && sy < 1.5, "spread {sx} {sy}");
+    }
+
+    #[test]
+    fn robust_mixture_keeps_a_track_through_a_wrong_frame_and_recovers_from_a_kidnap() {
+        let mut pf = ParticleFilter::new(200, Vector2::new(-4.0, -4.0), Vector2::new(4.0, 4.0), 5);
+        let process = g(0.02);
+        let ranks = [g(0.15)];
+        let at = |pf: &mut ParticleFilter, z: Vector2<f64>| {
+            pf.predict(Vector2::zeros(), &process);
+            pf.update_mixture(&[z], &ranks, Some(&[0.9]), 1.0 / 64.0);
+        };
+        for _ in 0..40 {
+            at(&mut pf, Vector2::new(-3.0, -3.0));
+        }
+        // One look-alike frame: the track stays.
+        at(&mut pf, Vector2::new(2.0, 1.0));
+        at(&mut pf, Vector2::new(-3.0, -3.0));
+        assert!((pf.map_estimate(&process) - Vector2::new(-3.0, -3.0)).norm() < 0.2);
+        assert!(pf.spread().0 < 0.8, "{:?}", pf.spread());
+        // Kidnapped: the measurements now say (3, 3), frame after frame.
+        for _ in 0..60 {
+            at(&mut pf, Vector2::new(3.0, 3.0));
+        }
+        let est = pf.map_estimate(&process);
+        assert!((est - Vector2::new(3.0, 3.0)).norm() < 0.3, "{est:?}");
     }
 }

@@ -31,6 +31,9 @@ pub struct Preprocessor {
     /// The intrinsics at the working resolution.
     pub work: Intrinsics,
     pub derotate: bool,
+    /// Remove brightness and contrast: Y to a fixed mean and SD over the valid pixels, U
+    /// and V scaled about neutral by the same factor (an affine change of RGB is undone).
+    pub normalise: bool,
     patch: (usize, usize),
 }
 
@@ -60,7 +63,7 @@ impl Preprocessor {
     pub fn new(camera: Intrinsics, work_width: u32, derotate: bool, patch: (usize, usize)) -> Preprocessor {
         let scale = (work_width as f64 / camera.width as f64).min(1.0);
         let work = scaled(&camera, scale);
-        Preprocessor { camera, work, derotate, patch }
+        Preprocessor { camera, work, derotate, normalise: false, patch }
     }
 
     /// Side of the derotated canvas: the largest disk the level camera sees whole.
@@ -113,8 +116,11 @@ impl Preprocessor {
         let (pw, ph) = self.patch;
         match attitude.filter(|_| self.derotate) {
             None => {
-                let img = yuv_from_bgr(&small)?;
+                let mut img = yuv_from_bgr(&small)?;
                 let valid = vec![true; img.width * img.height];
+                if self.normalise {
+                    normalise(&mut img, &valid);
+                }
                 let mask = PatchMask::from_valid(img.width, img.height, &valid, pw, ph);
                 Ok(Canvas { img, mask })
             }
@@ -149,7 +155,7 @@ impl Preprocessor {
                     BORDER_CONSTANT,
                     Scalar::all(0.0),
                 )?;
-                let img = yuv_from_bgr(&warped)?;
+                let mut img = yuv_from_bgr(&warped)?;
                 let n = side as usize;
                 let c = (n as f64 - 1.0) / 2.0;
                 let r2 = (n as f64 / 2.0).powi(2);
@@ -160,10 +166,44 @@ impl Preprocessor {
                         seen[i] == 255 && x * x + y * y <= r2
                     })
                     .collect();
+                if self.normalise {
+                    normalise(&mut img, &valid);
+                }
                 let mask = PatchMask::from_valid(n, n, &valid, pw, ph);
                 Ok(Canvas { img, mask })
             }
         }
+    }
+}
+
+/// Target mean and SD of Y after normalisation, grey levels.
+const NORMAL_MEAN: f32 = 128.0;
+const NORMAL_SD: f32 = 40.0;
+
+/// Brightness `b` and contrast `c` (`RGB' = c RGB + b`) give `Y' = c Y + b` and
+/// `U' - 128 = c (U - 128)`: standardising Y over the valid pixels and scaling U and V by
+/// the same factor undoes them.
+pub fn normalise(img: &mut YuvImage, valid: &[bool]) {
+    let (mut sum, mut sum2, mut n) = (0.0f64, 0.0f64, 0usize);
+    for (p, _) in img.data.iter().zip(valid).filter(|(_, v)| **v) {
+        sum += p[0] as f64;
+        sum2 += (p[0] as f64).powi(2);
+        n += 1;
+    }
+    if n < 2 {
+        return;
+    }
+    let mean = sum / n as f64;
+    let sd = ((sum2 / n as f64 - mean * mean).max(0.0)).sqrt();
+    if sd < 1e-3 {
+        return;
+    }
+    let gain = NORMAL_SD / sd as f32;
+    let mean = mean as f32;
+    for p in &mut img.data {
+        p[0] = (p[0] - mean) * gain + NORMAL_MEAN;
+        p[1] = (p[1] - 128.0) * gain + 128.0;
+        p[2] = (p[2] - 128.0) * gain + 128.0;
     }
 }
 
@@ -226,6 +266,23 @@ mod tests {
         assert!((u - k.cx).abs() < 1e-9 && (v - k.cy).abs() < 1e-9);
         let (u, _) = nadir_pixel(&k, &down_camera(0.1, 0.0, 0.0)).unwrap();
         assert!(u != k.cx);
+    }
+
+    #[test]
+    fn normalisation_undoes_brightness_and_contrast() {
+        let rgb: Vec<u8> = (0..300).map(|i| ((i * 37) % 200 + 20) as u8).collect();
+        let changed: Vec<u8> = rgb.iter().map(|&v| (v as f32 * 1.15 - 12.0).round() as u8).collect();
+        let mut a = YuvImage::from_rgb(10, 10, &rgb).unwrap();
+        let mut b = YuvImage::from_rgb(10, 10, &changed).unwrap();
+        let valid = vec![true; 100];
+        normalise(&mut a, &valid);
+        normalise(&mut b, &valid);
+        for (p, q) in a.data.iter().zip(&b.data) {
+            for c in 0..3 {
+                // Within the rounding of the 8-bit change.
+                assert!((p[c] - q[c]).abs() < 1.5, "{p:?} vs {q:?}");
+            }
+        }
     }
 
     #[test]

@@ -24,6 +24,8 @@ pub struct FrameParams {
     pub work_fx: f64,
     /// Frames derotated by the camera attitude before histograms.
     pub derotate: bool,
+    /// Brightness and contrast normalised before histograms.
+    pub normalise: bool,
 }
 
 /// Where the training labels came from and what training saw.
@@ -207,7 +209,7 @@ pub(crate) mod tests {
         Model {
             format: MODEL_FORMAT.into(),
             version: MODEL_VERSION,
-            frame: FrameParams { work_width: 320, work_fx: 228.5, derotate: true },
+            frame: FrameParams { work_width: 320, work_fx: 228.5, derotate: true, normalise: true },
             dictionary: Dictionary { w: 1, h: 1, textons: vec![vec![0.0; 3], vec![255.0; 3]] },
             histograms: vec![vec![1.0, 0.0], vec![0.0, 1.0]],
             positions: vec![[0.0, 0.0], [1.0, 1.0]],

@@ -101,12 +101,14 @@ fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<Canvas>
 }
 
 fn preprocessor(ds: &Dataset, s: &Indoor) -> Preprocessor {
-    Preprocessor::new(
+    let mut p = Preprocessor::new(
         ds.camera.intrinsics(),
         s.work_width,
         s.derotate,
         (s.patch_w as usize, s.patch_h as usize),
-    )
+    );
+    p.normalise = s.normalise;
+    p
 }
 
 /// Trains a model from a labelled dataset and writes it to `opts.out`.
@@ -253,7 +255,12 @@ pub fn train(
     let model = Model {
         format: MODEL_FORMAT.into(),
         version: MODEL_VERSION,
-        frame: FrameParams { work_width: pre.work.width, work_fx: pre.work.fx, derotate: s.derotate },
+        frame: FrameParams {
+            work_width: pre.work.width,
+            work_fx: pre.work.fx,
+            derotate: s.derotate,
+            normalise: s.normalise,
+        },
         dictionary,
         histograms,
         positions,
@@ -415,6 +422,7 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     let mut settings = s.clone();
     settings.work_width = model.frame.work_width;
     settings.derotate = model.frame.derotate;
+    settings.normalise = model.frame.normalise;
     settings.patch_w = model.dictionary.w as u32;
     settings.patch_h = model.dictionary.h as u32;
     let pre = preprocessor(&ds, &settings);
