@@ -181,6 +181,9 @@ pub enum IndoorCommand {
     Train(IndoorTrainArgs),
     /// Run a trained model over a dataset's flight: trajectory.csv and summary.json.
     Run(IndoorRunArgs),
+    /// Simulated landing approaches to random zones (closed loop: localiser, guidance on
+    /// the estimate, landing trigger): landings.csv, read by `mavloc eval indoor`.
+    Landings(LandingsArgs),
     /// Evaluate how well a floor image suits texton localisation: the global loss L(D)
     /// over synthetic views of it, and a heat map of the per-view loss.
     MapEval(MapEvalArgs),
@@ -226,6 +229,23 @@ pub struct IndoorRunArgs {
     /// Ignore the telemetry's velocity (the velocity model then fits one to its estimates).
     #[arg(long)]
     pub no_velocity: bool,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+#[derive(Debug, Args)]
+pub struct LandingsArgs {
+    /// A model trained on the indoor-floor scenario.
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Output folder (e.g. the one of `mavloc indoor run`, for `mavloc eval indoor`).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 20)]
+    pub trials: usize,
+    /// Give up a trial after this long, seconds.
+    #[arg(long, default_value_t = 60.0)]
+    pub max_s: f64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
 }

@@ -352,6 +352,32 @@ fn indoor(command: IndoorCommand, settings: &mavloc::settings::Settings) -> anyh
             );
             Ok(ExitCode::SUCCESS)
         }
+        IndoorCommand::Landings(a) => {
+            use mavloc::indoor::approach::{run, ApproachOptions};
+            let model = mavloc::indoor::model::Model::load(&a.model).map_err(|e| anyhow!(e))?;
+            let opts =
+                ApproachOptions { trials: a.trials, seed: a.seed, max_s: a.max_s, ..Default::default() };
+            let bar = progress_bar("approaches");
+            let rows = run(&model, &settings.indoor, &opts, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })
+            .map_err(|e| anyhow!(e))?;
+            bar.finish_and_clear();
+            std::fs::create_dir_all(&a.out)?;
+            let path = a.out.join("landings.csv");
+            mavloc::output::write_atomic(&path, mavloc::indoor::eval::landings_csv(&rows).as_bytes())?;
+            let inside = rows.iter().filter(|r| r.fired && r.inside).count();
+            let outside = rows.iter().filter(|r| r.fired && !r.inside).count();
+            println!(
+                "{}: {inside} of {} landings inside the zone, {outside} outside, {} not triggered within {} s",
+                path.display(),
+                rows.len(),
+                rows.len() - inside - outside,
+                a.max_s
+            );
+            Ok(ExitCode::SUCCESS)
+        }
         IndoorCommand::MapEval(_) => not_yet("indoor map-eval", 5),
     }
 }

@@ -7,10 +7,12 @@
 //! - [`model`]: the trained model file.
 //! - [`localizer`]: the per-frame loop around the particle filter
 //!   ([`crate::filter::particle`], sec. 3.3.4, Algorithm 2) with a velocity motion model.
-//! - [`landing`]: the landing trigger (sec. 4.7).
+//! - [`landing`]: the landing trigger (sec. 4.7); [`approach`]: simulated landing
+//!   approaches that close the loop through it.
 //! - [`offline`]: `mavloc indoor train` and `mavloc indoor run` over datasets.
 //! - [`eval`]: `mavloc eval indoor` (ch. 4's measures).
 
+pub mod approach;
 pub mod derotate;
 pub mod eval;
 pub mod knn;
