@@ -378,7 +378,34 @@ fn indoor(command: IndoorCommand, settings: &mavloc::settings::Settings) -> anyh
             );
             Ok(ExitCode::SUCCESS)
         }
-        IndoorCommand::MapEval(_) => not_yet("indoor map-eval", 5),
+        IndoorCommand::MapEval(a) => {
+            let e = mavloc::indoor::mapeval::evaluate(
+                &a.map,
+                a.metres_per_px,
+                a.views,
+                a.sigma_m,
+                &settings.indoor,
+                a.seed,
+            )
+            .map_err(|e| anyhow!(e))?;
+            let title = format!("{}: L(D) = {:.4} over {} views", a.map.display(), e.global_loss, e.views);
+            let drawn = mavloc::indoor::mapeval::heatmap(&a.out, &e, 0.25, &title);
+            if let Err(why) = &drawn {
+                eprintln!("mavloc indoor map-eval: heat map not written: {why}");
+            }
+            if a.json {
+                println!(
+                    "{}",
+                    serde_json::json!({"global_loss": e.global_loss, "views": e.views, "heatmap": a.out})
+                );
+            } else {
+                println!("global loss L(D) = {:.4} over {} views (lower is better)", e.global_loss, e.views);
+                if drawn.is_ok() {
+                    println!("heat map: {}", a.out.display());
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 

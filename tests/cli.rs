@@ -117,3 +117,29 @@ fn area_on_a_missing_dataset_names_the_file() {
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("nope/camera.toml"), "{err}");
 }
+
+#[test]
+fn indoor_map_eval_prints_the_global_loss_and_writes_the_heat_map() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("eval.png");
+    let out = assert_cmd::Command::cargo_bin("mavloc")
+        .unwrap()
+        .args(["indoor", "map-eval", "--map", "sim/assets/aukerman.png", "--metres-per-px", "0.01"])
+        .args(["--views", "40", "--json", "--out"])
+        .arg(&png)
+        .timeout(std::time::Duration::from_secs(300))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let loss = v["global_loss"].as_f64().unwrap();
+    assert!(loss.is_finite() && loss > -1.0 && loss < 1.0, "{loss}");
+    assert!(png.exists());
+    let bad = assert_cmd::Command::cargo_bin("mavloc")
+        .unwrap()
+        .args(["indoor", "map-eval", "--map", "no-such.png"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("no-such.png"));
+}

@@ -11,6 +11,7 @@
 //!   approaches that close the loop through it.
 //! - [`offline`]: `mavloc indoor train` and `mavloc indoor run` over datasets.
 //! - [`eval`]: `mavloc eval indoor` (ch. 4's measures).
+//! - [`mapeval`]: `mavloc indoor map-eval`, the global loss of a floor image (sec. 3.4).
 
 pub mod approach;
 pub mod derotate;
@@ -19,6 +20,7 @@ pub mod knn;
 pub mod labelling;
 pub mod landing;
 pub mod localizer;
+pub mod mapeval;
 pub mod model;
 pub mod offline;
 pub mod textons;
