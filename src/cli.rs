@@ -88,6 +88,19 @@ pub enum SimCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Write a north-up orthophoto of a scenario's ground (PNG), centred on the origin:
+    /// the orthomap for `mavloc indoor train --orthomap`, or a floor for `indoor map-eval`.
+    Orthophoto {
+        #[arg(long)]
+        scenario: String,
+        #[arg(long)]
+        out: PathBuf,
+        /// Half the side of the square, metres.
+        #[arg(long, default_value_t = 4.0)]
+        half_extent_m: f64,
+        #[arg(long, default_value_t = 0.01)]
+        metres_per_px: f64,
+    },
     /// Run a simulated MAVLink vehicle that flies a scenario's mission.
     Vehicle {
         #[arg(long)]

@@ -82,6 +82,23 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Sim { command: SimCommand::Render(args) } => sim_render(args),
         Command::Sim { command: SimCommand::Plan { scenario, out } } => sim_plan(&scenario, out),
         Command::Sim { command: SimCommand::Vehicle { .. } } => not_yet("sim vehicle", 7),
+        Command::Sim { command: SimCommand::Orthophoto { scenario, out, half_extent_m, metres_per_px } } => {
+            use anyhow::anyhow;
+            if !(metres_per_px > 0.0 && half_extent_m > 0.0 && half_extent_m / metres_per_px <= 8000.0) {
+                anyhow::bail!(
+                    "--half-extent-m and --metres-per-px must be positive, at most 16000 px a side"
+                );
+            }
+            let scenario = mavloc_sim::Scenario::load(&scenario).map_err(|e| anyhow!(e))?;
+            let world = mavloc_sim::World::build(&scenario).map_err(|e| anyhow!(e))?;
+            let (w, h, rgb) = world.orthophoto(half_extent_m, metres_per_px);
+            image_write(&out, w, h, &rgb)?;
+            println!(
+                "{}: {w}x{h} px at {metres_per_px} m/px, centred on the origin, north up",
+                out.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Area(args) => {
             let loaded = load(config_file(cli.config), cli.overrides)?;
             mavloc::logging::init(&loaded.settings.daemon.log);
@@ -439,4 +456,17 @@ fn eval_indoor(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<Exit
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Writes an RGB image (format from the extension) through OpenCV.
+fn image_write(path: &Path, w: usize, h: usize, rgb: &[u8]) -> anyhow::Result<()> {
+    use opencv::prelude::*;
+    let m = opencv::core::Mat::from_slice(rgb)?.reshape(3, h as i32)?.try_clone()?;
+    let mut bgr = opencv::core::Mat::default();
+    opencv::imgproc::cvt_color(&m, &mut bgr, opencv::imgproc::COLOR_RGB2BGR, 0)?;
+    anyhow::ensure!(bgr.cols() as usize == w, "image width mismatch");
+    if !opencv::imgcodecs::imwrite(path, &bgr, &opencv::core::Vector::new())? {
+        anyhow::bail!("cannot write {}", path.display());
+    }
+    Ok(())
 }

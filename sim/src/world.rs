@@ -209,6 +209,25 @@ impl World {
         ([(base[0] * k).min(255.0), (base[1] * k).min(255.0), (base[2] * k).min(255.0)], target)
     }
 
+    /// A north-up orthophoto of the ground within `half_extent_m` of the origin, at
+    /// `metres_per_px`: `(width, height, RGB)`. Pixel `(u, v)` shows north
+    /// `(h - 1) / 2 * m - v * m`, east `u * m - (w - 1) / 2 * m` (centred on the origin).
+    /// The indoor seed's orthomap (sec. 3.2), and a floor image for `indoor map-eval`.
+    pub fn orthophoto(&self, half_extent_m: f64, metres_per_px: f64) -> (usize, usize, Vec<u8>) {
+        let side = ((2.0 * half_extent_m / metres_per_px).round() as usize).max(1);
+        let c = (side as f64 - 1.0) / 2.0;
+        let light = self.light(&Vec3::new(0.0, 0.0, -1.0));
+        let mut rgb = Vec::with_capacity(side * side * 3);
+        for v in 0..side {
+            for u in 0..side {
+                let (n, e) = ((c - v as f64) * metres_per_px, (u as f64 - c) * metres_per_px);
+                let (px, _) = self.shade_pixel(n, e, metres_per_px, light);
+                rgb.extend(px.iter().map(|x| x.round().clamp(0.0, 255.0) as u8));
+            }
+        }
+        (side, side, rgb)
+    }
+
     /// Colour of a ray that hits nothing.
     pub fn sky(&self) -> [f32; 3] {
         SKY_RGB
