@@ -11,12 +11,10 @@
 //! time limit.
 
 use nalgebra::Vector2;
-use opencv::core::Mat;
-use opencv::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
-use super::derotate::Preprocessor;
+use super::derotate::{bgr_from_rgb, Preprocessor};
 use super::eval::LandingRow;
 use super::landing::{LandingTrigger, LandingZone};
 use super::localizer::{Localizer, LocalizerParams};
@@ -159,7 +157,7 @@ pub fn run(
             let pose = mission.camera_pose(&state);
             let mut frame = renderer.render(&pose, &k);
             opts.appearance.apply(frame.width as usize, frame.height as usize, &mut frame.rgb);
-            let bgr = to_bgr(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
+            let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
             let canvas = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
             let measured_v =
                 vel + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng)) * VELOCITY_NOISE_M_S;
@@ -184,11 +182,4 @@ pub fn run(
         progress(trial + 1, opts.trials);
     }
     Ok(rows)
-}
-
-fn to_bgr(rgb: &[u8], height: u32) -> opencv::Result<Mat> {
-    let m = Mat::from_slice(rgb)?.reshape(3, height as i32)?.try_clone()?;
-    let mut bgr = Mat::default();
-    opencv::imgproc::cvt_color(&m, &mut bgr, opencv::imgproc::COLOR_RGB2BGR, 0)?;
-    Ok(bgr)
 }

@@ -105,18 +105,18 @@ impl Preprocessor {
                 ),
             ));
         }
+        let mut resized = Mat::default();
         let small = if self.work.width != self.camera.width {
-            let mut out = Mat::default();
             let size = Size::new(self.work.width as i32, self.work.height as i32);
-            imgproc::resize(bgr, &mut out, size, 0.0, 0.0, imgproc::INTER_AREA)?;
-            out
+            imgproc::resize(bgr, &mut resized, size, 0.0, 0.0, imgproc::INTER_AREA)?;
+            &resized
         } else {
-            bgr.clone()
+            bgr
         };
         let (pw, ph) = self.patch;
         match attitude.filter(|_| self.derotate) {
             None => {
-                let mut img = yuv_from_bgr(&small)?;
+                let mut img = yuv_from_bgr(small)?;
                 let valid = vec![true; img.width * img.height];
                 if self.normalise {
                     normalise(&mut img, &valid);
@@ -135,7 +135,7 @@ impl Preprocessor {
                 let size = Size::new(side, side);
                 let mut warped = Mat::default();
                 imgproc::warp_perspective(
-                    &small,
+                    small,
                     &mut warped,
                     &hm,
                     size,
@@ -209,10 +209,21 @@ pub fn normalise(img: &mut YuvImage, valid: &[bool]) {
 
 /// A continuous 8-bit BGR image to Y, U, V.
 pub fn yuv_from_bgr(bgr: &Mat) -> opencv::Result<YuvImage> {
-    let m = if bgr.is_continuous() { bgr.clone() } else { bgr.try_clone()? };
-    let (w, h) = (m.cols() as usize, m.rows() as usize);
-    let bytes = m.data_bytes()?;
-    Ok(YuvImage::from_bgr(w, h, bytes))
+    let (w, h) = (bgr.cols() as usize, bgr.rows() as usize);
+    if bgr.is_continuous() {
+        return Ok(YuvImage::from_bgr(w, h, bgr.data_bytes()?));
+    }
+    // A view into a larger image: copy it to one block first.
+    Ok(YuvImage::from_bgr(w, h, bgr.try_clone()?.data_bytes()?))
+}
+
+/// An 8-bit RGB buffer (the simulator's frames) as an OpenCV BGR image.
+pub fn bgr_from_rgb(rgb: &[u8], height: u32) -> opencv::Result<Mat> {
+    let m = Mat::from_slice(rgb)?;
+    let m = m.reshape(3, height as i32)?;
+    let mut bgr = Mat::default();
+    imgproc::cvt_color(&m, &mut bgr, imgproc::COLOR_RGB2BGR, 0)?;
+    Ok(bgr)
 }
 
 /// The pixel (working resolution) where the camera's nadir appears, if in front of it.

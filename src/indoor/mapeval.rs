@@ -12,14 +12,13 @@
 
 use std::path::Path;
 
-use opencv::core::Mat;
 use opencv::prelude::*;
 use rand::SeedableRng;
 use rayon::prelude::*;
 
-use super::derotate::{Canvas, Preprocessor};
-use super::textons::{cosine, Dictionary, Learning};
-use crate::settings::{DictionaryMethod, Indoor};
+use super::derotate::{bgr_from_rgb, Canvas, Preprocessor};
+use super::textons::{cosine, Dictionary};
+use crate::settings::Indoor;
 use mavloc_sim::{views, Mission, Renderer, Scenario, World};
 
 #[derive(Clone, Debug, serde::Serialize)]
@@ -102,34 +101,18 @@ pub fn evaluate(
             let pose = mission.camera_pose(state);
             let mut frame = renderer.render(&pose, &k);
             appearance.apply(frame.width as usize, frame.height as usize, &mut frame.rgb);
-            let rgb = Mat::from_slice(&frame.rgb)
-                .and_then(|m| m.reshape(3, frame.height as i32).and_then(|m| m.try_clone()))
-                .map_err(|e| e.to_string())?;
-            let mut bgr = Mat::default();
-            opencv::imgproc::cvt_color(&rgb, &mut bgr, opencv::imgproc::COLOR_RGB2BGR, 0)
-                .map_err(|e| e.to_string())?;
+            let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
             let c = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
             Ok((c, [state.position.x, state.position.y]))
         })
         .collect::<Result<_, String>>()?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let patch = (s.patch_w as usize, s.patch_h as usize);
-    let mut samples: Vec<Vec<f32>> = canvases
+    let samples: Vec<Vec<f32>> = canvases
         .iter()
         .flat_map(|(c, _)| Dictionary::sample_patches(&c.img, &c.mask, patch, 200, &mut rng))
         .collect();
-    let n = s.textons as usize;
-    if samples.len() > n {
-        use rand::seq::SliceRandom;
-        samples[n..].shuffle(&mut rng);
-    }
-    let learning = match s.dictionary {
-        DictionaryMethod::Competitive => {
-            Learning::Competitive { rate_millis: ((s.learning_rate * 1000.0).round() as u32).max(1) }
-        }
-        DictionaryMethod::KMeans => Learning::KMeans { iterations: 15 },
-    };
-    let dict = Dictionary::learn_from_patches(&samples, n, patch.0, patch.1, learning)?;
+    let dict = super::offline::learn_dictionary(samples, s, seed)?;
     let histograms: Vec<Vec<f32>> =
         canvases.par_iter().map(|(c, _)| dict.histogram_full_serial(&c.img, Some(&c.mask))).collect();
     let positions: Vec<[f64; 2]> = canvases.iter().map(|(_, p)| *p).collect();

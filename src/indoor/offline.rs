@@ -111,6 +111,27 @@ fn preprocessor(ds: &Dataset, s: &Indoor) -> Preprocessor {
     p
 }
 
+/// Learns the configured dictionary from patches in image order: the seed starts from
+/// patches of one image, then learns over the rest in random order (sec. 3.3.1).
+pub(crate) fn learn_dictionary(
+    mut samples: Vec<Vec<f32>>,
+    s: &Indoor,
+    seed: u64,
+) -> Result<Dictionary, String> {
+    let n = s.textons as usize;
+    if samples.len() > n {
+        use rand::seq::SliceRandom;
+        samples[n..].shuffle(&mut rand::rngs::StdRng::seed_from_u64(seed));
+    }
+    let learning = match s.dictionary {
+        DictionaryMethod::Competitive => {
+            Learning::Competitive { rate_millis: ((s.learning_rate * 1000.0).round() as u32).max(1) }
+        }
+        DictionaryMethod::KMeans => Learning::KMeans { iterations: KMEANS_ITERATIONS },
+    };
+    Dictionary::learn_from_patches(&samples, n, s.patch_w as usize, s.patch_h as usize, learning)
+}
+
 /// Trains a model from a labelled dataset and writes it to `opts.out`.
 pub fn train(
     opts: &TrainOptions,
@@ -124,7 +145,6 @@ pub fn train(
     }
     let pre = preprocessor(&ds, s);
     let patch = (s.patch_w as usize, s.patch_h as usize);
-    let n = s.textons as usize;
 
     // 1. Dictionary, from random patches of images spread over the dataset.
     let step = ds.records.len().div_ceil(DICTIONARY_IMAGES).max(1);
@@ -139,21 +159,7 @@ pub fn train(
                 .unwrap_or_default()
         })
         .collect();
-    // The seed starts from patches of one image, then learns over the rest in random order.
-    let mut rng = rand::rngs::StdRng::seed_from_u64(opts.seed);
-    let mut samples: Vec<Vec<f32>> = patches.into_iter().flatten().collect();
-    if samples.len() > n {
-        use rand::seq::SliceRandom;
-        samples[n..].shuffle(&mut rng);
-    }
-    let learning = match s.dictionary {
-        DictionaryMethod::Competitive => {
-            Learning::Competitive { rate_millis: ((s.learning_rate * 1000.0).round() as u32).max(1) }
-        }
-        DictionaryMethod::KMeans => Learning::KMeans { iterations: KMEANS_ITERATIONS },
-    };
-    let dictionary = Dictionary::learn_from_patches(&samples, n, patch.0, patch.1, learning)?;
-    drop(samples);
+    let dictionary = learn_dictionary(patches.into_iter().flatten().collect(), s, opts.seed)?;
 
     // 2. Histograms: full sampling for the model, random sampling for the leave-one-out fit.
     let hist_start = Instant::now();
@@ -195,8 +201,15 @@ pub fn train(
                 .collect(),
         ),
         Labelling::Homography(map) => {
-            let labels: Vec<Option<[f64; 2]>> =
-                rows.par_iter().map(|(i, _, _)| map.label(&ds, &ds.records[*i]).ok().flatten()).collect();
+            let labels: Vec<Option<[f64; 2]>> = rows
+                .par_iter()
+                .map(|(i, _, _)| {
+                    map.label(&ds, &ds.records[*i]).unwrap_or_else(|e| {
+                        tracing::warn!("frame not labelled, rejected: {e}");
+                        None
+                    })
+                })
+                .collect();
             let mut out = Vec::new();
             for ((i, f, r), l) in rows.into_iter().zip(labels) {
                 match l {

@@ -215,17 +215,12 @@ impl Dictionary {
         if img.width < w || img.height < h || self.is_empty() {
             return vec![0.0; self.len()];
         }
-        let cols = img.width - w + 1;
         let counts = (0..=img.height - h)
             .into_par_iter()
             .fold(
                 || vec![0u64; self.len()],
                 |mut counts, y| {
-                    for x in 0..cols {
-                        if mask.is_none_or(|m| m.allows(x, y)) {
-                            counts[c.nearest(img, x, y)] += 1;
-                        }
-                    }
+                    c.count_row(img, mask, y, &mut counts);
                     counts
                 },
             )
@@ -243,11 +238,7 @@ impl Dictionary {
         }
         let mut counts = vec![0u64; self.len()];
         for y in 0..=img.height - h {
-            for x in 0..=img.width - w {
-                if mask.is_none_or(|m| m.allows(x, y)) {
-                    counts[c.nearest(img, x, y)] += 1;
-                }
-            }
+            c.count_row(img, mask, y, &mut counts);
         }
         normalise(&counts)
     }
@@ -326,6 +317,15 @@ impl Classifier {
             }
         }
         best.1.min(self.n.saturating_sub(1))
+    }
+
+    /// Adds the nearest textons of the allowed patches whose top row is `y`.
+    fn count_row(&self, img: &YuvImage, mask: Option<&PatchMask>, y: usize, counts: &mut [u64]) {
+        for x in 0..=img.width - self.w {
+            if mask.is_none_or(|m| m.allows(x, y)) {
+                counts[self.nearest(img, x, y)] += 1;
+            }
+        }
     }
 
     /// Histogram of `samples` random allowed patch positions, normalised.
