@@ -91,9 +91,25 @@ fn run_refuses_a_bad_mavlink_address() {
 
 #[test]
 fn unfinished_commands_say_so_plainly() {
-    let a = mavloc().args(["indoor", "train", "--dataset", "d", "--out", "o"]).assert().code(2);
+    let a = mavloc().args(["sim", "vehicle", "--scenario", "coastline"]).assert().code(2);
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("not implemented yet"), "{err}");
+}
+
+#[test]
+fn indoor_train_names_a_missing_dataset() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("no-such-dataset");
+    let a = mavloc()
+        .args(["indoor", "train", "--dataset"])
+        .arg(&missing)
+        .args(["--out"])
+        .arg(dir.path().join("m.json"))
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("no-such-dataset"), "{err}");
+    assert!(!dir.path().join("m.json").exists());
 }
 
 #[test]
