@@ -1,0 +1,212 @@
+//! MAVLink 2 message signing (<https://mavlink.io/en/guide/message_signing.html>): the key
+//! file, signing what mavloc sends, verifying what it receives with replay protection,
+//! and a timestamp that never goes backwards across restarts.
+//!
+//! The `mavlink` crate computes the SHA-256/48 signature; the policy (which messages need a
+//! signature) lives in the daemon, so verification here answers per frame.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use mavlink::MAVLinkV2MessageRaw;
+
+/// Signing timestamps count 10 µs units since 2015-01-01 00:00:00 UTC.
+const EPOCH_2015_UNIX_S: u64 = 1_420_070_400;
+/// A new stream more than a minute behind our clock is a replay (the spec's rule).
+const NEW_STREAM_WINDOW: u64 = 60 * 100_000;
+/// The timestamp is saved this often; after a crash mavloc restarts this far ahead of the
+/// last saved value, so it cannot reuse a timestamp it had already sent.
+pub const SAVE_INTERVAL_S: u64 = 10;
+
+/// Verification result of one signed frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    Valid,
+    Invalid,
+}
+
+/// The key and the timestamps of one link.
+pub struct Signer {
+    key: [u8; 32],
+    link_id: u8,
+    timestamp: u64,
+    streams: HashMap<(u8, u8, u8), u64>,
+    state_file: Option<PathBuf>,
+    saved: u64,
+}
+
+fn now_units() -> u64 {
+    let unix = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
+    (unix.as_micros() as u64 / 10).saturating_sub(EPOCH_2015_UNIX_S * 100_000)
+}
+
+/// Reads a key file: 64 hexadecimal characters (surrounding whitespace allowed), the form
+/// `mavproxy` and pymavlink users keep keys in. Refuses a file others can read.
+pub fn load_key(path: &Path) -> Result<[u8; 32], String> {
+    use std::os::unix::fs::MetadataExt;
+    let meta = std::fs::metadata(path)
+        .map_err(|e| format!("signing key {}: cannot read it: {e}", path.display()))?;
+    if meta.mode() & 0o077 != 0 {
+        return Err(format!(
+            "signing key {}: mode {:o} lets other users read it; run `chmod 600 {}`",
+            path.display(),
+            meta.mode() & 0o777,
+            path.display()
+        ));
+    }
+    // SAFETY: geteuid has no preconditions and cannot fail.
+    let euid = unsafe { libc::geteuid() };
+    if meta.uid() != euid {
+        return Err(format!(
+            "signing key {}: owned by uid {}, but mavloc runs as uid {euid}; the key must be mavloc's own",
+            path.display(),
+            meta.uid()
+        ));
+    }
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| format!("signing key {}: cannot read it: {e}", path.display()))?;
+    parse_key(text.trim()).map_err(|e| format!("signing key {}: {e}", path.display()))
+}
+
+/// Parses 64 hexadecimal characters into a key.
+pub fn parse_key(hex: &str) -> Result<[u8; 32], String> {
+    if hex.len() != 64 || !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return Err(format!("expected 64 hexadecimal characters (32 bytes), found {} characters", hex.len()));
+    }
+    let mut key = [0u8; 32];
+    for (i, k) in key.iter_mut().enumerate() {
+        *k = u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).expect("checked hex");
+    }
+    Ok(key)
+}
+
+impl Signer {
+    /// A signer whose outgoing timestamp starts after anything saved in `state_file`.
+    pub fn new(key: [u8; 32], link_id: u8, state_file: Option<PathBuf>) -> Signer {
+        let stored = state_file
+            .as_deref()
+            .and_then(|p| std::fs::read_to_string(p).ok())
+            .and_then(|t| t.trim().parse::<u64>().ok())
+            .map(|t| t + SAVE_INTERVAL_S * 100_000)
+            .unwrap_or(0);
+        let timestamp = stored.max(now_units());
+        let mut s = Signer { key, link_id, timestamp, streams: HashMap::new(), state_file, saved: 0 };
+        s.save();
+        s
+    }
+
+    /// The last timestamp used.
+    pub fn timestamp(&self) -> u64 {
+        self.timestamp
+    }
+
+    /// Saves the timestamp (write, then rename) if it moved since the last save.
+    pub fn save(&mut self) {
+        if self.saved == self.timestamp {
+            return;
+        }
+        if let Some(p) = &self.state_file {
+            match crate::output::write_atomic(p, format!("{}\n", self.timestamp).as_bytes()) {
+                Ok(()) => self.saved = self.timestamp,
+                Err(e) => tracing::warn!("cannot save the signing timestamp to {}: {e}", p.display()),
+            }
+        }
+    }
+
+    /// Signs a frame serialised with the signed flag set.
+    pub fn sign(&mut self, raw: &mut MAVLinkV2MessageRaw) {
+        self.timestamp = (self.timestamp + 1).max(now_units());
+        *raw.signature_link_id_mut() = self.link_id;
+        raw.signature_timestamp_bytes_mut().copy_from_slice(&self.timestamp.to_le_bytes()[..6]);
+        let mut sig = [0u8; 6];
+        raw.calculate_signature(&self.key, &mut sig);
+        raw.signature_value_mut().copy_from_slice(&sig);
+    }
+
+    /// Verifies a whole signed MAVLink 2 frame (STX to the end of the signature).
+    pub fn verify(&mut self, frame: &[u8]) -> Verdict {
+        let mut raw = MAVLinkV2MessageRaw::new();
+        if frame.len() > raw.as_slice().len() {
+            return Verdict::Invalid;
+        }
+        raw.as_mut_slice()[..frame.len()].copy_from_slice(frame);
+        let mut sig = [0u8; 6];
+        raw.calculate_signature(&self.key, &mut sig);
+        if sig != raw.signature_value() {
+            return Verdict::Invalid;
+        }
+        let ts = raw.signature_timestamp();
+        let stream = (raw.signature_link_id(), raw.system_id() as u8, raw.component_id());
+        self.timestamp = self.timestamp.max(now_units());
+        match self.streams.get(&stream) {
+            Some(&last) if ts <= last => return Verdict::Invalid,
+            None if ts + NEW_STREAM_WINDOW < self.timestamp => return Verdict::Invalid,
+            _ => {}
+        }
+        self.streams.insert(stream, ts);
+        Verdict::Valid
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::link::codec::{Auth, Decoder, Encoder};
+    use mavlink::dialects::common::{MavMessage, PARAM_REQUEST_LIST_DATA};
+
+    fn msg() -> MavMessage {
+        MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA { target_system: 1, target_component: 191 })
+    }
+
+    #[test]
+    fn signed_frames_verify_and_replays_and_wrong_keys_do_not() {
+        let key = [7u8; 32];
+        let mut tx = Signer::new(key, 0, None);
+        let mut rx = Signer::new(key, 1, None);
+        let mut wrong = Signer::new([8u8; 32], 1, None);
+        let mut e = Encoder::new();
+        let frame = e.encode(255, 190, &msg(), Some(&mut tx));
+        let mut d = Decoder::new();
+        d.push(&frame);
+        assert_eq!(d.next_frame(Some(&mut rx)).unwrap().auth, Auth::Signed);
+        // The same bytes again are a replay.
+        d.push(&frame);
+        assert!(d.next_frame(Some(&mut rx)).is_none());
+        assert_eq!(d.skipped.bad_signature, 1);
+        let frame2 = e.encode(255, 190, &msg(), Some(&mut tx));
+        d.push(&frame2);
+        assert!(d.next_frame(Some(&mut wrong)).is_none());
+        assert_eq!(d.skipped.bad_signature, 2);
+        // Unsigned frames pass as unsigned; policy is the daemon's.
+        d.push(&e.encode(255, 190, &msg(), None));
+        assert_eq!(d.next_frame(Some(&mut rx)).unwrap().auth, Auth::Unsigned);
+    }
+
+    #[test]
+    fn the_timestamp_survives_a_restart() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("signing-timestamp");
+        // A stored timestamp far in the future (a clock that was ahead) must still win.
+        let future = now_units() + 1_000_000_000;
+        std::fs::write(&file, format!("{future}\n")).unwrap();
+        let s = Signer::new([1; 32], 0, Some(file.clone()));
+        assert!(s.timestamp() > future);
+        let saved: u64 = std::fs::read_to_string(&file).unwrap().trim().parse().unwrap();
+        assert_eq!(saved, s.timestamp());
+    }
+
+    #[test]
+    fn key_files_are_checked() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("key");
+        std::fs::write(&p, format!("{}\n", "ab".repeat(32))).unwrap();
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o644)).unwrap();
+        assert!(load_key(&p).unwrap_err().contains("chmod 600"));
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o600)).unwrap();
+        assert_eq!(load_key(&p).unwrap(), [0xab; 32]);
+        std::fs::write(&p, "short").unwrap();
+        assert!(load_key(&p).unwrap_err().contains("64 hexadecimal"));
+    }
+}
