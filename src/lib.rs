@@ -26,6 +26,7 @@
 
 pub use mavloc_geometry as geometry;
 
+pub mod align;
 pub mod area;
 pub mod cli;
 pub mod demo;
