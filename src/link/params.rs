@@ -1,0 +1,341 @@
+//! mavloc's MAVLink parameters: the runtime-tunable subset of the configuration under
+//! names QGroundControl can list and set (at most 16 characters), with types, checks on
+//! set, and a state file that keeps tuned values across restarts.
+//!
+//! Each parameter is a view of one configuration key, so a set is checked by exactly the
+//! validation a config file gets, and a tuned value means the same thing as that key in
+//! `config/mavloc.toml`. Integers, booleans and enumerations are `MAV_PARAM_TYPE_INT32`
+//! sent in PX4's byte-wise encoding (the int's bytes in the float field), which is what
+//! QGroundControl expects from components of a PX4 vehicle; sets are accepted in either
+//! encoding. Keys that define a trained model or the hardware (texton size, camera,
+//! link) are not parameters: changing them in flight could not be applied honestly.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use mavlink::dialects::common::MavParamType;
+use serde_json::Value;
+
+use crate::settings::{self, Settings};
+
+/// How a parameter's value maps to its configuration key.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Kind {
+    Float,
+    Int,
+    Bool,
+    /// Index into these names.
+    Enum(&'static [&'static str]),
+}
+
+/// One parameter.
+#[derive(Clone, Copy, Debug)]
+pub struct ParamDef {
+    pub name: &'static str,
+    pub key: &'static str,
+    pub kind: Kind,
+}
+
+const fn p(name: &'static str, key: &'static str, kind: Kind) -> ParamDef {
+    ParamDef { name, key, kind }
+}
+
+use Kind::*;
+
+/// Every parameter, in the order PARAM_REQUEST_LIST reports them (their index).
+pub const PARAMS: &[ParamDef] = &[
+    p("LOC_PIPELINE", "daemon.pipeline", Enum(&["none", "area", "indoor"])),
+    p("LOC_FRAME_AGE", "daemon.max_frame_age_s", Float),
+    p("GMB_USE_TELEM", "gimbal.use_telemetry", Bool),
+    p("GMB_MNT_YAW", "gimbal.mount_yaw_deg", Float),
+    p("GMB_MNT_PITCH", "gimbal.mount_pitch_deg", Float),
+    p("GMB_MNT_ROLL", "gimbal.mount_roll_deg", Float),
+    p("GMB_OFF_YAW", "gimbal.yaw_offset_deg", Float),
+    p("GMB_OFF_PITCH", "gimbal.pitch_offset_deg", Float),
+    p("GMB_OFF_ROLL", "gimbal.roll_offset_deg", Float),
+    p("AREA_METHOD", "area.method", Enum(&["ukf", "ground-plane"])),
+    p("AREA_DOWNSCALE", "area.downscale", Int),
+    p("AREA_BAND_PX", "area.band_px", Int),
+    p("AREA_L_MAX", "area.l_max", Int),
+    p("AREA_TURNOVER", "area.turnover", Int),
+    p("AREA_FEAT_FACT", "area.feature_factor", Int),
+    p("AREA_RATIO", "area.ratio_test", Float),
+    p("AREA_MAHAL_MAX", "area.mahalanobis_max", Float),
+    p("AREA_CONV_M", "area.convergence_m", Float),
+    p("AREA_MIN_OBS", "area.min_observations", Int),
+    p("AREA_BEAR_NOISE", "area.bearing_noise_deg", Float),
+    p("AREA_UKF_ALPHA", "area.ukf_alpha", Float),
+    p("AREA_UKF_BETA", "area.ukf_beta", Float),
+    p("AREA_UKF_KAPPA", "area.ukf_kappa", Float),
+    p("AREA_INIT_SIG", "area.init_sigma_m", Float),
+    p("AREA_GROUND_D", "area.ground_down_m", Float),
+    p("AREA_MAX_DESC", "area.max_descriptors", Int),
+    p("IND_SAMPLES", "indoor.samples", Int),
+    p("IND_K", "indoor.k", Int),
+    p("IND_PARTICLES", "indoor.particles", Int),
+    p("IND_MOTION", "indoor.motion_model", Enum(&["noise", "velocity"])),
+    p("IND_PROC_SIG", "indoor.process_sigma_m", Float),
+    p("IND_VEL_SIG", "indoor.velocity_sigma_m_s", Float),
+    p("IND_LAND_EN", "indoor.landing_enabled", Bool),
+    p("IND_LAND_X", "indoor.landing_x_m", Float),
+    p("IND_LAND_Y", "indoor.landing_y_m", Float),
+    p("IND_LAND_R", "indoor.landing_radius_m", Float),
+    p("IND_LAND_SIG", "indoor.landing_sigma_gate_m", Float),
+    p("IND_LAND_FRAMES", "indoor.landing_frames", Int),
+];
+
+/// A value as MAVLink carries it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Wire {
+    pub value: f32,
+    pub ty: MavParamType,
+}
+
+/// Why a set was refused.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SetError {
+    Unknown(String),
+    Refused { name: &'static str, why: String },
+}
+
+impl std::fmt::Display for SetError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SetError::Unknown(n) => write!(f, "no parameter {n}"),
+            SetError::Refused { name, why } => write!(f, "{name}: {why}"),
+        }
+    }
+}
+
+pub fn find(name: &str) -> Option<(usize, &'static ParamDef)> {
+    PARAMS.iter().enumerate().find(|(_, d)| d.name == name)
+}
+
+fn get_key<'a>(v: &'a Value, key: &str) -> &'a Value {
+    let (section, field) = key.split_once('.').expect("dotted key");
+    &v[section][field]
+}
+
+/// A parameter's current numeric value from the settings.
+pub fn value_of(settings: &Settings, def: &ParamDef) -> f64 {
+    let v = serde_json::to_value(settings).expect("settings serialise");
+    let x = get_key(&v, def.key);
+    match def.kind {
+        Float | Int => x.as_f64().expect("numeric key"),
+        Bool => x.as_bool().expect("bool key") as u8 as f64,
+        Enum(names) => names.iter().position(|n| Some(*n) == x.as_str()).expect("known enum name") as f64,
+    }
+}
+
+/// The wire form of a parameter's value.
+pub fn encode(settings: &Settings, def: &ParamDef) -> Wire {
+    let x = value_of(settings, def);
+    match def.kind {
+        Float => Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 },
+        _ => Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 },
+    }
+}
+
+/// Reads a set's value as a number, in either integer encoding.
+fn decode(def: &ParamDef, w: Wire) -> Result<f64, String> {
+    let x = match w.ty {
+        // The shortest decimal that is this f32: a 0.7 typed in QGroundControl is 0.7 in
+        // the configuration, not 0.699999988.
+        MavParamType::MAV_PARAM_TYPE_REAL32 => w.value.to_string().parse::<f64>().unwrap_or(f64::NAN),
+        MavParamType::MAV_PARAM_TYPE_INT32
+        | MavParamType::MAV_PARAM_TYPE_UINT32
+        | MavParamType::MAV_PARAM_TYPE_INT16
+        | MavParamType::MAV_PARAM_TYPE_UINT16
+        | MavParamType::MAV_PARAM_TYPE_INT8
+        | MavParamType::MAV_PARAM_TYPE_UINT8 => {
+            // Byte-wise (PX4) if the bits read as a small integer, else a C cast (ArduPilot
+            // style): a real float of an integer never has a tiny bit pattern.
+            let bits = w.value.to_bits() as i32;
+            if (-(1 << 23)..(1 << 23)).contains(&bits) {
+                bits as f64
+            } else {
+                w.value as f64
+            }
+        }
+        other => return Err(format!("type {other:?} is not supported; use REAL32 or INT32")),
+    };
+    if !x.is_finite() {
+        return Err("value is not a finite number".into());
+    }
+    if def.kind != Float && x.fract() != 0.0 {
+        return Err(format!("{x} is not an integer"));
+    }
+    Ok(x)
+}
+
+/// Sets a parameter on a copy of the settings and validates the result like a config
+/// file. Returns the new settings; the caller applies and persists them.
+pub fn set(settings: &Settings, name: &str, w: Wire) -> Result<(Settings, f64), SetError> {
+    let (_, def) = find(name).ok_or_else(|| SetError::Unknown(name.to_string()))?;
+    let refuse = |why: String| SetError::Refused { name: def.name, why };
+    let x = decode(def, w).map_err(refuse)?;
+    let new_value = match def.kind {
+        Float => serde_json::json!(x),
+        Int if x < 0.0 => return Err(refuse(format!("{x} is negative"))),
+        Int => serde_json::json!(x as u64),
+        Bool if x == 0.0 || x == 1.0 => serde_json::json!(x == 1.0),
+        Bool => return Err(refuse(format!("{x} is not 0 or 1"))),
+        Enum(names) => match names.get(x as usize).filter(|_| x >= 0.0) {
+            Some(n) => serde_json::json!(n),
+            None => {
+                let opts: Vec<_> = names.iter().enumerate().map(|(i, n)| format!("{i}={n}")).collect();
+                return Err(refuse(format!("{x} is not one of {}", opts.join(", "))));
+            }
+        },
+    };
+    let mut v = serde_json::to_value(settings).expect("settings serialise");
+    let (section, field) = def.key.split_once('.').expect("dotted key");
+    v[section][field] = new_value;
+    let new: Settings = serde_json::from_value(v).map_err(|e| refuse(e.to_string()))?;
+    let mut origins = BTreeMap::new();
+    origins.insert(def.key.to_string(), "PARAM_SET".to_string());
+    let problems = settings::validate(&new, &origins);
+    if let Some(p) = problems.first() {
+        return Err(refuse(p.expected.clone()));
+    }
+    Ok((new, x))
+}
+
+/// Tuned values, kept in the state directory as `params.json` ({"NAME": value}).
+pub struct ParamStore {
+    path: Option<PathBuf>,
+    tuned: BTreeMap<String, f64>,
+}
+
+impl ParamStore {
+    pub fn in_memory() -> ParamStore {
+        ParamStore { path: None, tuned: BTreeMap::new() }
+    }
+
+    /// Opens the store and applies what it holds to `settings`. Entries that no longer
+    /// name a parameter or no longer validate are reported and dropped, not fatal: a
+    /// config change must not stop a drone's companion from starting.
+    pub fn open(path: &Path, settings: &mut Settings) -> (ParamStore, Vec<String>) {
+        let mut notes = Vec::new();
+        let mut store = ParamStore { path: Some(path.to_path_buf()), tuned: BTreeMap::new() };
+        let text = match std::fs::read_to_string(path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return (store, notes),
+            Err(e) => {
+                notes.push(format!("{}: cannot read tuned parameters ({e}); using the configuration", path.display()));
+                return (store, notes);
+            }
+        };
+        let map: BTreeMap<String, f64> = match serde_json::from_str(&text) {
+            Ok(m) => m,
+            Err(e) => {
+                notes.push(format!("{}: not a parameter file ({e}); ignored", path.display()));
+                return (store, notes);
+            }
+        };
+        for (name, x) in map {
+            let w = match find(&name) {
+                Some((_, d)) if d.kind == Float => Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 },
+                Some(_) => Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 },
+                None => {
+                    notes.push(format!("{}: {name} is no longer a parameter; dropped", path.display()));
+                    continue;
+                }
+            };
+            match set(settings, &name, w) {
+                Ok((s, v)) => {
+                    *settings = s;
+                    store.tuned.insert(name.clone(), v);
+                    notes.push(format!("{name} = {v} (tuned over MAVLink, from {})", path.display()));
+                }
+                Err(e) => notes.push(format!("{}: tuned value dropped: {e}", path.display())),
+            }
+        }
+        (store, notes)
+    }
+
+    /// Records a tuned value and writes the file atomically.
+    pub fn record(&mut self, name: &str, value: f64) -> std::io::Result<()> {
+        self.tuned.insert(name.to_string(), value);
+        match &self.path {
+            Some(p) => {
+                let json = serde_json::to_string_pretty(&self.tuned).expect("map serialises");
+                crate::output::write_atomic(p, json.as_bytes())
+            }
+            None => Ok(()),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_mavlink_legal_unique_and_keys_exist() {
+        let s = Settings::default();
+        let mut seen = std::collections::HashSet::new();
+        for d in PARAMS {
+            assert!(d.name.len() <= 16 && d.name.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_'), "{}", d.name);
+            assert!(seen.insert(d.name), "duplicate {}", d.name);
+            assert!(settings::all_keys().contains(&d.key.to_string()), "{} -> {}", d.name, d.key);
+            value_of(&s, d); // panics on a kind mismatch
+            if let Enum(names) = d.kind {
+                let listed = settings::ENUM_KEYS.iter().find(|(k, _)| *k == d.key).unwrap().1;
+                let mut a = names.to_vec();
+                let mut b = listed.to_vec();
+                a.sort();
+                b.sort();
+                assert_eq!(a, b, "{}", d.name);
+            }
+        }
+    }
+
+    #[test]
+    fn every_parameter_round_trips_its_own_value() {
+        let s = Settings::default();
+        for d in PARAMS {
+            let w = encode(&s, d);
+            let (s2, _) = set(&s, d.name, w).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(s2, s, "{}", d.name);
+        }
+    }
+
+    #[test]
+    fn sets_are_checked_like_the_config() {
+        let s = Settings::default();
+        let real = |x: f32| Wire { value: x, ty: MavParamType::MAV_PARAM_TYPE_REAL32 };
+        let int = |x: i32| Wire { value: f32::from_bits(x as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 };
+        let (s2, _) = set(&s, "AREA_RATIO", real(0.7)).unwrap();
+        assert!((s2.area.ratio_test - 0.7).abs() < 1e-6);
+        assert!(matches!(set(&s, "AREA_RATIO", real(3.0)), Err(SetError::Refused { .. })));
+        assert!(matches!(set(&s, "NOPE", real(1.0)), Err(SetError::Unknown(_))));
+        let (s3, _) = set(&s, "LOC_PIPELINE", int(2)).unwrap();
+        assert_eq!(s3.daemon.pipeline, settings::PipelineKind::Indoor);
+        assert!(set(&s, "LOC_PIPELINE", int(7)).unwrap_err().to_string().contains("0=none"));
+        // A C-cast integer (ArduPilot style) is read too.
+        let (s4, _) = set(&s, "AREA_BAND_PX", Wire { value: 80.0, ty: MavParamType::MAV_PARAM_TYPE_INT32 }).unwrap();
+        assert_eq!(s4.area.band_px, 80);
+        assert!(set(&s, "AREA_BAND_PX", real(80.5)).is_err());
+        assert!(set(&s, "IND_LAND_EN", int(2)).is_err());
+    }
+
+    #[test]
+    fn the_store_survives_a_restart_and_drops_stale_entries() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("params.json");
+        let mut s = Settings::default();
+        let (mut store, _) = ParamStore::open(&path, &mut s);
+        store.record("AREA_BAND_PX", 77.0).unwrap();
+        let mut text: BTreeMap<String, f64> = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        text.insert("GONE_PARAM".into(), 1.0);
+        text.insert("AREA_RATIO".into(), 9.0); // out of range
+        std::fs::write(&path, serde_json::to_string(&text).unwrap()).unwrap();
+        let mut s = Settings::default();
+        let (_, notes) = ParamStore::open(&path, &mut s);
+        assert_eq!(s.area.band_px, 77);
+        assert_eq!(s.area.ratio_test, Settings::default().area.ratio_test);
+        assert!(notes.iter().any(|n| n.contains("GONE_PARAM")));
+        assert!(notes.iter().any(|n| n.contains("AREA_RATIO")));
+    }
+}
