@@ -85,7 +85,7 @@ impl ClockSync {
     /// reply, `remote` the autopilot's time in the reply.
     pub fn observe_timesync(&mut self, sent: f64, received: f64, remote: f64) {
         let rtt = received - sent;
-        if !(rtt >= 0.0 && rtt < 1.0) {
+        if !(0.0..1.0).contains(&rtt) {
             return;
         }
         let offset = (sent + received) / 2.0 - remote;
@@ -442,7 +442,9 @@ impl Aligner {
         let r: Rot3 = g.q.to_rotation_matrix();
         if self.offsets.is_zero() {
             let attitude = match mount {
-                Mount::VehicleHeading { vehicle_yaw } => Rot3::from_axis_angle(&Vec3::z_axis(), vehicle_yaw) * r,
+                Mount::VehicleHeading { vehicle_yaw } => {
+                    Rot3::from_axis_angle(&Vec3::z_axis(), vehicle_yaw) * r
+                }
                 _ => r,
             };
             return CameraPose { position, attitude };
@@ -486,7 +488,10 @@ mod tests {
     fn aligner() -> Aligner {
         Aligner::new(
             AlignParams::default(),
-            FixedMount { chain: GimbalChain::YawPitchRoll, angles: GimbalAngles::from_degrees(0.0, -90.0, 0.0) },
+            FixedMount {
+                chain: GimbalChain::YawPitchRoll,
+                angles: GimbalAngles::from_degrees(0.0, -90.0, 0.0),
+            },
             GimbalOffsets { chain: GimbalChain::YawPitchRoll, yaw: 0.0, pitch: 0.0, roll: 0.0 },
         )
     }

@@ -29,6 +29,7 @@ pub use mavloc_geometry as geometry;
 pub mod align;
 pub mod area;
 pub mod cli;
+pub mod daemon;
 pub mod demo;
 pub mod filter;
 pub mod indoor;

@@ -76,8 +76,15 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             }
             let loaded = load(config_file(cli.config), overrides)?;
             mavloc::logging::init(&loaded.settings.daemon.log);
-            tracing::info!(connection = %loaded.settings.mavlink.connection, "configuration valid");
-            not_yet("run (the daemon)", 6)
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .thread_name("mavloc-io")
+                .build()?;
+            runtime.block_on(mavloc::daemon::run(loaded.settings))?;
+            // The link task may still hold a socket read; do not wait for it.
+            runtime.shutdown_timeout(std::time::Duration::from_millis(200));
+            Ok(ExitCode::SUCCESS)
         }
         Command::Sim { command: SimCommand::Render(args) } => sim_render(args),
         Command::Sim { command: SimCommand::Plan { scenario, out } } => sim_plan(&scenario, out),

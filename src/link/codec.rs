@@ -60,7 +60,11 @@ pub struct SkipCounts {
 
 impl SkipCounts {
     pub fn total_frames(&self) -> u64 {
-        self.bad_crc + self.unknown_id + self.unparseable + self.truncated + self.unsupported_flags
+        self.bad_crc
+            + self.unknown_id
+            + self.unparseable
+            + self.truncated
+            + self.unsupported_flags
             + self.bad_signature
     }
 }
@@ -81,7 +85,7 @@ enum Scan {
     /// Drop this many bytes (counted already) and rescan.
     Skip(usize),
     /// A frame of this many bytes.
-    Frame(Frame, usize),
+    Frame(Box<Frame>, usize),
 }
 
 impl Decoder {
@@ -148,7 +152,7 @@ impl Decoder {
                 Scan::Skip(n) => self.pos += n,
                 Scan::Frame(f, n) => {
                     self.pos += n;
-                    return Some(f);
+                    return Some(*f);
                 }
             }
         }
@@ -180,7 +184,7 @@ impl Decoder {
             let header = MavHeader { system_id: b[3] as u32, component_id: b[4], sequence: b[2] };
             return match MavMessage::parse(MavlinkVersion::V1, id, &b[6..6 + len]) {
                 Ok(message) => Scan::Frame(
-                    Frame { version: MavlinkVersion::V1, header, message, auth: Auth::Unsigned },
+                    Box::new(Frame { version: MavlinkVersion::V1, header, message, auth: Auth::Unsigned }),
                     n,
                 ),
                 Err(_) => {
@@ -233,7 +237,9 @@ impl Decoder {
         };
         let header = MavHeader { system_id: b[5] as u32, component_id: b[6], sequence: b[4] };
         match MavMessage::parse(MavlinkVersion::V2, id, &b[10..10 + len]) {
-            Ok(message) => Scan::Frame(Frame { version: MavlinkVersion::V2, header, message, auth }, n),
+            Ok(message) => {
+                Scan::Frame(Box::new(Frame { version: MavlinkVersion::V2, header, message, auth }), n)
+            }
             Err(_) => {
                 self.skipped.unparseable += 1;
                 Scan::Skip(n)
@@ -295,7 +301,9 @@ pub fn encode_v1(header: MavHeader, message: &MavMessage) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mavlink::dialects::common::{MavAutopilot, MavModeFlag, MavState, MavType, HEARTBEAT_DATA, PARAM_VALUE_DATA};
+    use mavlink::dialects::common::{
+        MavAutopilot, MavModeFlag, MavState, MavType, HEARTBEAT_DATA, PARAM_VALUE_DATA,
+    };
     use proptest::prelude::*;
 
     fn heartbeat(mode: u32) -> MavMessage {

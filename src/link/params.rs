@@ -222,7 +222,10 @@ impl ParamStore {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return (store, notes),
             Err(e) => {
-                notes.push(format!("{}: cannot read tuned parameters ({e}); using the configuration", path.display()));
+                notes.push(format!(
+                    "{}: cannot read tuned parameters ({e}); using the configuration",
+                    path.display()
+                ));
                 return (store, notes);
             }
         };
@@ -235,8 +238,12 @@ impl ParamStore {
         };
         for (name, x) in map {
             let w = match find(&name) {
-                Some((_, d)) if d.kind == Float => Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 },
-                Some(_) => Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 },
+                Some((_, d)) if d.kind == Float => {
+                    Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 }
+                }
+                Some(_) => {
+                    Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 }
+                }
                 None => {
                     notes.push(format!("{}: {name} is no longer a parameter; dropped", path.display()));
                     continue;
@@ -276,7 +283,12 @@ mod tests {
         let s = Settings::default();
         let mut seen = std::collections::HashSet::new();
         for d in PARAMS {
-            assert!(d.name.len() <= 16 && d.name.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_'), "{}", d.name);
+            assert!(
+                d.name.len() <= 16
+                    && d.name.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_'),
+                "{}",
+                d.name
+            );
             assert!(seen.insert(d.name), "duplicate {}", d.name);
             assert!(settings::all_keys().contains(&d.key.to_string()), "{} -> {}", d.name, d.key);
             value_of(&s, d); // panics on a kind mismatch
@@ -314,7 +326,8 @@ mod tests {
         assert_eq!(s3.daemon.pipeline, settings::PipelineKind::Indoor);
         assert!(set(&s, "LOC_PIPELINE", int(7)).unwrap_err().to_string().contains("0=none"));
         // A C-cast integer (ArduPilot style) is read too.
-        let (s4, _) = set(&s, "AREA_BAND_PX", Wire { value: 80.0, ty: MavParamType::MAV_PARAM_TYPE_INT32 }).unwrap();
+        let (s4, _) =
+            set(&s, "AREA_BAND_PX", Wire { value: 80.0, ty: MavParamType::MAV_PARAM_TYPE_INT32 }).unwrap();
         assert_eq!(s4.area.band_px, 80);
         assert!(set(&s, "AREA_BAND_PX", real(80.5)).is_err());
         assert!(set(&s, "IND_LAND_EN", int(2)).is_err());
@@ -327,7 +340,8 @@ mod tests {
         let mut s = Settings::default();
         let (mut store, _) = ParamStore::open(&path, &mut s);
         store.record("AREA_BAND_PX", 77.0).unwrap();
-        let mut text: BTreeMap<String, f64> = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        let mut text: BTreeMap<String, f64> =
+            serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
         text.insert("GONE_PARAM".into(), 1.0);
         text.insert("AREA_RATIO".into(), 9.0); // out of range
         std::fs::write(&path, serde_json::to_string(&text).unwrap()).unwrap();

@@ -29,7 +29,7 @@ pub struct Outgoing {
 /// What the link tells the daemon.
 #[derive(Debug)]
 pub enum LinkEvent {
-    Frame(Frame),
+    Frame(Box<Frame>),
     /// The transport is open (for `udpin`: bound; answers go to whoever spoke last).
     Up(String),
     /// The transport closed or failed; the link is retrying.
@@ -88,7 +88,7 @@ impl Session {
     async fn drain(&mut self) -> bool {
         while let Some(f) = self.decoder.next_frame(self.signer.as_mut()) {
             self.stats.frames_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if self.events.send(LinkEvent::Frame(f)).await.is_err() {
+            if self.events.send(LinkEvent::Frame(Box::new(f))).await.is_err() {
                 return false;
             }
         }
@@ -99,7 +99,7 @@ impl Session {
     async fn drain_datagram(&mut self) -> bool {
         while let Some(f) = self.decoder.next_in_datagram(self.signer.as_mut()) {
             self.stats.frames_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if self.events.send(LinkEvent::Frame(f)).await.is_err() {
+            if self.events.send(LinkEvent::Frame(Box::new(f))).await.is_err() {
                 return false;
             }
         }
@@ -116,7 +116,10 @@ async fn open(address: &LinkAddress, listener: &mut Option<TcpListener>) -> std:
     match address {
         LinkAddress::UdpIn { host, port } => {
             let socket = UdpSocket::bind((host.as_str(), *port)).await?;
-            Ok((Conn::Udp { socket, peer: None, follow_sender: true }, format!("listening on udp {host}:{port}")))
+            Ok((
+                Conn::Udp { socket, peer: None, follow_sender: true },
+                format!("listening on udp {host}:{port}"),
+            ))
         }
         LinkAddress::UdpOut { host, port } => {
             let peer = tokio::net::lookup_host((host.as_str(), *port))
@@ -126,7 +129,10 @@ async fn open(address: &LinkAddress, listener: &mut Option<TcpListener>) -> std:
             let local: SocketAddr =
                 if peer.is_ipv4() { "0.0.0.0:0".parse().unwrap() } else { "[::]:0".parse().unwrap() };
             let socket = UdpSocket::bind(local).await?;
-            Ok((Conn::Udp { socket, peer: Some(peer), follow_sender: false }, format!("sending to udp {peer}")))
+            Ok((
+                Conn::Udp { socket, peer: Some(peer), follow_sender: false },
+                format!("sending to udp {peer}"),
+            ))
         }
         LinkAddress::TcpOut { host, port } => {
             let s = TcpStream::connect((host.as_str(), *port)).await?;

@@ -1,0 +1,598 @@
+//! The daemon's MAVLink logic without sockets or tasks: frames and clock ticks in,
+//! messages and pipeline requests out. The async shell ([`super::run`]) only routes.
+//!
+//! Command ids (documented in the README):
+//! * `MAV_CMD_USER_1` (31010), pipeline control: param1 = pipeline (0 the configured one,
+//!   1 area, 2 indoor), param2 = action (0 stop, 1 start, 2 reset).
+//! * `MAV_CMD_USER_2` (31011), result snapshot: writes the current results to the state
+//!   directory; acknowledged `IN_PROGRESS`, then `ACCEPTED` or `FAILED`.
+//! * `MAV_CMD_REQUEST_MESSAGE` (512) for HEARTBEAT (0) and PARAM_VALUE (22, param2 = index).
+
+use mavlink::dialects::common::*;
+
+use crate::align::{AlignParams, Aligner, FixedMount, GimbalOffsets, GimbalSample, VehicleSample};
+use crate::link::codec::{Auth, Frame};
+use crate::link::params::{self, ParamStore, SetError, Wire};
+use crate::link::transport::Outgoing;
+use crate::settings::{PipelineKind, Settings};
+use mavloc_geometry::GimbalAngles;
+
+pub const CMD_PIPELINE: u32 = 31010;
+pub const CMD_SNAPSHOT: u32 = 31011;
+
+/// Streams requested from the autopilot: (message id, name, interval in microseconds).
+pub const STREAMS: &[(u32, &str, i32)] = &[
+    (30, "ATTITUDE", 20_000),
+    (32, "LOCAL_POSITION_NED", 20_000),
+    (33, "GLOBAL_POSITION_INT", 100_000),
+    (242, "HOME_POSITION", 1_000_000),
+    (285, "GIMBAL_DEVICE_ATTITUDE_STATUS", 20_000),
+    (2, "SYSTEM_TIME", 1_000_000),
+];
+const STREAM_RETRIES: u32 = 5;
+
+/// Something the shell must do besides sending messages.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Action {
+    /// Start (or restart with) this pipeline.
+    StartPipeline(PipelineKind),
+    StopPipeline,
+    ResetPipeline,
+    /// Write results now; answer the command when done.
+    Snapshot {
+        requester: (u8, u8),
+    },
+    /// Settings changed over MAVLink; hand them to the running pipeline.
+    Apply(Box<Settings>),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum StreamState {
+    Pending { tries: u32, next_s: u64 },
+    Accepted,
+    Refused,
+}
+
+/// Pipeline state as the daemon sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PipelineState {
+    Stopped,
+    Running(PipelineKind),
+    Failed(PipelineKind),
+}
+
+/// Counters reported to the ground and in `status.json`.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Counters {
+    pub frames_processed: u64,
+    pub frames_dropped: u64,
+    pub pipeline_panics: u64,
+    pub commands_refused: u64,
+    pub params_refused: u64,
+    pub autopilot_reboots: u64,
+}
+
+pub struct Core {
+    pub settings: Settings,
+    store: ParamStore,
+    system_id: u8,
+    component_id: u8,
+    signing: bool,
+    /// Local time (s) of the autopilot's last heartbeat.
+    autopilot_seen: Option<f64>,
+    autopilot_found: bool,
+    streams: Vec<StreamState>,
+    pub aligner: Aligner,
+    latest_attitude: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
+    pub home: Option<HOME_POSITION_DATA>,
+    pub global: Option<GLOBAL_POSITION_INT_DATA>,
+    /// Our TIMESYNC requests in flight: ts1 (ns) -> local send time.
+    timesync_sent: Vec<(i64, f64)>,
+    pub pipeline: PipelineState,
+    pub camera_live: bool,
+    pub counters: Counters,
+    pub out: Vec<Outgoing>,
+    pub actions: Vec<Action>,
+    statustext_id: u16,
+    landed_state: Option<MavLandedState>,
+    pub armed: bool,
+}
+
+fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
+    let g = &s.gimbal;
+    (
+        AlignParams { use_gimbal: g.use_telemetry, ..AlignParams::default() },
+        FixedMount {
+            chain: g.chain,
+            angles: GimbalAngles::from_degrees(g.mount_yaw_deg, g.mount_pitch_deg, g.mount_roll_deg),
+        },
+        GimbalOffsets {
+            chain: g.chain,
+            yaw: g.yaw_offset_deg.to_radians(),
+            pitch: g.pitch_offset_deg.to_radians(),
+            roll: g.roll_offset_deg.to_radians(),
+        },
+    )
+}
+
+impl Core {
+    pub fn new(settings: Settings, store: ParamStore, signing: bool) -> Core {
+        let (ap, mount, offsets) = align_params(&settings);
+        let m = &settings.mavlink;
+        let system_id = if m.system_id == 0 { m.autopilot_system_id } else { m.system_id };
+        Core {
+            component_id: m.component_id,
+            system_id,
+            settings,
+            store,
+            signing,
+            autopilot_seen: None,
+            autopilot_found: false,
+            streams: vec![StreamState::Pending { tries: 0, next_s: 0 }; STREAMS.len()],
+            aligner: Aligner::new(ap, mount, offsets),
+            latest_attitude: None,
+            home: None,
+            global: None,
+            timesync_sent: Vec::new(),
+            pipeline: PipelineState::Stopped,
+            camera_live: false,
+            counters: Counters::default(),
+            out: Vec::new(),
+            actions: Vec::new(),
+            statustext_id: 0,
+            landed_state: None,
+            armed: false,
+        }
+    }
+
+    pub fn system_id(&self) -> u8 {
+        self.system_id
+    }
+
+    pub fn autopilot_found(&self) -> bool {
+        self.autopilot_found
+    }
+
+    fn send(&mut self, message: MavMessage) {
+        self.out.push(Outgoing { system_id: self.system_id, component_id: self.component_id, message });
+    }
+
+    /// A STATUSTEXT (and the same line in the log). Long texts are chunked as the
+    /// protocol allows (50 characters per chunk, shared id).
+    pub fn status(&mut self, severity: MavSeverity, text: &str) {
+        match severity {
+            MavSeverity::MAV_SEVERITY_EMERGENCY
+            | MavSeverity::MAV_SEVERITY_ALERT
+            | MavSeverity::MAV_SEVERITY_CRITICAL
+            | MavSeverity::MAV_SEVERITY_ERROR => tracing::error!("{text}"),
+            MavSeverity::MAV_SEVERITY_WARNING => tracing::warn!("{text}"),
+            _ => tracing::info!("{text}"),
+        }
+        let line = format!("mavloc: {text}");
+        let bytes = line.as_bytes();
+        let chunks: Vec<&[u8]> = bytes.chunks(50).collect();
+        let id = if chunks.len() > 1 {
+            self.statustext_id = self.statustext_id.wrapping_add(1).max(1);
+            self.statustext_id
+        } else {
+            0
+        };
+        for (i, c) in chunks.iter().enumerate() {
+            let mut text = [0u8; 50];
+            text[..c.len()].copy_from_slice(c);
+            self.send(MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+                severity,
+                text: text.into(),
+                id,
+                chunk_seq: i as u8,
+            }));
+        }
+    }
+
+    /// MAV_STATE reflecting reality: ACTIVE only while a pipeline runs with frames and
+    /// telemetry; STANDBY while idle or waiting; CRITICAL when the pipeline failed.
+    pub fn mav_state(&self, now: f64) -> MavState {
+        match self.pipeline {
+            PipelineState::Failed(_) => MavState::MAV_STATE_CRITICAL,
+            PipelineState::Running(_)
+                if self.autopilot_found && self.camera_live && self.aligner.clock.offset().0.is_some() =>
+            {
+                let _ = now;
+                MavState::MAV_STATE_ACTIVE
+            }
+            _ => MavState::MAV_STATE_STANDBY,
+        }
+    }
+
+    pub fn heartbeat(&mut self, now: f64) {
+        let state = self.mav_state(now);
+        self.send(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+            base_mode: MavModeFlag::empty(),
+            system_status: state,
+            mavlink_version: 3,
+        }));
+    }
+
+    /// Called about ten times a second: autopilot timeout, stream requests, timesync.
+    pub fn tick(&mut self, now: f64) {
+        let timeout = self.settings.mavlink.autopilot_timeout_s;
+        if self.autopilot_found && matches!(self.autopilot_seen, Some(t) if now - t > timeout) {
+            self.autopilot_found = false;
+            self.status(
+                MavSeverity::MAV_SEVERITY_WARNING,
+                &format!("autopilot lost (no heartbeat for {timeout} s)"),
+            );
+        }
+        if !self.autopilot_found {
+            return;
+        }
+        let target = self.settings.mavlink.autopilot_system_id;
+        let now_whole = (now * 10.0) as u64;
+        for (i, &(id, name, interval)) in STREAMS.iter().enumerate() {
+            if let StreamState::Pending { tries, next_s } = self.streams[i] {
+                if now_whole < next_s {
+                    continue;
+                }
+                if tries >= STREAM_RETRIES {
+                    self.streams[i] = StreamState::Refused;
+                    self.status(
+                        MavSeverity::MAV_SEVERITY_WARNING,
+                        &format!("autopilot did not acknowledge the {name} stream request"),
+                    );
+                    continue;
+                }
+                self.send(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                    param1: id as f32,
+                    param2: interval as f32,
+                    param3: 0.0,
+                    param4: 0.0,
+                    param5: 0.0,
+                    param6: 0.0,
+                    param7: 0.0,
+                    command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                    target_system: target,
+                    target_component: 1,
+                    confirmation: tries.min(255) as u8,
+                }));
+                // One request in flight at a time: PX4 acknowledges by command id only.
+                self.streams[i] = StreamState::Pending { tries: tries + 1, next_s: now_whole + 10 };
+                break;
+            }
+        }
+        // TIMESYNC once a second.
+        if self.timesync_sent.last().is_none_or(|&(_, t)| now - t >= 1.0) {
+            let ts1 = (now * 1e9) as i64;
+            self.timesync_sent.push((ts1, now));
+            if self.timesync_sent.len() > 8 {
+                self.timesync_sent.remove(0);
+            }
+            self.send(MavMessage::TIMESYNC(TIMESYNC_DATA {
+                tc1: 0,
+                ts1,
+                target_system: target,
+                target_component: 1,
+            }));
+        }
+    }
+
+    fn is_autopilot(&self, f: &Frame) -> bool {
+        f.header.system_id == self.settings.mavlink.autopilot_system_id as u32 && f.header.component_id == 1
+    }
+
+    fn is_autopilot_system(&self, f: &Frame) -> bool {
+        f.header.system_id == self.settings.mavlink.autopilot_system_id as u32
+    }
+
+    /// Commands and parameter sets: only from the ground station or the autopilot, and
+    /// only signed when signing is on. Returns the reason for a refusal.
+    fn trusted(&self, f: &Frame) -> Result<(), String> {
+        let m = &self.settings.mavlink;
+        let sys = f.header.system_id;
+        if sys != m.gcs_system_id as u32 && sys != m.autopilot_system_id as u32 {
+            return Err(format!("system {sys} is neither the ground station nor the autopilot"));
+        }
+        if self.signing && f.auth != Auth::Signed {
+            return Err("unsigned, and signing is required".into());
+        }
+        Ok(())
+    }
+
+    fn for_us(&self, target_system: u8, target_component: u8, allow_broadcast: bool) -> bool {
+        (target_system == self.system_id || (allow_broadcast && target_system == 0))
+            && (target_component == self.component_id || (allow_broadcast && target_component == 0))
+    }
+
+    /// Handles one frame from the link. `now` is local monotonic seconds.
+    pub fn handle(&mut self, f: Frame, now: f64) {
+        // Our own messages echoed back by a router or PX4's forwarding.
+        if f.header.system_id == self.system_id as u32 && f.header.component_id == self.component_id {
+            return;
+        }
+        if self.signing && f.auth != Auth::Signed && !self.settings.mavlink.accept_unsigned_telemetry {
+            return;
+        }
+        match &f.message {
+            MavMessage::HEARTBEAT(h)
+                if self.is_autopilot(&f) && h.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID =>
+            {
+                self.autopilot_seen = Some(now);
+                self.armed = h.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+                if !self.autopilot_found {
+                    self.autopilot_found = true;
+                    if self.settings.mavlink.system_id == 0 {
+                        self.system_id = f.header.system_id as u8;
+                    }
+                    self.streams = vec![StreamState::Pending { tries: 0, next_s: 0 }; STREAMS.len()];
+                    let text = format!(
+                        "autopilot found: system {} ({:?}, MAVLink {:?})",
+                        f.header.system_id, h.autopilot, f.version
+                    );
+                    self.status(MavSeverity::MAV_SEVERITY_INFO, &text);
+                }
+            }
+            MavMessage::COMMAND_ACK(a)
+                if self.is_autopilot(&f) && a.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL =>
+            {
+                // PX4 acknowledges by command id: the ack is for the request in flight.
+                let in_flight =
+                    |s: &StreamState| matches!(s, StreamState::Pending { tries, .. } if *tries > 0);
+                if let Some(i) = self.streams.iter().position(in_flight) {
+                    self.streams[i] = match a.result {
+                        MavResult::MAV_RESULT_ACCEPTED => StreamState::Accepted,
+                        MavResult::MAV_RESULT_IN_PROGRESS => self.streams[i],
+                        other => {
+                            let name = STREAMS[i].1;
+                            tracing::warn!("autopilot refused the {name} stream: {other:?}");
+                            StreamState::Refused
+                        }
+                    };
+                }
+            }
+            MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
+                if t.tc1 == 0 {
+                    // The autopilot syncing to us: answer with our time.
+                    self.send(MavMessage::TIMESYNC(TIMESYNC_DATA {
+                        tc1: (now * 1e9) as i64,
+                        ts1: t.ts1,
+                        target_system: f.header.system_id as u8,
+                        target_component: f.header.component_id,
+                    }));
+                } else if let Some(i) = self.timesync_sent.iter().position(|&(ts1, _)| ts1 == t.ts1) {
+                    let (_, sent) = self.timesync_sent.remove(i);
+                    self.aligner.clock.observe_timesync(sent, now, t.tc1 as f64 * 1e-9);
+                }
+            }
+            MavMessage::ATTITUDE(a) if self.is_autopilot(&f) => {
+                let stamp = a.time_boot_ms as f64 * 1e-3;
+                self.observe_stamp(stamp, now);
+                let q =
+                    nalgebra::UnitQuaternion::from_euler_angles(a.roll as f64, a.pitch as f64, a.yaw as f64);
+                self.latest_attitude = Some((stamp, q));
+            }
+            MavMessage::LOCAL_POSITION_NED(p) if self.is_autopilot(&f) => {
+                let stamp = p.time_boot_ms as f64 * 1e-3;
+                self.observe_stamp(stamp, now);
+                // Position and attitude come at the same rate from the same estimator;
+                // pair the position with the latest attitude.
+                if let Some((_, q)) = self.latest_attitude {
+                    self.aligner.push_vehicle(
+                        stamp,
+                        VehicleSample {
+                            position: nalgebra::Vector3::new(p.x as f64, p.y as f64, p.z as f64),
+                            velocity: nalgebra::Vector3::new(p.vx as f64, p.vy as f64, p.vz as f64),
+                            attitude: q,
+                        },
+                    );
+                }
+            }
+            MavMessage::GLOBAL_POSITION_INT(g) if self.is_autopilot(&f) => {
+                self.observe_stamp(g.time_boot_ms as f64 * 1e-3, now);
+                self.global = Some(g.clone());
+            }
+            MavMessage::HOME_POSITION(h) if self.is_autopilot(&f) => self.home = Some(h.clone()),
+            MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
+                self.landed_state = Some(e.landed_state)
+            }
+            MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g) if self.is_autopilot_system(&f) => {
+                if let Some(s) = GimbalSample::from_status(g.q, g.flags.bits()) {
+                    self.aligner.push_gimbal(g.time_boot_ms as f64 * 1e-3, s, now);
+                }
+            }
+            MavMessage::PARAM_REQUEST_LIST(r) if self.for_us(r.target_system, r.target_component, true) => {
+                for i in 0..params::PARAMS.len() {
+                    self.send_param(i);
+                }
+            }
+            MavMessage::PARAM_REQUEST_READ(r) if self.for_us(r.target_system, r.target_component, false) => {
+                let i = if r.param_index >= 0 {
+                    Some(r.param_index as usize).filter(|&i| i < params::PARAMS.len())
+                } else {
+                    r.param_id
+                        .to_str()
+                        .ok()
+                        .and_then(|n| params::find(n.trim_end_matches('\0')))
+                        .map(|(i, _)| i)
+                };
+                match i {
+                    Some(i) => self.send_param(i),
+                    None => {
+                        let id = r.param_id.to_str().unwrap_or("?").trim_end_matches('\0').to_string();
+                        self.status(
+                            MavSeverity::MAV_SEVERITY_WARNING,
+                            &format!("no parameter {id} (index {})", r.param_index),
+                        );
+                    }
+                }
+            }
+            MavMessage::PARAM_SET(p) if self.for_us(p.target_system, p.target_component, false) => {
+                let name = p.param_id.to_str().unwrap_or("").trim_end_matches('\0').to_string();
+                self.param_set(&f, &name, Wire { value: p.param_value, ty: p.param_type });
+            }
+            MavMessage::COMMAND_LONG(c) if self.for_us(c.target_system, c.target_component, true) => {
+                let broadcast = c.target_component == 0 || c.target_system == 0;
+                self.command(&f, c.clone(), broadcast);
+            }
+            _ => {}
+        }
+    }
+
+    fn observe_stamp(&mut self, stamp: f64, now: f64) {
+        if self.aligner.clock.observe_stamp(stamp, now) {
+            self.counters.autopilot_reboots += 1;
+            self.aligner.reset();
+            self.streams = vec![StreamState::Pending { tries: 0, next_s: 0 }; STREAMS.len()];
+            self.status(MavSeverity::MAV_SEVERITY_WARNING, "autopilot rebooted; re-requesting its streams");
+            // reset() cleared the clock; keep this stamp.
+            self.aligner.clock.observe_stamp(stamp, now);
+        }
+    }
+
+    fn send_param(&mut self, i: usize) {
+        let def = &params::PARAMS[i];
+        let w = params::encode(&self.settings, def);
+        self.send(MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+            param_value: w.value,
+            param_count: params::PARAMS.len() as u16,
+            param_index: i as u16,
+            param_id: def.name.into(),
+            param_type: w.ty,
+        }));
+    }
+
+    fn param_set(&mut self, f: &Frame, name: &str, w: Wire) {
+        let index = params::find(name).map(|(i, _)| i);
+        if let Err(why) = self.trusted(f) {
+            self.counters.params_refused += 1;
+            self.status(MavSeverity::MAV_SEVERITY_WARNING, &format!("refused PARAM_SET {name}: {why}"));
+            if let Some(i) = index {
+                self.send_param(i);
+            }
+            return;
+        }
+        match params::set(&self.settings, name, w) {
+            Ok((new, value)) => {
+                let pipeline_changed = new.daemon.pipeline != self.settings.daemon.pipeline;
+                self.settings = new;
+                let (ap, mount, offsets) = align_params(&self.settings);
+                self.aligner.set_params(ap, mount, offsets);
+                if let Err(e) = self.store.record(name, value) {
+                    self.status(MavSeverity::MAV_SEVERITY_WARNING, &format!("{name} set but not saved: {e}"));
+                }
+                tracing::info!("parameter {name} = {value} (PARAM_SET from system {})", f.header.system_id);
+                self.actions.push(Action::Apply(Box::new(self.settings.clone())));
+                if pipeline_changed && matches!(self.pipeline, PipelineState::Running(_)) {
+                    match self.settings.daemon.pipeline {
+                        PipelineKind::None => self.actions.push(Action::StopPipeline),
+                        k => self.actions.push(Action::StartPipeline(k)),
+                    }
+                }
+                self.send_param(index.expect("set succeeded, so it exists"));
+            }
+            Err(e) => {
+                self.counters.params_refused += 1;
+                self.status(MavSeverity::MAV_SEVERITY_WARNING, &format!("refused {e}"));
+                if let SetError::Refused { .. } = e {
+                    self.send_param(index.expect("refused, so it exists"));
+                }
+            }
+        }
+    }
+
+    pub fn ack(&mut self, command: MavCmd, result: MavResult, to: (u8, u8)) {
+        self.send(MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+            command,
+            result,
+            progress: 0,
+            result_param2: 0,
+            target_system: to.0,
+            target_component: to.1,
+        }));
+    }
+
+    fn command(&mut self, f: &Frame, c: COMMAND_LONG_DATA, broadcast: bool) {
+        let from = (f.header.system_id as u8, f.header.component_id);
+        let id = c.command as u32;
+        let ours = matches!(id, CMD_PIPELINE | CMD_SNAPSHOT) || c.command == MavCmd::MAV_CMD_REQUEST_MESSAGE;
+        if broadcast && !ours {
+            return; // not ours to answer: other components will.
+        }
+        if let Err(why) = self.trusted(f) {
+            self.counters.commands_refused += 1;
+            tracing::warn!("refused command {id} from {}/{}: {why}", from.0, from.1);
+            self.ack(c.command, MavResult::MAV_RESULT_DENIED, from);
+            return;
+        }
+        match id {
+            CMD_PIPELINE => {
+                let kind = match c.param1 as i32 {
+                    0 => self.settings.daemon.pipeline,
+                    1 => PipelineKind::Area,
+                    2 => PipelineKind::Indoor,
+                    _ => return self.ack(c.command, MavResult::MAV_RESULT_DENIED, from),
+                };
+                match (c.param2 as i32, kind) {
+                    (1, PipelineKind::None) => {
+                        self.status(
+                            MavSeverity::MAV_SEVERITY_WARNING,
+                            "no pipeline configured (LOC_PIPELINE = none)",
+                        );
+                        self.ack(c.command, MavResult::MAV_RESULT_DENIED, from);
+                    }
+                    (1, k) => {
+                        if let Err(why) = self.can_start(k) {
+                            self.status(
+                                MavSeverity::MAV_SEVERITY_WARNING,
+                                &format!("cannot start {k:?}: {why}"),
+                            );
+                            return self.ack(c.command, MavResult::MAV_RESULT_DENIED, from);
+                        }
+                        self.actions.push(Action::StartPipeline(k));
+                        self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
+                    }
+                    (0, _) => {
+                        self.actions.push(Action::StopPipeline);
+                        self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
+                    }
+                    (2, _) if matches!(self.pipeline, PipelineState::Running(_)) => {
+                        self.actions.push(Action::ResetPipeline);
+                        self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
+                    }
+                    (2, _) => self.ack(c.command, MavResult::MAV_RESULT_TEMPORARILY_REJECTED, from),
+                    _ => self.ack(c.command, MavResult::MAV_RESULT_DENIED, from),
+                }
+            }
+            CMD_SNAPSHOT => {
+                self.ack(c.command, MavResult::MAV_RESULT_IN_PROGRESS, from);
+                self.actions.push(Action::Snapshot { requester: from });
+            }
+            _ if c.command == MavCmd::MAV_CMD_REQUEST_MESSAGE => match c.param1 as u32 {
+                0 => {
+                    self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
+                    self.heartbeat(0.0);
+                }
+                22 if (c.param2 as usize) < params::PARAMS.len() => {
+                    self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
+                    self.send_param(c.param2 as usize);
+                }
+                _ => self.ack(c.command, MavResult::MAV_RESULT_UNSUPPORTED, from),
+            },
+            _ => self.ack(c.command, MavResult::MAV_RESULT_UNSUPPORTED, from),
+        }
+    }
+
+    /// Whether a pipeline has what it needs to start.
+    pub fn can_start(&self, k: PipelineKind) -> Result<(), String> {
+        match k {
+            PipelineKind::Indoor if self.settings.indoor.model.is_empty() => {
+                Err("indoor.model is not set (train one with `mavloc indoor train`)".into())
+            }
+            PipelineKind::Indoor if !std::path::Path::new(&self.settings.indoor.model).exists() => {
+                Err(format!("model {} does not exist", self.settings.indoor.model))
+            }
+            _ => Ok(()),
+        }
+    }
+}

@@ -1,0 +1,296 @@
+//! The pipeline worker: one blocking thread that owns the running pipeline, so the async
+//! side (link, timers) never waits on image processing.
+//!
+//! Frames come through a one-slot mailbox: a new frame replaces one the worker has not
+//! taken yet (counted as dropped), because a late pose estimate is worth less than the
+//! next one. A pipeline that panics on a frame is reported, rebuilt from its factory,
+//! and the worker goes on with the next frame: one bad frame must not stop the daemon.
+
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex};
+
+use crate::align::AlignedPose;
+use crate::settings::Settings;
+
+/// A frame with its capture time (local monotonic seconds) and aligned pose.
+pub struct LiveFrame {
+    pub index: u64,
+    pub capture_s: f64,
+    pub pose: AlignedPose,
+    /// BGR 8-bit image.
+    pub image: opencv::core::Mat,
+    /// Target mask (255 inside), when the source provides one.
+    pub mask: Option<opencv::core::Mat>,
+}
+
+/// What a pipeline reports after a frame, for the daemon to publish.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Report {
+    /// Live counters, sent as NAMED_VALUE_FLOAT (names at most 10 characters).
+    pub counters: Vec<(&'static str, f32)>,
+    /// Newly converged area landmarks: local NED positions.
+    pub new_landmarks: Vec<[f64; 3]>,
+    /// The indoor estimate: x, y (local NED north, east), their covariance, time.
+    pub position: Option<PositionEstimate>,
+    /// Human-readable events (STATUSTEXT).
+    pub events: Vec<String>,
+    /// The landing trigger fired on this frame.
+    pub landing_requested: bool,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PositionEstimate {
+    pub autopilot_time: f64,
+    pub north: f64,
+    pub east: f64,
+    pub down: f64,
+    /// Covariance of (north, east), m^2.
+    pub cov: [[f64; 2]; 2],
+}
+
+/// A live pipeline: plain synchronous code, no tokio, no MAVLink.
+pub trait LivePipeline: Send {
+    fn process(&mut self, frame: &LiveFrame) -> Report;
+    /// Applies tuned parameters without a restart.
+    fn apply(&mut self, settings: &Settings);
+    /// Writes the complete current results into `dir` (atomically per file); returns
+    /// the files written.
+    fn write_results(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>>;
+}
+
+/// Builds a fresh pipeline (at start, reset, and after a panic).
+pub type Factory = Box<dyn Fn(&Settings) -> Result<Box<dyn LivePipeline>, String> + Send>;
+
+/// Requests to the worker.
+pub enum Request {
+    Apply(Box<Settings>),
+    Reset,
+    Snapshot(std::sync::mpsc::Sender<Result<Vec<PathBuf>, String>>),
+    Stop,
+}
+
+/// What the worker tells the daemon.
+#[derive(Debug)]
+pub enum Event {
+    Report { frame: u64, report: Report },
+    Panicked { frame: u64, message: String },
+    Failed(String),
+    Stopped { files: Vec<PathBuf> },
+}
+
+#[derive(Default)]
+struct Mailbox {
+    frame: Option<LiveFrame>,
+    requests: Vec<Request>,
+}
+
+/// The daemon's handle on a running worker.
+pub struct Worker {
+    shared: Arc<(Mutex<Mailbox>, Condvar)>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    pub dropped: Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl Worker {
+    /// Starts a worker; `events` receives reports (the daemon's side is async, so the
+    /// worker only ever does non-blocking sends).
+    pub fn start(
+        factory: Factory,
+        settings: Settings,
+        results_dir: PathBuf,
+        events: tokio::sync::mpsc::UnboundedSender<Event>,
+    ) -> Worker {
+        let shared = Arc::new((Mutex::new(Mailbox::default()), Condvar::new()));
+        let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let s2 = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name("mavloc-pipeline".into())
+            .spawn(move || run(factory, settings, results_dir, s2, events))
+            .expect("spawn pipeline thread");
+        Worker { shared, thread: Some(thread), dropped }
+    }
+
+    /// Offers a frame; replaces (and counts) one not yet taken.
+    pub fn offer(&self, frame: LiveFrame) {
+        let (m, cv) = &*self.shared;
+        let mut mb = m.lock().expect("mailbox");
+        if mb.frame.replace(frame).is_some() {
+            self.dropped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        cv.notify_one();
+    }
+
+    pub fn request(&self, r: Request) {
+        let (m, cv) = &*self.shared;
+        m.lock().expect("mailbox").requests.push(r);
+        cv.notify_one();
+    }
+
+    /// Stops the worker after its current frame and waits for it to write its results.
+    pub fn stop(mut self) {
+        self.request(Request::Stop);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            self.request(Request::Stop);
+        }
+    }
+}
+
+fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| p.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into())
+}
+
+fn run(
+    factory: Factory,
+    mut settings: Settings,
+    dir: PathBuf,
+    shared: Arc<(Mutex<Mailbox>, Condvar)>,
+    events: tokio::sync::mpsc::UnboundedSender<Event>,
+) {
+    let build = |s: &Settings| match catch_unwind(AssertUnwindSafe(|| factory(s))) {
+        Ok(r) => r,
+        Err(p) => Err(format!("pipeline construction panicked: {}", panic_message(&*p))),
+    };
+    let mut pipeline = match build(&settings) {
+        Ok(p) => p,
+        Err(e) => {
+            let _ = events.send(Event::Failed(e));
+            return;
+        }
+    };
+    let (m, cv) = &*shared;
+    loop {
+        let (frame, requests) = {
+            let mut mb = m.lock().expect("mailbox");
+            while mb.frame.is_none() && mb.requests.is_empty() {
+                mb = cv.wait(mb).expect("mailbox");
+            }
+            (mb.frame.take(), std::mem::take(&mut mb.requests))
+        };
+        for r in requests {
+            match r {
+                Request::Apply(s) => {
+                    settings = *s;
+                    pipeline.apply(&settings);
+                }
+                Request::Reset => match build(&settings) {
+                    Ok(p) => pipeline = p,
+                    Err(e) => {
+                        let _ = events.send(Event::Failed(e));
+                        return;
+                    }
+                },
+                Request::Snapshot(reply) => {
+                    let _ = reply.send(pipeline.write_results(&dir).map_err(|e| e.to_string()));
+                }
+                Request::Stop => {
+                    let files = pipeline.write_results(&dir).unwrap_or_else(|e| {
+                        tracing::error!("cannot write results to {}: {e}", dir.display());
+                        Vec::new()
+                    });
+                    let _ = events.send(Event::Stopped { files });
+                    return;
+                }
+            }
+        }
+        if let Some(f) = frame {
+            match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
+                Ok(report) => {
+                    let _ = events.send(Event::Report { frame: f.index, report });
+                }
+                Err(p) => {
+                    let message = panic_message(&*p);
+                    let _ = events.send(Event::Panicked { frame: f.index, message });
+                    // The pipeline's state may be half-updated: rebuild it. Results
+                    // written so far stay on disk.
+                    match build(&settings) {
+                        Ok(p) => pipeline = p,
+                        Err(e) => {
+                            let _ = events.send(Event::Failed(e));
+                            return;
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::align::{AlignedPose, VehicleSample};
+    use mavloc_geometry::{CameraPose, Rot3, Vec3};
+
+    /// Counts frames; panics on frame 3.
+    struct Fragile {
+        seen: u64,
+    }
+
+    impl LivePipeline for Fragile {
+        fn process(&mut self, f: &LiveFrame) -> Report {
+            if f.index == 3 {
+                panic!("bad frame");
+            }
+            self.seen += 1;
+            Report { counters: vec![("SEEN", self.seen as f32)], ..Report::default() }
+        }
+        fn apply(&mut self, _: &Settings) {}
+        fn write_results(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+            let p = dir.join("seen.txt");
+            crate::output::write_atomic(&p, self.seen.to_string().as_bytes())?;
+            Ok(vec![p])
+        }
+    }
+
+    fn frame(index: u64) -> LiveFrame {
+        LiveFrame {
+            index,
+            capture_s: index as f64,
+            pose: AlignedPose {
+                autopilot_time: 0.0,
+                vehicle: VehicleSample {
+                    position: Vec3::zeros(),
+                    velocity: Vec3::zeros(),
+                    attitude: nalgebra::UnitQuaternion::identity(),
+                },
+                camera: CameraPose { position: Vec3::zeros(), attitude: Rot3::identity() },
+                from_gimbal: false,
+            },
+            image: opencv::core::Mat::default(),
+            mask: None,
+        }
+    }
+
+    #[test]
+    fn a_panicking_frame_restarts_the_pipeline_not_the_worker() {
+        let dir = tempfile::tempdir().unwrap();
+        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+        let factory: Factory = Box::new(|_| Ok(Box::new(Fragile { seen: 0 }) as Box<dyn LivePipeline>));
+        let w = Worker::start(factory, Settings::default(), dir.path().to_path_buf(), tx);
+        let mut events = Vec::new();
+        for i in 0..6 {
+            w.offer(frame(i));
+            // Wait for this frame's event so none is replaced in the mailbox.
+            events.push(rx.blocking_recv().unwrap());
+        }
+        w.stop();
+        events.push(rx.blocking_recv().unwrap());
+        assert!(matches!(&events[3], Event::Panicked { frame: 3, message } if message == "bad frame"));
+        // After the restart the count starts again: frames 4 and 5.
+        assert!(matches!(&events[5], Event::Report { frame: 5, report } if report.counters[0].1 == 2.0));
+        assert!(matches!(&events[6], Event::Stopped { files } if files.len() == 1));
+        assert_eq!(std::fs::read_to_string(dir.path().join("seen.txt")).unwrap(), "2");
+    }
+}

@@ -1,0 +1,293 @@
+#!/usr/bin/env python3
+"""End-to-end tests of `mavloc run` from an independent MAVLink implementation (pymavlink),
+over UDP loopback only. Usage: daemon.py MAVLOC_BINARY [TEST ...]. Each test starts its own
+daemon, bounds every wait, and stops the daemon itself; exit status 0 means all passed."""
+
+import os
+import json
+import random
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v10 import common as v1  # noqa: E402
+from pymavlink.dialects.v20 import common as mav2  # noqa: E402
+
+BIN = sys.argv[1]
+GCS = (255, 190)
+MAVLOC_COMP = 191
+USER_1, USER_2 = 31010, 31011
+
+
+def free_port():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+class Daemon:
+    def __init__(self, extra_config=""):
+        self.dir = tempfile.mkdtemp(prefix="mavloc-e2e-")
+        self.port = free_port()
+        self.state = os.path.join(self.dir, "state")
+        cfg = os.path.join(self.dir, "mavloc.toml")
+        with open(cfg, "w") as f:
+            f.write(f"""
+[daemon]
+state_dir = "{self.state}"
+pipeline = "area"
+[mavlink]
+connection = "udpin:127.0.0.1:{self.port}"
+{extra_config}
+""")
+        self.log = open(os.path.join(self.dir, "mavloc.log"), "w")
+        env = dict(os.environ, RUST_LOG="mavloc=info")
+        self.proc = subprocess.Popen([BIN, "--config", cfg, "run"], stdout=self.log, stderr=subprocess.STDOUT, env=env)
+
+    def connect(self):
+        c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.port}", source_system=GCS[0],
+                                       source_component=GCS[1], dialect="common")
+        return c
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                return self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+                raise AssertionError("mavloc did not exit within 5 s of SIGTERM")
+        return self.proc.returncode
+
+    def logtext(self):
+        self.log.flush()
+        with open(os.path.join(self.dir, "mavloc.log")) as f:
+            return f.read()
+
+
+BACKLOG = {}
+
+
+def recv(c, types, timeout=5.0, cond=lambda m: True):
+    """First message of the given type from mavloc's component satisfying cond. Messages
+    passed over are kept, so a later call can still find them."""
+    backlog = BACKLOG.setdefault(id(c), [])
+    for i, m in enumerate(backlog):
+        if m.get_type() == types and cond(m):
+            return backlog.pop(i)
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        m = c.recv_match(blocking=True, timeout=0.2)
+        if m is None or m.get_srcComponent() != MAVLOC_COMP:
+            continue
+        if m.get_type() == types and cond(m):
+            return m
+        backlog.append(m)
+        del backlog[:-500]
+    raise AssertionError(f"no {types} from mavloc within {timeout} s")
+
+
+def hello(c, timeout=10.0):
+    """Pokes mavloc until it answers (udpin answers only once it heard us)."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        c.mav.heartbeat_send(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        m = c.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+        if m is not None and m.get_srcComponent() == MAVLOC_COMP:
+            return m
+    raise AssertionError("mavloc never sent a heartbeat")
+
+
+def v1_autopilot_heartbeat():
+    """A MAVLink 1 heartbeat from system 1, component 1, as PX4 sends before switching to v2."""
+    m = v1.MAVLink(None, srcSystem=1, srcComponent=1)
+    msg = m.heartbeat_encode(v1.MAV_TYPE_QUADROTOR, v1.MAV_AUTOPILOT_PX4, 0, 0, v1.MAV_STATE_STANDBY, 3)
+    return msg.pack(m)
+
+
+def param_list(c):
+    c.mav.param_request_list_send(1, 0)
+    got = {}
+    count = None
+    deadline = time.time() + 10
+    while time.time() < deadline and (count is None or len(got) < count):
+        m = c.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.5)
+        if m is None or m.get_srcComponent() != MAVLOC_COMP:
+            continue
+        assert count is None or m.param_count == count, "param_count changed within a list"
+        count = m.param_count
+        assert 0 <= m.param_index < count, f"index {m.param_index} outside 0..{count}"
+        got[m.param_index] = m
+    assert count and len(got) == count, f"got {len(got)} of {count} parameters"
+    names = [got[i].param_id for i in range(count)]
+    assert len(set(names)) == count, "duplicate parameter names"
+    assert all(len(n) <= 16 for n in names)
+    return got
+
+
+def test_link_params_commands_garbage_and_peer_loss():
+    d = Daemon()
+    try:
+        c = d.connect()
+        hb = hello(c)
+        assert hb.type == mav2.MAV_TYPE_ONBOARD_CONTROLLER, hb.type
+        assert hb.autopilot == mav2.MAV_AUTOPILOT_INVALID
+        assert hb.get_srcSystem() == 1, "adopts the autopilot's system id by default"
+        assert hb.system_status == mav2.MAV_STATE_STANDBY, "no autopilot, no frames: not ACTIVE"
+
+        # A MAVLink 1 autopilot heartbeat is accepted: mavloc then asks for streams.
+        sock = c.port
+        sock.sendto(v1_autopilot_heartbeat(), ("127.0.0.1", d.port))
+        st = recv(c, "STATUSTEXT", cond=lambda m: "autopilot found" in m.text)
+        req = recv(c, "COMMAND_LONG", cond=lambda m: m.command == mav2.MAV_CMD_SET_MESSAGE_INTERVAL)
+        assert req.target_system == 1 and req.target_component == 1
+        assert int(req.param1) in (30, 32, 33, 242, 285, 2)
+
+        params = param_list(c)
+        by_name = {p.param_id: p for p in params.values()}
+        assert "AREA_RATIO" in by_name and "IND_LAND_EN" in by_name
+
+        # A legal set answers the new value; an illegal one the unchanged value and a reason.
+        c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_RATIO", 0.7, mav2.MAV_PARAM_TYPE_REAL32)
+        pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO")
+        assert abs(pv.param_value - 0.7) < 1e-6, pv.param_value
+        c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_RATIO", 5.0, mav2.MAV_PARAM_TYPE_REAL32)
+        pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO")
+        assert abs(pv.param_value - 0.7) < 1e-6, "refused set must answer the unchanged value"
+        st = recv(c, "STATUSTEXT", cond=lambda m: "AREA_RATIO" in m.text)
+        assert st.severity == mav2.MAV_SEVERITY_WARNING
+        with open(os.path.join(d.state, "params.json")) as f:
+            assert abs(json.load(f)["AREA_RATIO"] - 0.7) < 1e-9, "the tuned value is persisted"
+
+        # Commands: stop and start the area pipeline; unknown command; untrusted sender.
+        def command(cmd, p1=0, p2=0, conn=c):
+            conn.mav.command_long_send(1, MAVLOC_COMP, cmd, 0, p1, p2, 0, 0, 0, 0, 0)
+            return recv(conn, "COMMAND_ACK", cond=lambda m: m.command == cmd).result
+        assert command(USER_1, 1, 0) == mav2.MAV_RESULT_ACCEPTED
+        assert command(USER_1, 1, 1) == mav2.MAV_RESULT_ACCEPTED
+        assert command(USER_1, 7, 1) == mav2.MAV_RESULT_DENIED
+        assert command(mav2.MAV_CMD_DO_SET_MODE) == mav2.MAV_RESULT_UNSUPPORTED
+        assert command(USER_2) == mav2.MAV_RESULT_IN_PROGRESS
+        intruder = mavutil.mavlink_connection(f"udpout:127.0.0.1:{d.port}", source_system=77,
+                                              source_component=190, dialect="common")
+        assert command(USER_1, 1, 0, conn=intruder) == mav2.MAV_RESULT_DENIED
+        intruder.close()
+
+        # Garbage: random bytes, corrupted and truncated frames between valid requests.
+        rnd = random.Random(5)
+        good = c.mav.param_request_read_encode(1, MAVLOC_COMP, b"AREA_BAND_PX", -1).pack(c.mav)
+        for i in range(40):
+            junk = bytes(rnd.randrange(256) for _ in range(rnd.randrange(1, 80)))
+            bad = bytearray(good)
+            bad[rnd.randrange(1, len(bad))] ^= 0xFF
+            sock.sendto(junk + bytes(bad) + good[: rnd.randrange(1, len(good))], ("127.0.0.1", d.port))
+        sock.sendto(bytes([0xFD]) + bytes(rnd.randrange(256) for _ in range(300)), ("127.0.0.1", d.port))
+        c.mav.param_request_read_send(1, MAVLOC_COMP, b"AREA_BAND_PX", -1)
+        recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_BAND_PX")
+        time.sleep(1.2)
+        with open(os.path.join(d.state, "status.json")) as f:
+            status = json.load(f)
+        sk = status["skipped"]
+        assert sk["bad_crc"] + sk["truncated"] >= 40, sk
+        assert status["autopilot_found"] is True
+
+        # The peer vanishes for 10 s (its socket closed), then a new one appears.
+        c.close()
+        time.sleep(10)
+        assert d.proc.poll() is None, "mavloc must keep running while its peer is away"
+        c2 = d.connect()
+        hello(c2)
+        c2.mav.param_request_read_send(1, MAVLOC_COMP, b"AREA_RATIO", -1)
+        pv = recv(c2, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO")
+        assert abs(pv.param_value - 0.7) < 1e-6
+        c2.close()
+        assert "autopilot lost" in d.logtext()
+    finally:
+        code = d.stop()
+    assert code == 0, f"exit status {code}"
+
+
+def test_signing():
+    key = bytes(range(32))
+    d0 = tempfile.mkdtemp(prefix="mavloc-key-")
+    keyfile = os.path.join(d0, "key")
+    with open(keyfile, "w") as f:
+        f.write(key.hex() + "\n")
+    os.chmod(keyfile, 0o600)
+    d = Daemon(f'signing_key = "{keyfile}"')
+    try:
+        c = d.connect()
+        c.setup_signing(key, sign_outgoing=False, allow_unsigned_callback=lambda *a: False)
+        # Unsigned traffic from us; mavloc's heartbeats must arrive signed (we refuse others).
+        hb = hello(c)
+        assert hb is not None
+        c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_BAND_PX", 80, mav2.MAV_PARAM_TYPE_REAL32)
+        pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_BAND_PX")
+        recv(c, "STATUSTEXT", cond=lambda m: "unsigned" in m.text)
+        c.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda *a: False)
+        c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_BAND_PX", 80, mav2.MAV_PARAM_TYPE_REAL32)
+        pv2 = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_BAND_PX")
+
+        def as_int(v):
+            import struct
+            return struct.unpack("<i", struct.pack("<f", v))[0]
+        assert as_int(pv.param_value) == 50, "unsigned set must be refused"
+        assert as_int(pv2.param_value) == 80, "signed set must be accepted"
+        # Signed with the wrong key: dropped and counted, the value stays.
+        c.setup_signing(bytes(32), sign_outgoing=True, allow_unsigned_callback=lambda *a: False)
+        c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_BAND_PX", 90, mav2.MAV_PARAM_TYPE_REAL32)
+        time.sleep(1.5)
+        c.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda *a: False)
+        c.mav.param_request_read_send(1, MAVLOC_COMP, b"AREA_BAND_PX", -1)
+        pv3 = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_BAND_PX")
+        assert as_int(pv3.param_value) == 80, "a wrongly signed set must be refused"
+        with open(os.path.join(d.state, "status.json")) as f:
+            assert json.load(f)["skipped"]["bad_signature"] >= 1
+        c.close()
+    finally:
+        code = d.stop()
+    assert code == 0
+    with open(os.path.join(d.state, "signing-timestamp")) as f:
+        assert int(f.read()) > 0
+
+
+def test_sigterm_leaves_complete_results():
+    d = Daemon()
+    c = d.connect()
+    hello(c)
+    time.sleep(1.5)
+    t0 = time.time()
+    d.proc.send_signal(signal.SIGTERM)
+    code = d.proc.wait(timeout=5)
+    took = time.time() - t0
+    assert code == 0, f"exit status {code}"
+    assert took < 2.0, f"took {took:.2f} s to exit"
+    with open(os.path.join(d.state, "status.json")) as f:
+        status = json.load(f)
+    assert status["link"] == "shutting down"
+    assert not [n for n in os.listdir(d.state) if n.endswith(".tmp")], "no temporary files left"
+    c.close()
+
+
+TESTS = {n: f for n, f in globals().items() if n.startswith("test_")}
+
+if __name__ == "__main__":
+    chosen = sys.argv[2:] or list(TESTS)
+    failed = 0
+    for name in chosen:
+        t0 = time.time()
+        try:
+            TESTS[name]()
+            print(f"ok   {name} ({time.time() - t0:.1f} s)", flush=True)
+        except Exception as e:  # report every failure, then fail the run
+            failed += 1
+            print(f"FAIL {name}: {type(e).__name__}: {e}", flush=True)
+    sys.exit(1 if failed else 0)
