@@ -596,3 +596,135 @@ impl Core {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavlink::{MavHeader, MavlinkVersion};
+
+    fn frame(sys: u8, comp: u8, message: MavMessage) -> Frame {
+        Frame {
+            version: MavlinkVersion::V2,
+            header: MavHeader { system_id: sys as u32, component_id: comp, sequence: 0 },
+            message,
+            auth: Auth::Unsigned,
+        }
+    }
+
+    fn px4_heartbeat() -> MavMessage {
+        MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_QUADROTOR,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+            base_mode: MavModeFlag::empty(),
+            system_status: MavState::MAV_STATE_STANDBY,
+            mavlink_version: 3,
+        })
+    }
+
+    fn attitude(ms: u32) -> MavMessage {
+        MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: ms, ..Default::default() })
+    }
+
+    fn interval_requests(c: &Core) -> usize {
+        c.out
+            .iter()
+            .filter(|o| {
+                matches!(&o.message, MavMessage::COMMAND_LONG(l) if l.command == MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL)
+            })
+            .count()
+    }
+
+    fn core() -> Core {
+        Core::new(Settings::default(), ParamStore::in_memory(), false)
+    }
+
+    #[test]
+    fn streams_are_requested_one_at_a_time_and_again_after_a_reboot() {
+        let mut c = core();
+        c.tick(0.0);
+        assert_eq!(interval_requests(&c), 0, "no autopilot, no requests");
+        c.handle(frame(1, 1, px4_heartbeat()), 0.0);
+        assert!(c.autopilot_found());
+        let mut t = 0.0;
+        // Acknowledge each request: all streams get requested exactly once.
+        for _ in 0..STREAMS.len() {
+            c.out.clear();
+            c.tick(t);
+            assert_eq!(interval_requests(&c), 1);
+            let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                result: MavResult::MAV_RESULT_ACCEPTED,
+                ..Default::default()
+            });
+            c.handle(frame(1, 1, ack), t);
+            t += 0.1;
+        }
+        c.out.clear();
+        c.tick(t + 2.0);
+        assert_eq!(interval_requests(&c), 0, "all acknowledged");
+        // The autopilot reboots: its clock jumps back; everything is requested again.
+        c.handle(frame(1, 1, px4_heartbeat()), t);
+        c.handle(frame(1, 1, attitude(600_000)), t);
+        c.handle(frame(1, 1, attitude(1_000)), t + 0.1);
+        assert_eq!(c.counters.autopilot_reboots, 1);
+        c.out.clear();
+        c.tick(t + 0.2);
+        assert_eq!(interval_requests(&c), 1);
+    }
+
+    #[test]
+    fn echoes_and_other_components_commands_are_ignored() {
+        let mut c = core();
+        let cmd = |target_component| {
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_DO_SET_MODE,
+                target_system: 1,
+                target_component,
+                ..Default::default()
+            })
+        };
+        // Our own message echoed back by PX4's forwarding.
+        c.handle(frame(1, 191, px4_heartbeat()), 0.0);
+        assert!(!c.autopilot_found());
+        // A command for the autopilot, and a broadcast command mavloc does not implement.
+        c.handle(frame(255, 190, cmd(1)), 0.0);
+        c.handle(frame(255, 190, cmd(0)), 0.0);
+        assert!(c.out.is_empty(), "{:?}", c.out);
+        // The same command addressed to mavloc: UNSUPPORTED.
+        c.handle(frame(255, 190, cmd(191)), 0.0);
+        assert!(matches!(&c.out[0].message,
+            MavMessage::COMMAND_ACK(a) if a.result == MavResult::MAV_RESULT_UNSUPPORTED && a.target_system == 255));
+    }
+
+    #[test]
+    fn heartbeat_is_active_only_with_autopilot_clock_camera_and_pipeline() {
+        let mut c = core();
+        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_STANDBY);
+        c.pipeline = PipelineState::Running(PipelineKind::Area);
+        c.handle(frame(1, 1, px4_heartbeat()), 0.0);
+        c.handle(frame(1, 1, attitude(5_000)), 0.0);
+        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_STANDBY, "no frames yet");
+        c.camera_live = true;
+        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_ACTIVE);
+        c.pipeline = PipelineState::Failed(PipelineKind::Area);
+        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_CRITICAL);
+    }
+
+    #[test]
+    fn long_status_texts_are_chunked() {
+        let mut c = core();
+        c.status(MavSeverity::MAV_SEVERITY_INFO, &"x".repeat(120));
+        let chunks: Vec<_> = c
+            .out
+            .iter()
+            .filter_map(|o| match &o.message {
+                MavMessage::STATUSTEXT(s) => Some((s.id, s.chunk_seq)),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(chunks.len(), 3);
+        assert!(chunks.iter().all(|(id, _)| *id == chunks[0].0 && *id != 0));
+        assert_eq!(chunks.iter().map(|c| c.1).collect::<Vec<_>>(), vec![0, 1, 2]);
+    }
+}

@@ -99,7 +99,23 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     let signer = if settings.mavlink.signing_key.is_empty() {
         None
     } else {
-        let key = signing::load_key(Path::new(&settings.mavlink.signing_key)).map_err(anyhow::Error::msg)?;
+        let key = match settings.mavlink.signing_key.strip_prefix("credential:") {
+            // systemd's LoadCredential= hands the key over privately, owned by the
+            // service's dynamic user: no ownership or mode check applies.
+            Some(name) => {
+                let dir = std::env::var("CREDENTIALS_DIRECTORY").map_err(|_| {
+                    anyhow::anyhow!("mavlink.signing_key = credential:{name}, but $CREDENTIALS_DIRECTORY is unset (not started by systemd with LoadCredential=)")
+                })?;
+                let path = Path::new(&dir).join(name);
+                let text = std::fs::read_to_string(&path)
+                    .with_context(|| format!("signing key credential {}", path.display()))?;
+                signing::parse_key(text.trim())
+                    .map_err(|e| anyhow::anyhow!("signing key credential {}: {e}", path.display()))?
+            }
+            None => {
+                signing::load_key(Path::new(&settings.mavlink.signing_key)).map_err(anyhow::Error::msg)?
+            }
+        };
         Some(Signer::new(key, 0, Some(dir.join("signing-timestamp"))))
     };
     let signing = signer.is_some();
