@@ -583,6 +583,44 @@ impl Core {
         }
     }
 
+    /// Publishes what the pipeline found on one frame captured at local time `capture`
+    /// (seconds on mavloc's monotonic clock, the clock its TIMESYNC replies carry, so PX4
+    /// can map the stamps onto its own).
+    ///
+    /// The indoor estimate goes out as VISION_POSITION_ESTIMATE rather than ODOMETRY:
+    /// the pipeline measures horizontal position only, and PX4's EKF2 fuses exactly that
+    /// from VISION_POSITION_ESTIMATE (`EKF2_EV_CTRL` bit 0) with the covariance taken from
+    /// the message; ODOMETRY would need a velocity and frame ids mavloc cannot vouch for.
+    /// Area landmarks go out as DEBUG_VECT named `LMK` (north, east, down in metres,
+    /// local NED of the autopilot), which QGroundControl's MAVLink inspector shows.
+    pub fn publish(&mut self, report: &super::worker::Report, capture: f64, attitude: (f64, f64, f64)) {
+        self.counters.frames_processed += 1;
+        let usec = (capture.max(0.0) * 1e6) as u64;
+        for p in &report.new_landmarks {
+            self.send(MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {
+                time_usec: usec,
+                x: p[0] as f32,
+                y: p[1] as f32,
+                z: p[2] as f32,
+                name: "LMK".into(),
+            }));
+        }
+        if let Some(e) = &report.position {
+            self.send(vision_position_estimate(e, usec, attitude));
+        }
+        let ms = (capture.max(0.0) * 1e3) as u32;
+        for &(name, value) in &report.counters {
+            self.send(MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
+                time_boot_ms: ms,
+                value,
+                name: name.into(),
+            }));
+        }
+        for e in &report.events {
+            self.status(MavSeverity::MAV_SEVERITY_INFO, e);
+        }
+    }
+
     /// Whether a pipeline has what it needs to start.
     pub fn can_start(&self, k: PipelineKind) -> Result<(), String> {
         match k {
@@ -597,10 +635,62 @@ impl Core {
     }
 }
 
+/// Variance reported for what the pipeline does not measure (z, attitude): large enough
+/// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.
+const UNMEASURED_VARIANCE: f32 = 1.0e4;
+
+/// VISION_POSITION_ESTIMATE for an indoor estimate. The covariance is the upper triangle
+/// of the 6x6 (x, y, z, roll, pitch, yaw) matrix, row-major, as MAVLink defines it.
+pub fn vision_position_estimate(
+    e: &super::worker::PositionEstimate,
+    usec: u64,
+    attitude: (f64, f64, f64),
+) -> MavMessage {
+    let mut covariance = [0f32; 21];
+    covariance[0] = e.cov[0][0] as f32;
+    covariance[1] = e.cov[0][1] as f32;
+    covariance[6] = e.cov[1][1] as f32;
+    for i in [11, 15, 18, 20] {
+        covariance[i] = UNMEASURED_VARIANCE;
+    }
+    MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
+        usec,
+        x: e.north as f32,
+        y: e.east as f32,
+        z: e.down as f32,
+        roll: attitude.0 as f32,
+        pitch: attitude.1 as f32,
+        yaw: attitude.2 as f32,
+        covariance,
+        reset_counter: 0,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use mavlink::{MavHeader, MavlinkVersion};
+
+    #[test]
+    fn vision_position_covariance_is_the_upper_triangle() {
+        let e = super::super::worker::PositionEstimate {
+            autopilot_time: 0.0,
+            north: 1.5,
+            east: -2.0,
+            down: -1.0,
+            cov: [[0.04, 0.01], [0.01, 0.09]],
+        };
+        let MavMessage::VISION_POSITION_ESTIMATE(v) =
+            vision_position_estimate(&e, 1_000_000, (0.0, 0.0, 0.3))
+        else {
+            unreachable!()
+        };
+        assert_eq!((v.x, v.y, v.usec), (1.5, -2.0, 1_000_000));
+        // Upper-triangle indices of the diagonal: 0, 6, 11, 15, 18, 20.
+        assert_eq!((v.covariance[0], v.covariance[1], v.covariance[6]), (0.04, 0.01, 0.09));
+        assert!(v.covariance[11] >= 1e3 && v.covariance[20] >= 1e3);
+        assert_eq!(v.covariance[2], 0.0);
+    }
 
     fn frame(sys: u8, comp: u8, message: MavMessage) -> Frame {
         Frame {
