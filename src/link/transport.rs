@@ -84,20 +84,17 @@ struct Session {
 }
 
 impl Session {
-    /// Forwards decoded frames; false when the daemon has gone.
-    async fn drain(&mut self) -> bool {
-        while let Some(f) = self.decoder.next_frame(self.signer.as_mut()) {
-            self.stats.frames_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if self.events.send(LinkEvent::Frame(Box::new(f))).await.is_err() {
-                return false;
-            }
-        }
-        *self.stats.skipped.lock().expect("stats lock") = self.decoder.skipped;
-        true
-    }
-
-    async fn drain_datagram(&mut self) -> bool {
-        while let Some(f) = self.decoder.next_in_datagram(self.signer.as_mut()) {
+    /// Forwards decoded frames; false when the daemon has gone. `datagram`: the bytes
+    /// pushed are a whole datagram, so a frame cut short ends there.
+    async fn drain(&mut self, datagram: bool) -> bool {
+        loop {
+            let signer = self.signer.as_mut();
+            let f = if datagram {
+                self.decoder.next_in_datagram(signer)
+            } else {
+                self.decoder.next_frame(signer)
+            };
+            let Some(f) = f else { break };
             self.stats.frames_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             if self.events.send(LinkEvent::Frame(Box::new(f))).await.is_err() {
                 return false;
@@ -221,7 +218,7 @@ async fn run(
                                 *peer = Some(from);
                             }
                             session.decoder.push(&buf[..n]);
-                            if !session.drain_datagram().await { break 'outer; }
+                            if !session.drain(true).await { break 'outer; }
                         }
                         // ICMP "port unreachable" from a peer that went away surfaces
                         // here on Linux; the socket itself is fine.
@@ -249,7 +246,7 @@ async fn run(
                         Ok(0) => break format!("{address}: closed by the peer"),
                         Ok(n) => {
                             session.decoder.push(&buf[..n]);
-                            if !session.drain().await { break 'outer; }
+                            if !session.drain(false).await { break 'outer; }
                         }
                         Err(e) => break format!("{address}: {e}"),
                     },
