@@ -191,21 +191,20 @@ impl Core {
 
     /// MAV_STATE reflecting reality: ACTIVE only while a pipeline runs with frames and
     /// telemetry; STANDBY while idle or waiting; CRITICAL when the pipeline failed.
-    pub fn mav_state(&self, now: f64) -> MavState {
+    pub fn mav_state(&self) -> MavState {
         match self.pipeline {
             PipelineState::Failed(_) => MavState::MAV_STATE_CRITICAL,
             PipelineState::Running(_)
                 if self.autopilot_found && self.camera_live && self.aligner.clock.offset().0.is_some() =>
             {
-                let _ = now;
                 MavState::MAV_STATE_ACTIVE
             }
             _ => MavState::MAV_STATE_STANDBY,
         }
     }
 
-    pub fn heartbeat(&mut self, now: f64) {
-        let state = self.mav_state(now);
+    pub fn heartbeat(&mut self) {
+        let state = self.mav_state();
         self.send(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
             custom_mode: 0,
             mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
@@ -571,7 +570,7 @@ impl Core {
             _ if c.command == MavCmd::MAV_CMD_REQUEST_MESSAGE => match c.param1 as u32 {
                 0 => {
                     self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
-                    self.heartbeat(0.0);
+                    self.heartbeat();
                 }
                 22 if (c.param2 as usize) < params::PARAMS.len() => {
                     self.ack(c.command, MavResult::MAV_RESULT_ACCEPTED, from);
@@ -790,15 +789,15 @@ mod tests {
     #[test]
     fn heartbeat_is_active_only_with_autopilot_clock_camera_and_pipeline() {
         let mut c = core();
-        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_STANDBY);
+        assert_eq!(c.mav_state(), MavState::MAV_STATE_STANDBY);
         c.pipeline = PipelineState::Running(PipelineKind::Area);
         c.handle(frame(1, 1, px4_heartbeat()), 0.0);
         c.handle(frame(1, 1, attitude(5_000)), 0.0);
-        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_STANDBY, "no frames yet");
+        assert_eq!(c.mav_state(), MavState::MAV_STATE_STANDBY, "no frames yet");
         c.camera_live = true;
-        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_ACTIVE);
+        assert_eq!(c.mav_state(), MavState::MAV_STATE_ACTIVE);
         c.pipeline = PipelineState::Failed(PipelineKind::Area);
-        assert_eq!(c.mav_state(0.0), MavState::MAV_STATE_CRITICAL);
+        assert_eq!(c.mav_state(), MavState::MAV_STATE_CRITICAL);
     }
 
     #[test]

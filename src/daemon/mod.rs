@@ -170,13 +170,13 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
                 let t = now();
                 core.tick(t);
                 if t >= next_heartbeat {
-                    core.heartbeat(t);
+                    core.heartbeat();
                     next_heartbeat = t + heartbeat_period;
                 }
                 if t >= next_second {
                     next_second = t + 1.0;
                     publish_counters(&mut core, &link, t);
-                    write_status(&dir, &core, &link, &link_state, t);
+                    let _ = write_status(&dir, &core, &link, &link_state, t);
                 }
                 if watchdog && t >= next_watchdog {
                     notify(&[sd_notify::NotifyState::Watchdog]);
@@ -187,7 +187,18 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
             _ = sigint.recv() => { tracing::info!("SIGINT: shutting down"); break; }
         }
         for a in std::mem::take(&mut core.actions) {
-            act(&mut core, a);
+            match a {
+                // Results so far are the status file; pipeline results join it with live
+                // frames. The ACK says whether the write succeeded.
+                Action::Snapshot { requester } => {
+                    let result = match write_status(&dir, &core, &link, &link_state, now()) {
+                        Ok(()) => MavResult::MAV_RESULT_ACCEPTED,
+                        Err(_) => MavResult::MAV_RESULT_FAILED,
+                    };
+                    core.ack(MavCmd::MAV_CMD_USER_2, result, requester);
+                }
+                a => act(&mut core, a),
+            }
         }
         for o in std::mem::take(&mut core.out) {
             if link.outgoing.try_send(o).is_err() {
@@ -202,7 +213,7 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     if let PipelineState::Running(k) = core.pipeline {
         tracing::info!("{k:?} pipeline stopped; results in {}", dir.display());
     }
-    write_status(&dir, &core, &link, "shutting down", now());
+    let _ = write_status(&dir, &core, &link, "shutting down", now());
     let _ = shutdown_tx.send(());
     if tokio::time::timeout(Duration::from_millis(1500), &mut link.task).await.is_err() {
         tracing::warn!("link task did not stop within 1.5 s; leaving it");
@@ -242,21 +253,17 @@ fn act(core: &mut Core, a: Action) {
                 core.status(MavSeverity::MAV_SEVERITY_INFO, &format!("{k:?} pipeline reset"));
             }
         }
-        Action::Snapshot { requester } => {
-            // Results so far are the status file; pipeline results join it with live frames.
-            core.ack(MavCmd::MAV_CMD_USER_2, MavResult::MAV_RESULT_ACCEPTED, requester);
-        }
-        Action::Apply(_) => {}
+        Action::Snapshot { .. } | Action::Apply(_) => {}
     }
 }
 
 fn publish_counters(core: &mut Core, link: &transport::LinkHandle, t: f64) {
     use std::sync::atomic::Ordering::Relaxed;
-    let skipped = link.stats.skipped.lock().expect("stats").total_frames();
-    let garbage = link.stats.skipped.lock().expect("stats").garbage_bytes;
+    let skipped = *link.stats.skipped.lock().expect("stats");
+    let (bad_frames, garbage) = (skipped.total_frames(), skipped.garbage_bytes);
     let ms = (t * 1000.0) as u32;
     let values: [(&str, f32); 5] = [
-        ("LINK_BAD", skipped as f32),
+        ("LINK_BAD", bad_frames as f32),
         ("LINK_JUNK", garbage as f32),
         ("LINK_IN", link.stats.frames_in.load(Relaxed) as f32),
         ("FR_DONE", core.counters.frames_processed as f32),
@@ -276,7 +283,14 @@ fn publish_counters(core: &mut Core, link: &transport::LinkHandle, t: f64) {
     }
 }
 
-fn write_status(dir: &Path, core: &Core, link: &transport::LinkHandle, link_state: &str, t: f64) {
+/// Rewrites `status.json` atomically; a failure is logged and returned.
+fn write_status(
+    dir: &Path,
+    core: &Core,
+    link: &transport::LinkHandle,
+    link_state: &str,
+    t: f64,
+) -> std::io::Result<()> {
     use std::sync::atomic::Ordering::Relaxed;
     let s = *link.stats.skipped.lock().expect("stats");
     let (offset, source) = core.aligner.clock.offset();
@@ -285,7 +299,7 @@ fn write_status(dir: &Path, core: &Core, link: &transport::LinkHandle, link_stat
         link: link_state,
         autopilot_found: core.autopilot_found(),
         system_id: core.system_id(),
-        mav_state: format!("{:?}", core.mav_state(t)),
+        mav_state: format!("{:?}", core.mav_state()),
         pipeline: format!("{:?}", core.pipeline),
         counters: &core.counters,
         frames_in: link.stats.frames_in.load(Relaxed),
@@ -304,7 +318,6 @@ fn write_status(dir: &Path, core: &Core, link: &transport::LinkHandle, link_stat
         clock_offset_s: offset,
     };
     let json = serde_json::to_string_pretty(&status).expect("status serialises");
-    if let Err(e) = crate::output::write_atomic(&dir.join("status.json"), json.as_bytes()) {
-        tracing::warn!("cannot write {}/status.json: {e}", dir.display());
-    }
+    crate::output::write_atomic(&dir.join("status.json"), json.as_bytes())
+        .inspect_err(|e| tracing::warn!("cannot write {}/status.json: {e}", dir.display()))
 }

@@ -176,6 +176,8 @@ def test_link_params_commands_garbage_and_peer_loss():
         assert command(USER_1, 7, 1) == mav2.MAV_RESULT_DENIED
         assert command(mav2.MAV_CMD_DO_SET_MODE) == mav2.MAV_RESULT_UNSUPPORTED
         assert command(USER_2) == mav2.MAV_RESULT_IN_PROGRESS
+        done = recv(c, "COMMAND_ACK", cond=lambda m: m.command == USER_2)
+        assert done.result == mav2.MAV_RESULT_ACCEPTED, "the snapshot is acknowledged once written"
         intruder = mavutil.mavlink_connection(f"udpout:127.0.0.1:{d.port}", source_system=77,
                                               source_component=190, dialect="common")
         assert command(USER_1, 1, 0, conn=intruder) == mav2.MAV_RESULT_DENIED
