@@ -28,6 +28,7 @@ pub use mavloc_geometry as geometry;
 
 pub mod align;
 pub mod area;
+pub mod camera;
 pub mod cli;
 pub mod daemon;
 pub mod demo;

@@ -104,6 +104,19 @@ impl AreaPipeline {
         Ok(AreaPipeline { k, extractor, library, trace: false })
     }
 
+    /// Applies new settings to a running pipeline, keeping its landmarks: the library's
+    /// gates and noise at once, the band and feature counts from the next frame.
+    /// `k` is the intrinsics at the new processing resolution (the downscale may change).
+    pub fn reconfigure(&mut self, s: &AreaSettings, k: Intrinsics) -> Result<(), AreaError> {
+        k.validate().map_err(AreaError::Input)?;
+        let band = (s.band_px as f64 / s.downscale.max(1) as f64).round().max(1.0) as i32;
+        let l_max = s.l_max as i32;
+        self.extractor = FeatureExtractor::new(l_max, l_max * s.feature_factor as i32, band)?;
+        self.library.params = LibraryParams::from_settings(s);
+        self.k = k;
+        Ok(())
+    }
+
     /// Records every update for outlier analysis (seed fig. 6.2).
     pub fn with_trace(mut self, on: bool) -> Self {
         self.trace = on;

@@ -76,7 +76,8 @@ pub fn measured_pose(r: &PoseRecord, ds: &Dataset, s: &Settings) -> CameraPose {
     corrected.camera_pose(ds.camera.chain, ds.camera.gimbal_frame)
 }
 
-fn write_results(
+/// Writes the result files of a run (each atomically), `summary.json` last.
+pub fn write_results(
     out: &Path,
     frame: &LocalFrame,
     name: &str,

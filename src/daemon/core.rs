@@ -28,7 +28,10 @@ pub const STREAMS: &[(u32, &str, i32)] = &[
     (242, "HOME_POSITION", 1_000_000),
     (285, "GIMBAL_DEVICE_ATTITUDE_STATUS", 20_000),
     (2, "SYSTEM_TIME", 1_000_000),
+    (245, "EXTENDED_SYS_STATE", 200_000),
 ];
+/// MAV_CMD_NAV_LAND is sent until acknowledged, at most this many times, once a second.
+const LANDING_TRIES: u32 = 5;
 const STREAM_RETRIES: u32 = 5;
 
 /// Something the shell must do besides sending messages.
@@ -96,6 +99,8 @@ pub struct Core {
     statustext_id: u16,
     landed_state: Option<MavLandedState>,
     pub armed: bool,
+    /// A landing command in flight: tries so far, time of the next try.
+    landing: Option<(u32, f64)>,
 }
 
 fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
@@ -142,6 +147,7 @@ impl Core {
             statustext_id: 0,
             landed_state: None,
             armed: false,
+            landing: None,
         }
     }
 
@@ -261,6 +267,33 @@ impl Core {
                 break;
             }
         }
+        if let Some((tries, next)) = self.landing {
+            if now >= next {
+                if tries >= LANDING_TRIES {
+                    self.landing = None;
+                    self.status(
+                        MavSeverity::MAV_SEVERITY_ERROR,
+                        &format!("autopilot did not acknowledge MAV_CMD_NAV_LAND after {tries} tries"),
+                    );
+                } else {
+                    self.send(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                        // Yaw and position NaN: land here, keep the heading (PX4, ArduPilot).
+                        param1: 0.0,
+                        param2: 0.0,
+                        param3: 0.0,
+                        param4: f32::NAN,
+                        param5: f32::NAN,
+                        param6: f32::NAN,
+                        param7: 0.0,
+                        command: MavCmd::MAV_CMD_NAV_LAND,
+                        target_system: target,
+                        target_component: 1,
+                        confirmation: tries.min(255) as u8,
+                    }));
+                    self.landing = Some((tries + 1, now + 1.0));
+                }
+            }
+        }
         // TIMESYNC once a second.
         if self.timesync_sent.last().is_none_or(|&(_, t)| now - t >= 1.0) {
             let ts1 = (now * 1e9) as i64;
@@ -348,6 +381,27 @@ impl Core {
                             StreamState::Refused
                         }
                     };
+                }
+            }
+            MavMessage::COMMAND_ACK(a) if self.is_autopilot(&f) && a.command == MavCmd::MAV_CMD_NAV_LAND => {
+                if self.landing.is_some() {
+                    match a.result {
+                        MavResult::MAV_RESULT_ACCEPTED => {
+                            self.landing = None;
+                            self.status(MavSeverity::MAV_SEVERITY_NOTICE, "autopilot accepted the landing");
+                        }
+                        // Still working on it: wait, do not resend.
+                        MavResult::MAV_RESULT_IN_PROGRESS => {
+                            self.landing = self.landing.map(|(tries, _)| (tries, now + 5.0));
+                        }
+                        other => {
+                            self.landing = None;
+                            self.status(
+                                MavSeverity::MAV_SEVERITY_ERROR,
+                                &format!("autopilot refused the landing: {other:?}"),
+                            );
+                        }
+                    }
                 }
             }
             MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
@@ -617,6 +671,35 @@ impl Core {
         }
         for e in &report.events {
             self.status(MavSeverity::MAV_SEVERITY_INFO, e);
+        }
+    }
+
+    /// The landing trigger fired. MAV_CMD_NAV_LAND rather than LANDING_TARGET: the trigger
+    /// fires only once the vehicle is inside the zone and the particles agree (indoor seed
+    /// sec. 4.7), so "land where you are" is the whole manoeuvre; LANDING_TARGET would
+    /// need PX4's landing-target estimator fed with a bearing to a target, which the
+    /// texton pipeline does not have (it knows where the vehicle is, not where a pad is).
+    /// Sent only when landing is enabled (IND_LAND_EN) and the vehicle is armed and in
+    /// the air; retried once a second until acknowledged.
+    pub fn request_landing(&mut self, now: f64) {
+        if !self.settings.indoor.landing_enabled {
+            self.status(MavSeverity::MAV_SEVERITY_INFO, "landing trigger fired; landing is disabled (IND_LAND_EN 0)");
+            return;
+        }
+        let airborne = matches!(self.landed_state, Some(MavLandedState::MAV_LANDED_STATE_IN_AIR));
+        if !self.autopilot_found || !self.armed || !airborne {
+            self.status(
+                MavSeverity::MAV_SEVERITY_WARNING,
+                &format!(
+                    "landing trigger fired, but the vehicle is not armed and in the air (armed {}, landed state {:?}); not landing",
+                    self.armed, self.landed_state
+                ),
+            );
+            return;
+        }
+        if self.landing.is_none() {
+            self.status(MavSeverity::MAV_SEVERITY_NOTICE, "landing requested: sending MAV_CMD_NAV_LAND");
+            self.landing = Some((0, now));
         }
     }
 

@@ -22,6 +22,10 @@ pub struct LiveFrame {
     pub image: opencv::core::Mat,
     /// Target mask (255 inside), when the source provides one.
     pub mask: Option<opencv::core::Mat>,
+    /// WGS84 origin of the local NED frame, when the autopilot has told it.
+    pub origin: Option<crate::geometry::Geodetic>,
+    /// True camera position (simulation only), for evaluation files.
+    pub truth: Option<[f64; 3]>,
 }
 
 /// What a pipeline reports after a frame, for the daemon to publish.
@@ -73,7 +77,9 @@ pub enum Request {
 /// What the worker tells the daemon.
 #[derive(Debug)]
 pub enum Event {
-    Report { frame: u64, report: Report },
+    /// `capture_s`: the frame's local capture time; `attitude`: the vehicle's roll, pitch,
+    /// yaw then (radians), for the messages the report becomes.
+    Report { frame: u64, capture_s: f64, attitude: (f64, f64, f64), report: Report },
     Panicked { frame: u64, message: String },
     Failed(String),
     Stopped { files: Vec<PathBuf> },
@@ -207,7 +213,8 @@ fn run(
         if let Some(f) = frame {
             match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
                 Ok(report) => {
-                    let _ = events.send(Event::Report { frame: f.index, report });
+                    let attitude = f.pose.vehicle.attitude.euler_angles();
+                    let _ = events.send(Event::Report { frame: f.index, capture_s: f.capture_s, attitude, report });
                 }
                 Err(p) => {
                     let message = panic_message(&*p);
@@ -270,6 +277,8 @@ mod tests {
             },
             image: opencv::core::Mat::default(),
             mask: None,
+            origin: None,
+            truth: None,
         }
     }
 
@@ -289,7 +298,7 @@ mod tests {
         events.push(rx.blocking_recv().unwrap());
         assert!(matches!(&events[3], Event::Panicked { frame: 3, message } if message == "bad frame"));
         // After the restart the count starts again: frames 4 and 5.
-        assert!(matches!(&events[5], Event::Report { frame: 5, report } if report.counters[0].1 == 2.0));
+        assert!(matches!(&events[5], Event::Report { frame: 5, report, .. } if report.counters[0].1 == 2.0));
         assert!(matches!(&events[6], Event::Stopped { files } if files.len() == 1));
         assert_eq!(std::fs::read_to_string(dir.path().join("seen.txt")).unwrap(), "2");
     }

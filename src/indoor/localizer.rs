@@ -221,6 +221,15 @@ impl Localizer {
         }
     }
 
+    /// Applies what can change mid-flight (motion model, its SD, samples per histogram);
+    /// false when `p` also changes k or the particle count, which need a new localiser.
+    pub fn set_params(&mut self, p: &LocalizerParams) -> bool {
+        self.params.motion = p.motion;
+        self.params.velocity_sigma_m_s = p.velocity_sigma_m_s;
+        self.params.samples = p.samples;
+        p.k == self.params.k && p.particles == self.params.particles
+    }
+
     pub fn particles(&self) -> &[Vector2<f64>] {
         self.pf.particles()
     }

@@ -428,16 +428,22 @@ pub fn read_trajectory(path: &Path) -> Result<Vec<TrajectoryRow>, String> {
         .collect()
 }
 
-/// Runs a model over a flight.
-pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Result<RunSummary, String> {
-    let ds = Dataset::open(&opts.dataset)?;
-    let model = Model::load(&opts.model)?;
+/// The settings a model fixes (how its frames were prepared) over the configured ones.
+pub fn model_settings(model: &Model, s: &Indoor) -> Indoor {
     let mut settings = s.clone();
     settings.work_width = model.frame.work_width;
     settings.derotate = model.frame.derotate;
     settings.normalise = model.frame.normalise;
     settings.patch_w = model.dictionary.w as u32;
     settings.patch_h = model.dictionary.h as u32;
+    settings
+}
+
+/// Runs a model over a flight.
+pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Result<RunSummary, String> {
+    let ds = Dataset::open(&opts.dataset)?;
+    let model = Model::load(&opts.model)?;
+    let settings = model_settings(&model, s);
     let pre = preprocessor(&ds, &settings);
     let rel = (pre.work.fx - model.frame.work_fx).abs() / model.frame.work_fx;
     if rel > 0.1 {

@@ -112,6 +112,11 @@ pub struct Camera {
     pub cx: f64,
     pub cy: f64,
     pub distortion: Vec<f64>,
+    /// `file` / `dataset`: true = at the recorded rate (frames the pipeline cannot keep up
+    /// with are dropped), false = as fast as the pipeline takes them, none dropped.
+    pub realtime: bool,
+    /// `sim`: render from the received pose perturbed by the scenario's noise.
+    pub sim_noise: bool,
 }
 
 impl Default for Camera {
@@ -131,6 +136,8 @@ impl Default for Camera {
             cx: -1.0,
             cy: -1.0,
             distortion: vec![0.0; 5],
+            realtime: true,
+            sim_noise: true,
         }
     }
 }

@@ -1,0 +1,272 @@
+//! `v4l2` and `file` sources through OpenCV's `VideoCapture` (the design card's choice:
+//! OpenCV already decodes MJPG/YUYV and video files, so no second V4L2 stack).
+
+use std::path::{Path, PathBuf};
+
+use opencv::core::{Mat, Size};
+use opencv::prelude::*;
+use opencv::{calib3d, core, imgcodecs, imgproc, videoio};
+
+use super::{Captured, FrameSource, SourceContext, SourceError};
+use crate::settings::Camera;
+
+enum Input {
+    Capture(videoio::VideoCapture),
+    Images { files: Vec<PathBuf>, next: usize },
+}
+
+/// A V4L2 device, a video file or an image folder.
+pub struct Video {
+    what: String,
+    input: Input,
+    device: bool,
+    ctx: SourceContext,
+    size: (i32, i32),
+    /// Seconds between frames when paced (files at their own rate), else 0.
+    period: f64,
+    next_due: f64,
+    index: u64,
+    /// Undistortion maps, when distortion coefficients are given.
+    maps: Option<(Mat, Mat)>,
+    /// CLOCK_MONOTONIC at the daemon's start, to read driver timestamps on our clock.
+    mono_at_start: f64,
+}
+
+fn monotonic_now() -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes into the timespec we own.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+fn undistort_maps(c: &Camera) -> Result<Option<(Mat, Mat)>, SourceError> {
+    if c.distortion.iter().all(|d| *d == 0.0) {
+        return Ok(None);
+    }
+    let k = c.intrinsics();
+    let m = Mat::from_slice_2d(&[[k.fx, 0.0, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])?;
+    let d = Mat::from_slice(&c.distortion)?.try_clone()?;
+    let (mut m1, mut m2) = (Mat::default(), Mat::default());
+    calib3d::init_undistort_rectify_map(
+        &m,
+        &d,
+        &core::no_array(),
+        &m,
+        Size::new(c.width as i32, c.height as i32),
+        core::CV_16SC2,
+        &mut m1,
+        &mut m2,
+    )?;
+    Ok(Some((m1, m2)))
+}
+
+impl Video {
+    /// Opens a V4L2 device with the configured size, rate and pixel format.
+    pub fn open_device(c: &Camera, ctx: SourceContext) -> Result<Video, SourceError> {
+        let dev = &c.device;
+        if !Path::new(dev).exists() {
+            return Err(SourceError::Gone(format!("V4L2 device {dev} does not exist (camera.device)")));
+        }
+        let mut cap = videoio::VideoCapture::from_file(dev, videoio::CAP_V4L2)
+            .map_err(|e| SourceError::Gone(format!("V4L2 device {dev}: {e}")))?;
+        if !cap.is_opened().unwrap_or(false) {
+            return Err(SourceError::Gone(format!(
+                "V4L2 device {dev} cannot be opened (not a capture device, busy, or no permission: is mavloc in group video?)"
+            )));
+        }
+        let f: Vec<char> = c.pixel_format.chars().collect();
+        let fourcc = videoio::VideoWriter::fourcc(f[0], f[1], f[2], f[3])?;
+        cap.set(videoio::CAP_PROP_FOURCC, fourcc as f64)?;
+        cap.set(videoio::CAP_PROP_FRAME_WIDTH, c.width as f64)?;
+        cap.set(videoio::CAP_PROP_FRAME_HEIGHT, c.height as f64)?;
+        cap.set(videoio::CAP_PROP_FPS, c.fps)?;
+        let got = (cap.get(videoio::CAP_PROP_FRAME_WIDTH)? as i32, cap.get(videoio::CAP_PROP_FRAME_HEIGHT)? as i32);
+        if got != (c.width as i32, c.height as i32) {
+            return Err(SourceError::Fatal(format!(
+                "V4L2 device {dev} delivers {}x{}, but camera.width x camera.height is {}x{}: set them to a size the camera supports (v4l2-ctl --list-formats-ext)",
+                got.0, got.1, c.width, c.height
+            )));
+        }
+        let mono_at_start = monotonic_now() - ctx.now();
+        Ok(Video {
+            what: format!("V4L2 {dev} {}x{} {} at {} Hz", c.width, c.height, c.pixel_format, c.fps),
+            input: Input::Capture(cap),
+            device: true,
+            size: got,
+            period: 0.0,
+            next_due: 0.0,
+            index: 0,
+            maps: undistort_maps(c)?,
+            mono_at_start,
+            ctx,
+        })
+    }
+
+    /// Opens a video file or a folder of images (PNG, JPEG, BMP, TIFF, sorted by name).
+    pub fn open_file(c: &Camera, ctx: SourceContext) -> Result<Video, SourceError> {
+        let path = Path::new(&c.path);
+        if c.path.is_empty() {
+            return Err(SourceError::Fatal("camera.source = \"file\" needs camera.path".into()));
+        }
+        let size = (c.width as i32, c.height as i32);
+        let (input, rate, what) = if path.is_dir() {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(path)
+                .map_err(|e| SourceError::Fatal(format!("{}: {e}", path.display())))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| {
+                    let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+                    ["png", "jpg", "jpeg", "bmp", "tif", "tiff"].contains(&ext.as_str())
+                })
+                .collect();
+            files.sort();
+            if files.is_empty() {
+                return Err(SourceError::Fatal(format!("{} holds no images", path.display())));
+            }
+            let n = files.len();
+            (Input::Images { files, next: 0 }, c.fps, format!("{n} images in {}", path.display()))
+        } else {
+            if !path.exists() {
+                return Err(SourceError::Fatal(format!("video file {} does not exist", path.display())));
+            }
+            let cap = videoio::VideoCapture::from_file(&c.path, videoio::CAP_ANY)?;
+            if !cap.is_opened().unwrap_or(false) {
+                return Err(SourceError::Fatal(format!("{} is not a video OpenCV can read", path.display())));
+            }
+            let fps = cap.get(videoio::CAP_PROP_FPS).unwrap_or(0.0);
+            let rate = if fps > 0.0 && fps.is_finite() { fps } else { c.fps };
+            (Input::Capture(cap), rate, format!("video {}", path.display()))
+        };
+        Ok(Video {
+            what,
+            input,
+            device: false,
+            size,
+            period: if c.realtime { 1.0 / rate } else { 0.0 },
+            next_due: ctx.now(),
+            index: 0,
+            maps: undistort_maps(c)?,
+            mono_at_start: 0.0,
+            ctx,
+        })
+    }
+
+    fn read(&mut self) -> Result<Option<(Mat, f64)>, SourceError> {
+        match &mut self.input {
+            Input::Capture(cap) => {
+                let mut frame = Mat::default();
+                let ok = cap.read(&mut frame).map_err(|e| SourceError::Gone(format!("{}: {e}", self.what)))?;
+                let grabbed = self.ctx.now();
+                if !ok || frame.empty() {
+                    return if self.device {
+                        Err(SourceError::Gone(format!("{}: no frame (device unplugged?)", self.what)))
+                    } else {
+                        Ok(None)
+                    };
+                }
+                // The driver's buffer timestamp (CLOCK_MONOTONIC on V4L2) when it is plausible,
+                // else the time of the grab.
+                let mut t = grabbed;
+                if self.device {
+                    let ms = cap.get(videoio::CAP_PROP_POS_MSEC).unwrap_or(0.0);
+                    let stamped = ms / 1000.0 - self.mono_at_start;
+                    if ms > 0.0 && stamped <= grabbed && grabbed - stamped < 1.0 {
+                        t = stamped;
+                    }
+                }
+                Ok(Some((frame, t)))
+            }
+            Input::Images { files, next } => {
+                let Some(p) = files.get(*next).cloned() else { return Ok(None) };
+                *next += 1;
+                let img = imgcodecs::imread(&p, imgcodecs::IMREAD_COLOR)?;
+                if img.empty() {
+                    return Err(SourceError::Fatal(format!("{} is not an image OpenCV can read", p.display())));
+                }
+                Ok(Some((img, self.ctx.now())))
+            }
+        }
+    }
+}
+
+impl FrameSource for Video {
+    fn next(&mut self) -> Result<Option<Captured>, SourceError> {
+        if self.period > 0.0 {
+            if !self.ctx.sleep_until(self.next_due) {
+                return Ok(None);
+            }
+            self.next_due += self.period;
+        }
+        let Some((mut frame, capture_s)) = self.read()? else { return Ok(None) };
+        if (frame.cols(), frame.rows()) != self.size {
+            if self.device {
+                return Err(SourceError::Fatal(format!(
+                    "{} changed its frame size to {}x{}",
+                    self.what,
+                    frame.cols(),
+                    frame.rows()
+                )));
+            }
+            let mut resized = Mat::default();
+            imgproc::resize(&frame, &mut resized, Size::new(self.size.0, self.size.1), 0.0, 0.0, imgproc::INTER_AREA)?;
+            frame = resized;
+        }
+        if let Some((m1, m2)) = &self.maps {
+            let mut out = Mat::default();
+            imgproc::remap(&frame, &mut out, m1, m2, imgproc::INTER_LINEAR, core::BORDER_CONSTANT, core::Scalar::all(0.0))?;
+            frame = out;
+        }
+        let index = self.index;
+        self.index += 1;
+        Ok(Some(Captured { index, capture_s, image: frame, mask: None, pose: None, truth: None }))
+    }
+
+    fn describe(&self) -> String {
+        self.what.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicBool;
+    use std::sync::{Arc, Mutex};
+
+    fn ctx() -> SourceContext {
+        SourceContext {
+            started: std::time::Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: None,
+        }
+    }
+
+    #[test]
+    fn a_missing_device_is_named() {
+        let c = Camera { device: "/dev/video-mavloc-missing".into(), ..Camera::default() };
+        let e = Video::open_device(&c, ctx()).err().expect("no such device");
+        assert!(e.to_string().contains("/dev/video-mavloc-missing"), "{e}");
+        assert!(matches!(e, SourceError::Gone(_)), "a camera may come back: retried");
+    }
+
+    #[test]
+    fn an_image_folder_plays_in_name_order_and_ends() {
+        let dir = tempfile::tempdir().unwrap();
+        for (i, v) in [(1, 10.0), (0, 200.0)] {
+            let m = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
+            imgcodecs::imwrite(&dir.path().join(format!("{i}.png")).to_string_lossy(), &m, &core::Vector::new())
+                .unwrap();
+        }
+        let c = Camera {
+            path: dir.path().to_string_lossy().into(),
+            width: 32,
+            height: 24,
+            realtime: false,
+            ..Camera::default()
+        };
+        let mut v = Video::open_file(&c, ctx()).unwrap();
+        let a = v.next().unwrap().unwrap();
+        assert_eq!(*a.image.at_2d::<core::Vec3b>(0, 0).unwrap(), core::Vec3b::from([200, 200, 200]));
+        assert_eq!(v.next().unwrap().unwrap().index, 1);
+        assert!(v.next().unwrap().is_none());
+    }
+}
