@@ -101,12 +101,25 @@ pub enum SimCommand {
         #[arg(long, default_value_t = 0.01)]
         metres_per_px: f64,
     },
-    /// Run a simulated MAVLink vehicle that flies a scenario's mission.
+    /// Run a simulated MAVLink vehicle (PX4-like autopilot with a gimbal) that flies a
+    /// scenario's mission; what mavloc talks to when no PX4 is installed.
     Vehicle {
         #[arg(long)]
         scenario: String,
+        /// Where to talk: udpout:HOST:PORT (to mavloc, as PX4's onboard link) or udpin:HOST:PORT.
         #[arg(long, default_value = "udpout:127.0.0.1:14540")]
         mavlink: String,
+        #[arg(long, default_value_t = 1)]
+        system_id: u8,
+        /// Land after this many seconds of mission and exit once on the ground (default: fly until stopped).
+        #[arg(long)]
+        duration: Option<f64>,
+        /// Start this many seconds into the mission.
+        #[arg(long, default_value_t = 0.0)]
+        start: f64,
+        /// Write the true state (t, north, east, down, roll, pitch, yaw, phase) to this CSV at 10 Hz.
+        #[arg(long)]
+        truth_log: Option<PathBuf>,
     },
 }
 

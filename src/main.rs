@@ -32,11 +32,6 @@ fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded>
 }
 
 /// Tells the user plainly that a command is not built yet, and which issue builds it.
-fn not_yet(what: &str, issue: u32) -> anyhow::Result<ExitCode> {
-    eprintln!("mavloc {what}: not implemented yet (tracked as issue #{issue}); nothing was done.");
-    Ok(ExitCode::from(2))
-}
-
 fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Config { command: ConfigCommand::Check { file } } => {
@@ -88,7 +83,22 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Sim { command: SimCommand::Render(args) } => sim_render(args),
         Command::Sim { command: SimCommand::Plan { scenario, out } } => sim_plan(&scenario, out),
-        Command::Sim { command: SimCommand::Vehicle { .. } } => not_yet("sim vehicle", 7),
+        Command::Sim { command: SimCommand::Vehicle { scenario, mavlink, system_id, duration, start, truth_log } } => {
+            let scenario = mavloc_sim::Scenario::load(&scenario).map_err(anyhow::Error::msg)?;
+            let opts = mavloc_sim::vehicle::VehicleOptions {
+                address: mavlink,
+                system_id,
+                duration_s: duration,
+                start_s: start,
+                truth_log,
+            };
+            eprintln!("simulated vehicle: {} over {}", scenario.name, opts.address);
+            let landed = mavloc_sim::vehicle::run(&scenario, &opts).map_err(anyhow::Error::msg)?;
+            if let Some(p) = landed {
+                println!("landed at north {:.3} east {:.3} m", p.x, p.y);
+            }
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Sim { command: SimCommand::Orthophoto { scenario, out, half_extent_m, metres_per_px } } => {
             use anyhow::anyhow;
             if !(metres_per_px > 0.0 && half_extent_m > 0.0 && half_extent_m / metres_per_px <= 8000.0) {

@@ -15,6 +15,7 @@ pub mod render;
 pub mod scenario;
 pub mod terrain;
 pub mod texture;
+pub mod vehicle;
 pub mod views;
 pub mod world;
 

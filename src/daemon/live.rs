@@ -38,6 +38,8 @@ pub struct AreaLive {
     downscale: u32,
     dir: PathBuf,
     results: Vec<LandmarkRecord>,
+    /// Added to the library's landmark ids, so results resumed from disk keep theirs.
+    id_offset: u64,
     origin: Geodetic,
     frames: u64,
     no_mask_warned: bool,
@@ -51,12 +53,24 @@ impl AreaLive {
         let downscale = s.area.downscale.max(1);
         let pipeline = AreaPipeline::new(&s.area, k_full.downscaled(downscale)).map_err(|e| e.to_string())?;
         std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+        // Results of an earlier run (a restart after a crash, a pipeline rebuilt after a
+        // panic) are kept: the next checkpoint must not overwrite them with fewer.
+        let path = dir.join("landmarks.csv");
+        let results = match std::fs::read_to_string(&path) {
+            Ok(text) => crate::output::parse_landmarks_csv(&text, &path.display().to_string())?,
+            Err(_) => Vec::new(),
+        };
+        if !results.is_empty() {
+            tracing::info!("area: resuming with {} landmarks from {}", results.len(), path.display());
+        }
+        let id_offset = results.iter().map(|l| l.id + 1).max().unwrap_or(0);
         Ok(AreaLive {
             pipeline,
             k_full,
             downscale,
             dir,
-            results: Vec::new(),
+            results,
+            id_offset,
             origin,
             frames: 0,
             no_mask_warned: false,
@@ -67,8 +81,13 @@ impl AreaLive {
     /// Everything converged so far: purged results and converged landmarks still tracked.
     fn all_landmarks(&self) -> Vec<LandmarkRecord> {
         let mut all = self.results.clone();
-        all.extend(self.pipeline.converged_now());
+        all.extend(self.pipeline.converged_now().into_iter().map(|l| self.shifted(l)));
         all
+    }
+
+    fn shifted(&self, mut l: LandmarkRecord) -> LandmarkRecord {
+        l.id += self.id_offset;
+        l
     }
 
     fn write(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>> {
@@ -121,7 +140,8 @@ impl LivePipeline for AreaLive {
         self.frames += 1;
         let before = self.results.len();
         report.new_landmarks = r.converged.iter().map(|l| l.position.into()).collect();
-        self.results.extend(r.converged);
+        let converged: Vec<_> = r.converged.into_iter().map(|l| self.shifted(l)).collect();
+        self.results.extend(converged);
         if before == 0 && !self.results.is_empty() {
             report.events.push(format!("area: first {} landmarks converged", self.results.len()));
         } else if before / 100 != self.results.len() / 100 {

@@ -1,0 +1,618 @@
+//! The simulated vehicle (`mavloc sim vehicle`): a MAVLink autopilot that talks to a
+//! companion computer the way PX4 does, flying a scenario's mission, with a gimbal device
+//! (gimbal protocol v2) on board. It is the embedded default for running mavloc with no
+//! PX4 installed, and it uses the `mavlink` crate's own framing, independent of mavloc's.
+//!
+//! What it does, and what it leaves out:
+//! - HEARTBEAT as a PX4 quadrotor (AUTO.MISSION, then AUTO.LAND; armed while flying);
+//!   ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT, HOME_POSITION (home = the local
+//!   origin), EXTENDED_SYS_STATE, SYSTEM_TIME at PX4-like default rates, each changeable
+//!   with MAV_CMD_SET_MESSAGE_INTERVAL (ACKed; -1 stops a stream, 0 restores the
+//!   default) or sent once on MAV_CMD_REQUEST_MESSAGE; TIMESYNC answered.
+//! - It starts armed and in the air at the mission's start and flies the mission at its
+//!   speed (no take-off: the pipelines have nothing to see on the ground). After
+//!   `duration_s` of mission, or on MAV_CMD_NAV_LAND (ACKed), it descends vertically and
+//!   reports LANDING, then ON_GROUND, and disarms.
+//! - The gimbal (component 154, MAV_COMP_ID_GIMBAL) points the camera at the mission's
+//!   border targets and reports GIMBAL_DEVICE_ATTITUDE_STATUS with YAW_IN_EARTH_FRAME, or,
+//!   when GIMBAL_DEVICE_SET_ATTITUDE arrives, holds the commanded attitude for as long as
+//!   setpoints keep coming (a gimbal manager streams them), returning to the mission's
+//!   pointing 2 s after the last. Indoor missions have the camera fixed to the body: no
+//!   gimbal is reported.
+//! - Telemetry is the true state, like PX4 SIH whose estimate sits close to the truth;
+//!   the scenario's gimbal lag is applied (the gimbal attitude reported is the one
+//!   `gimbal_lag_s` earlier). The scenario's random noise is applied by mavloc's sim
+//!   camera instead (see `mavloc::camera::sim`), since a picture rendered from a noisy
+//!   report would carry the same noise and cancel it.
+//! - The true state is logged to a CSV (`truth_log`) for evaluation.
+
+use std::io::Write;
+use std::net::{SocketAddr, UdpSocket};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use mavlink::dialects::common::*;
+use mavlink::{MavHeader, MavlinkVersion};
+use mavloc_geometry::{LocalFrame, Vec3};
+use nalgebra::UnitQuaternion;
+
+use crate::mission::{GimbalFrame, Mission, State};
+use crate::scenario::Scenario;
+use crate::world::World;
+
+pub const GIMBAL_COMPONENT: u8 = 154;
+/// A commanded gimbal attitude is held this long after the last setpoint.
+const SETPOINT_HOLD_S: f64 = 2.0;
+/// Descent speeds as PX4's defaults: MPC_Z_VEL_MAX_DN high up, MPC_LAND_SPEED below
+/// MPC_LAND_ALT2.
+const DESCENT_FAST_M_S: f64 = 1.5;
+const DESCENT_M_S: f64 = 0.7;
+const SLOW_BELOW_M: f64 = 5.0;
+
+/// How to run the vehicle.
+#[derive(Clone, Debug)]
+pub struct VehicleOptions {
+    /// `udpout:HOST:PORT` (send to mavloc, PX4's onboard link) or `udpin:HOST:PORT`.
+    pub address: String,
+    pub system_id: u8,
+    /// Land after this much mission time, then exit once on the ground.
+    pub duration_s: Option<f64>,
+    /// Start this far into the mission, seconds.
+    pub start_s: f64,
+    /// Append the true state here at 10 Hz.
+    pub truth_log: Option<PathBuf>,
+}
+
+/// Flight phase.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Phase {
+    Mission,
+    Landing { since: f64 },
+    Landed,
+}
+
+/// The vehicle's logic, free of sockets: messages in, messages out, time given.
+pub struct Vehicle {
+    pub mission: Mission,
+    origin: LocalFrame,
+    world: World,
+    has_gimbal: bool,
+    lag_s: f64,
+    pub phase: Phase,
+    /// Mission time offset and where the descent started.
+    start_s: f64,
+    landing_from: Option<State>,
+    landing_since: Option<f64>,
+    /// Current true state.
+    pub state: State,
+    rates: Vec<Stream>,
+    setpoint: Option<(f64, UnitQuaternion<f64>)>,
+    system_id: u8,
+    pub out: Vec<(u8, MavMessage)>,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Stream {
+    id: u32,
+    default_hz: f64,
+    hz: f64,
+    next: f64,
+}
+
+const DEFAULT_RATES: &[(u32, f64)] = &[
+    (0, 1.0),    // HEARTBEAT
+    (30, 50.0),  // ATTITUDE
+    (32, 30.0),  // LOCAL_POSITION_NED
+    (33, 10.0),  // GLOBAL_POSITION_INT
+    (242, 0.5),  // HOME_POSITION
+    (245, 2.0),  // EXTENDED_SYS_STATE
+    (2, 1.0),    // SYSTEM_TIME
+    (285, 20.0), // GIMBAL_DEVICE_ATTITUDE_STATUS
+];
+
+fn px4_mode(main: u32, sub: u32) -> u32 {
+    (main << 16) | (sub << 24)
+}
+
+impl Vehicle {
+    pub fn new(scenario: &Scenario, system_id: u8, start_s: f64) -> Result<Vehicle, String> {
+        let world = World::build(scenario)?;
+        let mission = Mission::plan(&world)?;
+        let origin = LocalFrame::new(scenario.origin);
+        let state = mission.state(start_s);
+        let has_gimbal = mission.gimbal_frame == GimbalFrame::Earth;
+        let rates = DEFAULT_RATES
+            .iter()
+            .filter(|(id, _)| has_gimbal || *id != 285)
+            .map(|&(id, hz)| Stream { id, default_hz: hz, hz, next: 0.0 })
+            .collect();
+        Ok(Vehicle {
+            mission,
+            origin,
+            world,
+            has_gimbal,
+            lag_s: scenario.noise.gimbal_lag_s,
+            phase: Phase::Mission,
+            start_s,
+            landing_from: None,
+            landing_since: None,
+            state,
+            rates,
+            setpoint: None,
+            system_id,
+            out: Vec::new(),
+        })
+    }
+
+    fn send(&mut self, component: u8, m: MavMessage) {
+        self.out.push((component, m));
+    }
+
+    /// The true state at vehicle time `t` (seconds since boot).
+    fn true_state(&self, t: f64) -> State {
+        let (Some(from), Some(since)) = (self.landing_from, self.landing_since) else {
+            return self.mission.state(self.start_s + t);
+        };
+        let p = from.position;
+        let ground = self.world.surface_height(p.x, p.y);
+        // Fast down to SLOW_BELOW_M above the ground, then slowly.
+        let dt = (t - since).max(0.0);
+        let fast_m = (ground - SLOW_BELOW_M - p.z).max(0.0);
+        let fast_s = fast_m / DESCENT_FAST_M_S;
+        let z = if dt < fast_s {
+            p.z + DESCENT_FAST_M_S * dt
+        } else {
+            (p.z + fast_m + DESCENT_M_S * (dt - fast_s)).min(ground)
+        };
+        let descending = z < ground;
+        State {
+            t,
+            position: Vec3::new(p.x, p.y, z),
+            velocity: Vec3::new(0.0, 0.0, if descending { DESCENT_M_S } else { 0.0 }),
+            attitude: [0.0, 0.0, from.attitude[2]],
+            gimbal: from.gimbal,
+        }
+    }
+
+    /// Starts the descent at time `t` (idempotent).
+    pub fn land(&mut self, t: f64) {
+        if self.phase == Phase::Mission {
+            self.landing_from = Some(self.true_state(t));
+            self.landing_since = Some(t);
+            self.phase = Phase::Landing { since: t };
+        }
+    }
+
+    fn armed(&self) -> bool {
+        self.phase != Phase::Landed
+    }
+
+    /// Advances to time `t`: phase changes and due streams.
+    pub fn step(&mut self, t: f64) {
+        self.state = self.true_state(t);
+        if let Phase::Landing { .. } = self.phase {
+            if self.state.velocity.z == 0.0 {
+                self.phase = Phase::Landed;
+            }
+        }
+        for i in 0..self.rates.len() {
+            let s = self.rates[i];
+            if s.hz > 0.0 && t >= s.next {
+                self.rates[i].next = t + 1.0 / s.hz;
+                self.emit(s.id, t);
+            }
+        }
+    }
+
+    fn gimbal_attitude(&self, t: f64) -> UnitQuaternion<f64> {
+        if let Some((at, q)) = self.setpoint {
+            if t - at < SETPOINT_HOLD_S {
+                return q;
+            }
+        }
+        let lagged = if self.lag_s > 0.0 && self.phase == Phase::Mission {
+            self.mission.state(self.start_s + t - self.lag_s).gimbal
+        } else {
+            self.state.gimbal
+        };
+        let r = mavloc_geometry::GimbalChain::YawPitchRoll.rotation(lagged);
+        UnitQuaternion::from_rotation_matrix(&r)
+    }
+
+    /// Sends one message of stream `id` now.
+    fn emit(&mut self, id: u32, t: f64) {
+        let ms = (t * 1000.0) as u32;
+        let s = self.state;
+        let geo = self.origin.to_geodetic(&s.position);
+        let home = self.origin.origin;
+        let m = match id {
+            0 => {
+                let (sub, status) = match self.phase {
+                    Phase::Mission => (4, MavState::MAV_STATE_ACTIVE),
+                    Phase::Landing { .. } => (6, MavState::MAV_STATE_ACTIVE),
+                    Phase::Landed => (3, MavState::MAV_STATE_STANDBY), // AUTO.LOITER
+                };
+                let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                    | MavModeFlag::MAV_MODE_FLAG_AUTO_ENABLED
+                    | MavModeFlag::MAV_MODE_FLAG_STABILIZE_ENABLED
+                    | MavModeFlag::MAV_MODE_FLAG_GUIDED_ENABLED;
+                if self.armed() {
+                    base |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
+                }
+                if self.has_gimbal {
+                    // A gimbal device sends its own heartbeat.
+                    self.send(
+                        GIMBAL_COMPONENT,
+                        MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                            custom_mode: 0,
+                            mavtype: MavType::MAV_TYPE_GIMBAL,
+                            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+                            base_mode: MavModeFlag::empty(),
+                            system_status: MavState::MAV_STATE_ACTIVE,
+                            mavlink_version: 3,
+                        }),
+                    );
+                }
+                MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                    custom_mode: px4_mode(4, sub),
+                    mavtype: MavType::MAV_TYPE_QUADROTOR,
+                    autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+                    base_mode: base,
+                    system_status: status,
+                    mavlink_version: 3,
+                })
+            }
+            30 => MavMessage::ATTITUDE(ATTITUDE_DATA {
+                time_boot_ms: ms,
+                roll: s.attitude[0] as f32,
+                pitch: s.attitude[1] as f32,
+                yaw: s.attitude[2] as f32,
+                rollspeed: 0.0,
+                pitchspeed: 0.0,
+                yawspeed: 0.0,
+            }),
+            32 => MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+                time_boot_ms: ms,
+                x: s.position.x as f32,
+                y: s.position.y as f32,
+                z: s.position.z as f32,
+                vx: s.velocity.x as f32,
+                vy: s.velocity.y as f32,
+                vz: s.velocity.z as f32,
+            }),
+            33 => MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+                time_boot_ms: ms,
+                lat: (geo.lat_deg * 1e7).round() as i32,
+                lon: (geo.lon_deg * 1e7).round() as i32,
+                alt: (geo.alt_m * 1e3).round() as i32,
+                relative_alt: ((geo.alt_m - home.alt_m) * 1e3).round() as i32,
+                vx: (s.velocity.x * 100.0) as i16,
+                vy: (s.velocity.y * 100.0) as i16,
+                vz: (s.velocity.z * 100.0) as i16,
+                hdg: (s.attitude[2].to_degrees().rem_euclid(360.0) * 100.0) as u16,
+            }),
+            242 => MavMessage::HOME_POSITION(HOME_POSITION_DATA {
+                latitude: (home.lat_deg * 1e7).round() as i32,
+                longitude: (home.lon_deg * 1e7).round() as i32,
+                altitude: (home.alt_m * 1e3).round() as i32,
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+                q: [1.0, 0.0, 0.0, 0.0],
+                approach_x: 0.0,
+                approach_y: 0.0,
+                approach_z: 0.0,
+                ..Default::default()
+            }),
+            245 => MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
+                vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
+                landed_state: match self.phase {
+                    Phase::Mission => MavLandedState::MAV_LANDED_STATE_IN_AIR,
+                    Phase::Landing { .. } => MavLandedState::MAV_LANDED_STATE_LANDING,
+                    Phase::Landed => MavLandedState::MAV_LANDED_STATE_ON_GROUND,
+                },
+            }),
+            2 => MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
+                time_unix_usec: std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map(|d| d.as_micros() as u64)
+                    .unwrap_or(0),
+                time_boot_ms: ms,
+            }),
+            285 => {
+                let q = self.gimbal_attitude(t);
+                let flags = GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
+                    | GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_ROLL_LOCK
+                    | GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_PITCH_LOCK
+                    | GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_ACCEPTS_YAW_IN_EARTH_FRAME;
+                let yaw = s.attitude[2];
+                let gimbal_yaw = self.state.gimbal.yaw;
+                let m = MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(GIMBAL_DEVICE_ATTITUDE_STATUS_DATA {
+                    time_boot_ms: ms,
+                    q: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
+                    angular_velocity_x: f32::NAN,
+                    angular_velocity_y: f32::NAN,
+                    angular_velocity_z: f32::NAN,
+                    flags,
+                    delta_yaw: (gimbal_yaw - yaw) as f32,
+                    delta_yaw_velocity: f32::NAN,
+                    gimbal_device_id: 0,
+                    ..Default::default()
+                });
+                self.send(GIMBAL_COMPONENT, m);
+                return;
+            }
+            _ => return,
+        };
+        self.send(1, m);
+    }
+
+    fn ack(&mut self, command: MavCmd, result: MavResult, to: (u8, u8)) {
+        self.send(
+            1,
+            MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                command,
+                result,
+                target_system: to.0,
+                target_component: to.1,
+                ..Default::default()
+            }),
+        );
+    }
+
+    /// Handles one message at vehicle time `t`.
+    pub fn handle(&mut self, from: (u8, u8), m: &MavMessage, t: f64) {
+        match m {
+            MavMessage::COMMAND_LONG(c)
+                if (c.target_system == self.system_id || c.target_system == 0)
+                    && (c.target_component == 1 || c.target_component == 0) =>
+            {
+                let result = match c.command {
+                    MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
+                        let id = c.param1 as u32;
+                        match self.rates.iter_mut().find(|s| s.id == id) {
+                            Some(s) => {
+                                s.hz = match c.param2 {
+                                    x if x < 0.0 => 0.0,
+                                    x if x == 0.0 => s.default_hz,
+                                    us => 1e6 / us as f64,
+                                };
+                                s.next = t;
+                                MavResult::MAV_RESULT_ACCEPTED
+                            }
+                            None => MavResult::MAV_RESULT_DENIED,
+                        }
+                    }
+                    MavCmd::MAV_CMD_REQUEST_MESSAGE => {
+                        let id = c.param1 as u32;
+                        if DEFAULT_RATES.iter().any(|(i, _)| *i == id) {
+                            self.emit(id, t);
+                            MavResult::MAV_RESULT_ACCEPTED
+                        } else {
+                            MavResult::MAV_RESULT_DENIED
+                        }
+                    }
+                    MavCmd::MAV_CMD_NAV_LAND => {
+                        self.land(t);
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
+                    _ => MavResult::MAV_RESULT_UNSUPPORTED,
+                };
+                self.ack(c.command, result, from);
+            }
+            MavMessage::GIMBAL_DEVICE_SET_ATTITUDE(g)
+                if g.target_system == self.system_id && g.target_component == GIMBAL_COMPONENT =>
+            {
+                if g.q.iter().all(|c| c.is_finite()) {
+                    let q = nalgebra::Quaternion::new(g.q[0] as f64, g.q[1] as f64, g.q[2] as f64, g.q[3] as f64);
+                    if q.norm() > 0.5 {
+                        let q = UnitQuaternion::from_quaternion(q);
+                        // Yaw in the vehicle frame: turn it into earth frame.
+                        let q = if g.flags.contains(GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME) {
+                            q
+                        } else {
+                            UnitQuaternion::from_axis_angle(&Vec3::z_axis(), self.state.attitude[2]) * q
+                        };
+                        self.setpoint = Some((t, q));
+                    }
+                }
+            }
+            MavMessage::TIMESYNC(ts) if ts.tc1 == 0 => {
+                self.send(
+                    1,
+                    MavMessage::TIMESYNC(TIMESYNC_DATA {
+                        tc1: (t * 1e9) as i64,
+                        ts1: ts.ts1,
+                        target_system: from.0,
+                        target_component: from.1,
+                    }),
+                );
+            }
+            _ => {}
+        }
+    }
+}
+
+/// Runs the vehicle over UDP until it has landed after `duration_s`, or forever.
+/// `on_landed(position)` is told where it touched down.
+pub fn run(scenario: &Scenario, opts: &VehicleOptions) -> Result<Option<Vec3>, String> {
+    let mut v = Vehicle::new(scenario, opts.system_id, opts.start_s)?;
+    let (socket, mut peer): (UdpSocket, Option<SocketAddr>) = {
+        let (mode, rest) = opts
+            .address
+            .split_once(':')
+            .ok_or_else(|| format!("address {}: expected udpout:HOST:PORT or udpin:HOST:PORT", opts.address))?;
+        let addr: SocketAddr =
+            rest.parse().map_err(|e| format!("address {}: {rest} is not HOST:PORT ({e})", opts.address))?;
+        match mode {
+            "udpout" => {
+                let local = if addr.ip().is_loopback() { "127.0.0.1:0" } else { "0.0.0.0:0" };
+                (UdpSocket::bind(local).map_err(|e| format!("cannot open a UDP socket: {e}"))?, Some(addr))
+            }
+            "udpin" => (UdpSocket::bind(addr).map_err(|e| format!("cannot listen on {addr}: {e}"))?, None),
+            other => return Err(format!("address {}: {other} is not udpout or udpin", opts.address)),
+        }
+    };
+    socket.set_read_timeout(Some(Duration::from_millis(2))).map_err(|e| e.to_string())?;
+    let mut truth = match &opts.truth_log {
+        Some(p) => {
+            let mut f = std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            writeln!(f, "t,north,east,down,roll,pitch,yaw,phase").map_err(|e| e.to_string())?;
+            Some(f)
+        }
+        None => None,
+    };
+    let started = Instant::now();
+    let mut seq: u8 = 0;
+    let mut next_truth = 0.0;
+    let mut landed_at: Option<f64> = None;
+    let mut buf = [0u8; 2048];
+    loop {
+        let t = started.elapsed().as_secs_f64();
+        match socket.recv_from(&mut buf) {
+            Ok((n, from)) => {
+                if opts.address.starts_with("udpin") {
+                    peer = Some(from);
+                }
+                let mut reader = mavlink::MavlinkReader::new(&buf[..n]);
+                while let Ok((h, m)) = reader.read_any_message::<MavMessage>() {
+                    v.handle((h.system_id as u8, h.component_id), &m, t);
+                }
+            }
+            Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => {} // nobody listening yet
+            Err(e) => return Err(format!("UDP receive: {e}")),
+        }
+        if let Some(d) = opts.duration_s {
+            if t >= d {
+                v.land(t);
+            }
+        }
+        v.step(t);
+        if let Some(f) = truth.as_mut() {
+            if t >= next_truth {
+                next_truth = t + 0.1;
+                let s = v.state;
+                let _ = writeln!(
+                    f,
+                    "{t:.3},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{:?}",
+                    s.position.x, s.position.y, s.position.z, s.attitude[0], s.attitude[1], s.attitude[2], v.phase
+                )
+                .and_then(|_| f.flush());
+            }
+        }
+        for (component, m) in std::mem::take(&mut v.out) {
+            let Some(to) = peer else { continue };
+            let header = MavHeader { system_id: opts.system_id as u32, component_id: component, sequence: seq };
+            seq = seq.wrapping_add(1);
+            let mut out = Vec::with_capacity(280);
+            if mavlink::write_versioned_msg(&mut out, MavlinkVersion::V2, header, &m).is_ok() {
+                let _ = socket.send_to(&out, to);
+            }
+        }
+        if v.phase == Phase::Landed {
+            let at = *landed_at.get_or_insert(t);
+            // Keep reporting ON_GROUND for a moment, then exit when the flight was timed.
+            if opts.duration_s.is_some() && t - at > 1.5 {
+                return Ok(Some(v.state.position));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn vehicle(name: &str) -> Vehicle {
+        Vehicle::new(&Scenario::load(name).unwrap(), 1, 0.0).unwrap()
+    }
+
+    #[test]
+    fn streams_follow_set_message_interval_and_are_acked() {
+        let mut v = vehicle("coastline");
+        v.handle(
+            (255, 190),
+            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+                param1: 30.0,
+                param2: 100_000.0, // 10 Hz
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            }),
+            0.0,
+        );
+        assert!(matches!(&v.out[0].1, MavMessage::COMMAND_ACK(a) if a.result == MavResult::MAV_RESULT_ACCEPTED));
+        v.out.clear();
+        let mut attitude = 0;
+        for i in 0..100 {
+            v.step(i as f64 * 0.01);
+            attitude += v.out.drain(..).filter(|(_, m)| matches!(m, MavMessage::ATTITUDE(_))).count();
+        }
+        assert_eq!(attitude, 10, "10 Hz over one second");
+    }
+
+    #[test]
+    fn nav_land_descends_and_reports_on_ground() {
+        let mut v = vehicle("indoor-floor");
+        v.step(1.0);
+        let before = v.state.position;
+        v.handle(
+            (1, 191),
+            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_NAV_LAND,
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            }),
+            1.0,
+        );
+        assert!(matches!(v.phase, Phase::Landing { .. }));
+        for i in 0..100 {
+            v.step(1.0 + i as f64 * 0.05);
+        }
+        assert_eq!(v.phase, Phase::Landed);
+        assert!((v.state.position.xy() - before.xy()).norm() < 1e-9, "vertical descent");
+        v.out.clear();
+        v.step(10.0);
+        v.emit(245, 10.0);
+        assert!(v.out.iter().any(|(_, m)| matches!(m, MavMessage::EXTENDED_SYS_STATE(e)
+            if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND)));
+    }
+
+    #[test]
+    fn the_gimbal_reports_the_mission_pointing_in_earth_frame_and_obeys_setpoints() {
+        let mut v = vehicle("coastline");
+        v.step(5.0);
+        v.out.clear();
+        v.emit(285, 5.0);
+        let (comp, m) = &v.out[0];
+        assert_eq!(*comp, GIMBAL_COMPONENT);
+        let MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g) = m else { panic!() };
+        assert!(g.flags.contains(GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME));
+        let q = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            g.q[0] as f64,
+            g.q[1] as f64,
+            g.q[2] as f64,
+            g.q[3] as f64,
+        ));
+        let a = mavloc_geometry::GimbalChain::YawPitchRoll.angles(&q.to_rotation_matrix());
+        assert!((a.pitch - v.state.gimbal.pitch).abs() < 1e-5 && (a.yaw - v.state.gimbal.yaw).abs() < 1e-5);
+        // A setpoint (straight down) is followed, then released.
+        let down = UnitQuaternion::from_euler_angles(0.0, -std::f64::consts::FRAC_PI_2, 0.0);
+        v.handle(
+            (1, 191),
+            &MavMessage::GIMBAL_DEVICE_SET_ATTITUDE(GIMBAL_DEVICE_SET_ATTITUDE_DATA {
+                q: [down.w as f32, down.i as f32, down.j as f32, down.k as f32],
+                flags: GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+                target_system: 1,
+                target_component: GIMBAL_COMPONENT,
+                ..Default::default()
+            }),
+            5.0,
+        );
+        assert!(v.gimbal_attitude(5.5).angle_to(&down) < 1e-6);
+        assert!(v.gimbal_attitude(8.0).angle_to(&down) > 0.01, "released after the hold");
+    }
+}
