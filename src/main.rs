@@ -83,7 +83,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Sim { command: SimCommand::Render(args) } => sim_render(args),
         Command::Sim { command: SimCommand::Plan { scenario, out } } => sim_plan(&scenario, out),
-        Command::Sim { command: SimCommand::Vehicle { scenario, mavlink, system_id, duration, start, truth_log } } => {
+        Command::Sim {
+            command: SimCommand::Vehicle { scenario, mavlink, system_id, duration, start, truth_log },
+        } => {
             let scenario = mavloc_sim::Scenario::load(&scenario).map_err(anyhow::Error::msg)?;
             let opts = mavloc_sim::vehicle::VehicleOptions {
                 address: mavlink,

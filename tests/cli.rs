@@ -91,7 +91,10 @@ fn run_refuses_a_bad_mavlink_address() {
 
 #[test]
 fn sim_vehicle_names_a_bad_address() {
-    let a = mavloc().args(["sim", "vehicle", "--scenario", "indoor-floor", "--mavlink", "serial:/dev/x"]).assert().failure();
+    let a = mavloc()
+        .args(["sim", "vehicle", "--scenario", "indoor-floor", "--mavlink", "serial:/dev/x"])
+        .assert()
+        .failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("serial:/dev/x"), "{err}");
 }

@@ -404,11 +404,13 @@ impl Vehicle {
                 if g.target_system == self.system_id && g.target_component == GIMBAL_COMPONENT =>
             {
                 if g.q.iter().all(|c| c.is_finite()) {
-                    let q = nalgebra::Quaternion::new(g.q[0] as f64, g.q[1] as f64, g.q[2] as f64, g.q[3] as f64);
+                    let q =
+                        nalgebra::Quaternion::new(g.q[0] as f64, g.q[1] as f64, g.q[2] as f64, g.q[3] as f64);
                     if q.norm() > 0.5 {
                         let q = UnitQuaternion::from_quaternion(q);
                         // Yaw in the vehicle frame: turn it into earth frame.
-                        let q = if g.flags.contains(GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME) {
+                        let q = if g.flags.contains(GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME)
+                        {
                             q
                         } else {
                             UnitQuaternion::from_axis_angle(&Vec3::z_axis(), self.state.attitude[2]) * q
@@ -438,10 +440,9 @@ impl Vehicle {
 pub fn run(scenario: &Scenario, opts: &VehicleOptions) -> Result<Option<Vec3>, String> {
     let mut v = Vehicle::new(scenario, opts.system_id, opts.start_s)?;
     let (socket, mut peer): (UdpSocket, Option<SocketAddr>) = {
-        let (mode, rest) = opts
-            .address
-            .split_once(':')
-            .ok_or_else(|| format!("address {}: expected udpout:HOST:PORT or udpin:HOST:PORT", opts.address))?;
+        let (mode, rest) = opts.address.split_once(':').ok_or_else(|| {
+            format!("address {}: expected udpout:HOST:PORT or udpin:HOST:PORT", opts.address)
+        })?;
         let addr: SocketAddr =
             rest.parse().map_err(|e| format!("address {}: {rest} is not HOST:PORT ({e})", opts.address))?;
         match mode {
@@ -496,14 +497,21 @@ pub fn run(scenario: &Scenario, opts: &VehicleOptions) -> Result<Option<Vec3>, S
                 let _ = writeln!(
                     f,
                     "{t:.3},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{:?}",
-                    s.position.x, s.position.y, s.position.z, s.attitude[0], s.attitude[1], s.attitude[2], v.phase
+                    s.position.x,
+                    s.position.y,
+                    s.position.z,
+                    s.attitude[0],
+                    s.attitude[1],
+                    s.attitude[2],
+                    v.phase
                 )
                 .and_then(|_| f.flush());
             }
         }
         for (component, m) in std::mem::take(&mut v.out) {
             let Some(to) = peer else { continue };
-            let header = MavHeader { system_id: opts.system_id as u32, component_id: component, sequence: seq };
+            let header =
+                MavHeader { system_id: opts.system_id as u32, component_id: component, sequence: seq };
             seq = seq.wrapping_add(1);
             let mut out = Vec::with_capacity(280);
             if mavlink::write_versioned_msg(&mut out, MavlinkVersion::V2, header, &m).is_ok() {
@@ -543,7 +551,9 @@ mod tests {
             }),
             0.0,
         );
-        assert!(matches!(&v.out[0].1, MavMessage::COMMAND_ACK(a) if a.result == MavResult::MAV_RESULT_ACCEPTED));
+        assert!(
+            matches!(&v.out[0].1, MavMessage::COMMAND_ACK(a) if a.result == MavResult::MAV_RESULT_ACCEPTED)
+        );
         v.out.clear();
         let mut attitude = 0;
         for i in 0..100 {

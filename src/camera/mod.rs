@@ -122,8 +122,7 @@ impl Credits {
     /// Takes a credit, waiting up to `timeout`; false on timeout.
     pub fn take(&self, timeout: Duration) -> bool {
         let guard = self.count.lock().expect("credits");
-        let (mut guard, _) =
-            self.cv.wait_timeout_while(guard, timeout, |c| *c == 0).expect("credits");
+        let (mut guard, _) = self.cv.wait_timeout_while(guard, timeout, |c| *c == 0).expect("credits");
         if *guard > 0 {
             *guard -= 1;
             true
@@ -178,7 +177,10 @@ pub enum CameraEvent {
     /// The source is up (first frame, or again after it was lost).
     Up(String),
     /// The source failed; it is retried with backoff unless `fatal`.
-    Down { why: String, fatal: bool },
+    Down {
+        why: String,
+        fatal: bool,
+    },
     /// A file or dataset ended.
     Ended(String),
 }

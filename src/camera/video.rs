@@ -80,7 +80,8 @@ impl Video {
         cap.set(videoio::CAP_PROP_FRAME_WIDTH, c.width as f64)?;
         cap.set(videoio::CAP_PROP_FRAME_HEIGHT, c.height as f64)?;
         cap.set(videoio::CAP_PROP_FPS, c.fps)?;
-        let got = (cap.get(videoio::CAP_PROP_FRAME_WIDTH)? as i32, cap.get(videoio::CAP_PROP_FRAME_HEIGHT)? as i32);
+        let got =
+            (cap.get(videoio::CAP_PROP_FRAME_WIDTH)? as i32, cap.get(videoio::CAP_PROP_FRAME_HEIGHT)? as i32);
         if got != (c.width as i32, c.height as i32) {
             return Err(SourceError::Fatal(format!(
                 "V4L2 device {dev} delivers {}x{}, but camera.width x camera.height is {}x{}: set them to a size the camera supports (v4l2-ctl --list-formats-ext)",
@@ -154,7 +155,8 @@ impl Video {
         match &mut self.input {
             Input::Capture(cap) => {
                 let mut frame = Mat::default();
-                let ok = cap.read(&mut frame).map_err(|e| SourceError::Gone(format!("{}: {e}", self.what)))?;
+                let ok =
+                    cap.read(&mut frame).map_err(|e| SourceError::Gone(format!("{}: {e}", self.what)))?;
                 let grabbed = self.ctx.now();
                 if !ok || frame.empty() {
                     return if self.device {
@@ -180,7 +182,10 @@ impl Video {
                 *next += 1;
                 let img = imgcodecs::imread(&p, imgcodecs::IMREAD_COLOR)?;
                 if img.empty() {
-                    return Err(SourceError::Fatal(format!("{} is not an image OpenCV can read", p.display())));
+                    return Err(SourceError::Fatal(format!(
+                        "{} is not an image OpenCV can read",
+                        p.display()
+                    )));
                 }
                 Ok(Some((img, self.ctx.now())))
             }
@@ -207,12 +212,27 @@ impl FrameSource for Video {
                 )));
             }
             let mut resized = Mat::default();
-            imgproc::resize(&frame, &mut resized, Size::new(self.size.0, self.size.1), 0.0, 0.0, imgproc::INTER_AREA)?;
+            imgproc::resize(
+                &frame,
+                &mut resized,
+                Size::new(self.size.0, self.size.1),
+                0.0,
+                0.0,
+                imgproc::INTER_AREA,
+            )?;
             frame = resized;
         }
         if let Some((m1, m2)) = &self.maps {
             let mut out = Mat::default();
-            imgproc::remap(&frame, &mut out, m1, m2, imgproc::INTER_LINEAR, core::BORDER_CONSTANT, core::Scalar::all(0.0))?;
+            imgproc::remap(
+                &frame,
+                &mut out,
+                m1,
+                m2,
+                imgproc::INTER_LINEAR,
+                core::BORDER_CONSTANT,
+                core::Scalar::all(0.0),
+            )?;
             frame = out;
         }
         let index = self.index;
@@ -253,8 +273,12 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for (i, v) in [(1, 10.0), (0, 200.0)] {
             let m = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
-            imgcodecs::imwrite(&dir.path().join(format!("{i}.png")).to_string_lossy(), &m, &core::Vector::new())
-                .unwrap();
+            imgcodecs::imwrite(
+                &dir.path().join(format!("{i}.png")).to_string_lossy(),
+                &m,
+                &core::Vector::new(),
+            )
+            .unwrap();
         }
         let c = Camera {
             path: dir.path().to_string_lossy().into(),

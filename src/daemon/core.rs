@@ -683,7 +683,10 @@ impl Core {
     /// the air; retried once a second until acknowledged.
     pub fn request_landing(&mut self, now: f64) {
         if !self.settings.indoor.landing_enabled {
-            self.status(MavSeverity::MAV_SEVERITY_INFO, "landing trigger fired; landing is disabled (IND_LAND_EN 0)");
+            self.status(
+                MavSeverity::MAV_SEVERITY_INFO,
+                "landing trigger fired; landing is disabled (IND_LAND_EN 0)",
+            );
             return;
         }
         let airborne = matches!(self.landed_state, Some(MavLandedState::MAV_LANDED_STATE_IN_AIR));
@@ -701,6 +704,12 @@ impl Core {
             self.status(MavSeverity::MAV_SEVERITY_NOTICE, "landing requested: sending MAV_CMD_NAV_LAND");
             self.landing = Some((0, now));
         }
+    }
+
+    /// The autopilot says it is on the ground: a downward camera sees the floor up close,
+    /// and a landed vehicle needs no position from vision.
+    pub fn on_ground(&self) -> bool {
+        matches!(self.landed_state, Some(MavLandedState::MAV_LANDED_STATE_ON_GROUND))
     }
 
     /// Whether a pipeline has what it needs to start.

@@ -118,7 +118,9 @@ impl LivePipeline for AreaLive {
         let Some(mask) = &frame.mask else {
             if !self.no_mask_warned {
                 self.no_mask_warned = true;
-                report.events.push("area: this camera source gives no target mask; frames are skipped".into());
+                report
+                    .events
+                    .push("area: this camera source gives no target mask; frames are skipped".into());
             }
             return report;
         };
@@ -129,7 +131,8 @@ impl LivePipeline for AreaLive {
                 return report;
             }
         };
-        let input = FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
+        let input =
+            FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
         let r = match self.pipeline.process(&input) {
             Ok(r) => r,
             Err(e) => {
@@ -210,7 +213,8 @@ impl IndoorLive {
         let mut settings = s.clone();
         settings.indoor = model_settings(&model, &s.indoor);
         let i = &settings.indoor;
-        let mut pre = Preprocessor::new(k, i.work_width, i.derotate, (i.patch_w as usize, i.patch_h as usize));
+        let mut pre =
+            Preprocessor::new(k, i.work_width, i.derotate, (i.patch_w as usize, i.patch_h as usize));
         pre.normalise = i.normalise;
         let rel = (pre.work.fx - model.frame.work_fx).abs() / model.frame.work_fx;
         if rel > 0.1 {

@@ -372,7 +372,9 @@ fn feed_pose(core: &Core, live: &mut Live, now: f64) {
 fn offer_pending(core: &mut Core, live: &mut Live, now: f64) {
     while let Some(c) = live.pending.pop_front() {
         let running = matches!(core.pipeline, PipelineState::Running(_)) && live.worker.is_some();
-        if !running {
+        // Live frames are not processed while the vehicle is on the ground (replayed ones
+        // carry their own pose and are).
+        if !running || (c.pose.is_none() && core.on_ground()) {
             live.give_credit();
             continue;
         }
@@ -395,7 +397,10 @@ fn offer_pending(core: &mut Core, live: &mut Live, now: f64) {
                     e.to_string()
                 };
                 if live.last_align_error.as_deref() != Some(why.as_str()) {
-                    tracing::warn!("frame {} dropped: {why} (further drops for this reason are only counted)", c.index);
+                    tracing::warn!(
+                        "frame {} dropped: {why} (further drops for this reason are only counted)",
+                        c.index
+                    );
                     live.last_align_error = Some(why);
                 }
                 continue;
@@ -447,7 +452,10 @@ fn worker_event(core: &mut Core, live: &mut Live, ev: WorkerEvent, now: f64) {
             core.status(MavSeverity::MAV_SEVERITY_ERROR, &format!("pipeline failed: {e}"));
         }
         WorkerEvent::Stopped { files } => {
-            tracing::info!("pipeline results: {}", files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", "));
+            tracing::info!(
+                "pipeline results: {}",
+                files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
+            );
         }
     }
 }
@@ -472,7 +480,12 @@ fn stop_worker(live: &mut Live) {
 }
 
 fn start_worker(core: &mut Core, live: &mut Live, k: PipelineKind) {
-    let w = Worker::start(factory(k, live.results.clone()), core.settings.clone(), live.results.clone(), live.worker_tx.clone());
+    let w = Worker::start(
+        factory(k, live.results.clone()),
+        core.settings.clone(),
+        live.results.clone(),
+        live.worker_tx.clone(),
+    );
     live.worker = Some((k, w));
 }
 
@@ -502,7 +515,10 @@ fn act(core: &mut Core, live: &mut Live, a: Action) {
             if let PipelineState::Running(k) | PipelineState::Failed(k) = core.pipeline {
                 stop_worker(live);
                 core.pipeline = PipelineState::Stopped;
-                core.status(MavSeverity::MAV_SEVERITY_INFO, &format!("{k:?} pipeline stopped; results written"));
+                core.status(
+                    MavSeverity::MAV_SEVERITY_INFO,
+                    &format!("{k:?} pipeline stopped; results written"),
+                );
             }
         }
         Action::ResetPipeline => {
@@ -515,13 +531,19 @@ fn act(core: &mut Core, live: &mut Live, a: Action) {
                         .duration_since(std::time::UNIX_EPOCH)
                         .map(|d| d.as_secs())
                         .unwrap_or(0);
-                    let aside = sub.with_file_name(format!("{}-{stamp}", sub.file_name().unwrap_or_default().to_string_lossy()));
+                    let aside = sub.with_file_name(format!(
+                        "{}-{stamp}",
+                        sub.file_name().unwrap_or_default().to_string_lossy()
+                    ));
                     if let Err(e) = std::fs::rename(&sub, &aside) {
                         tracing::warn!("cannot move {} aside: {e}", sub.display());
                     }
                 }
                 start_worker(core, live, k);
-                core.status(MavSeverity::MAV_SEVERITY_INFO, &format!("{k:?} pipeline reset; earlier results kept aside"));
+                core.status(
+                    MavSeverity::MAV_SEVERITY_INFO,
+                    &format!("{k:?} pipeline reset; earlier results kept aside"),
+                );
             }
         }
         Action::Apply(s) => {

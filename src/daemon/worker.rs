@@ -79,10 +79,20 @@ pub enum Request {
 pub enum Event {
     /// `capture_s`: the frame's local capture time; `attitude`: the vehicle's roll, pitch,
     /// yaw then (radians), for the messages the report becomes.
-    Report { frame: u64, capture_s: f64, attitude: (f64, f64, f64), report: Report },
-    Panicked { frame: u64, message: String },
+    Report {
+        frame: u64,
+        capture_s: f64,
+        attitude: (f64, f64, f64),
+        report: Report,
+    },
+    Panicked {
+        frame: u64,
+        message: String,
+    },
     Failed(String),
-    Stopped { files: Vec<PathBuf> },
+    Stopped {
+        files: Vec<PathBuf>,
+    },
 }
 
 #[derive(Default)]
@@ -214,7 +224,12 @@ fn run(
             match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
                 Ok(report) => {
                     let attitude = f.pose.vehicle.attitude.euler_angles();
-                    let _ = events.send(Event::Report { frame: f.index, capture_s: f.capture_s, attitude, report });
+                    let _ = events.send(Event::Report {
+                        frame: f.index,
+                        capture_s: f.capture_s,
+                        attitude,
+                        report,
+                    });
                 }
                 Err(p) => {
                     let message = panic_message(&*p);

@@ -1,0 +1,298 @@
+//! The closed loop, end to end, with the real binary: the simulated vehicle and `mavloc run`
+//! with the sim camera over UDP loopback, relayed and decoded by pymavlink
+//! (`tests/e2e/closed_loop.py`); the dataset camera against the offline run; a missing
+//! V4L2 device. Each test bounds its own time.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use mavloc::area::eval::evaluate;
+use mavloc::output::parse_landmarks_csv;
+use mavloc_sim::{Mission, Scenario, World};
+
+const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
+
+/// Runs the relay script and returns what it saw.
+fn closed_loop(mode: &str, seconds: f64, state: &Path, args: &[&str]) -> serde_json::Value {
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/e2e/closed_loop.py");
+    let mut child = Command::new("python3")
+        .arg(script)
+        .args([BIN, mode, &seconds.to_string(), &state.display().to_string()])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("python3 runs (make deps installs pymavlink)");
+    let limit = Duration::from_secs_f64(seconds + 30.0);
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut out = String::new();
+            std::io::Read::read_to_string(child.stdout.as_mut().unwrap(), &mut out).unwrap();
+            assert!(status.success(), "relay failed: {out}");
+            return serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("closed loop did not finish within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn log(state: &Path) -> String {
+    std::fs::read_to_string(state.join("mavloc.log")).unwrap_or_default()
+}
+
+#[test]
+fn coastline_flight_converges_landmarks_near_the_true_shore() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let seen = closed_loop(
+        "area",
+        40.0,
+        &state,
+        &[
+            "--set",
+            "camera.width=480",
+            "--set",
+            "camera.height=270",
+            "--set",
+            "area.downscale=1",
+            "--set",
+            "area.band_px=13",
+            "--vehicle",
+            "--duration",
+            "--vehicle",
+            "35",
+        ],
+    );
+    let text = log(&state);
+    assert_eq!(seen["daemon_exit"], 0, "{text}");
+    assert!(seen["lmk"].as_u64().unwrap() > 0, "DEBUG_VECT LMK streamed: {seen}");
+    assert!(seen["named"]["LMK_CONV"].as_f64().unwrap() > 0.0, "{seen}");
+    assert!(seen["named"]["FR_DONE"].as_f64().unwrap() > 100.0, "about 6 Hz for 35 s: {seen}");
+    let states = seen["daemon_heartbeat_states"].as_array().unwrap();
+    assert!(states.iter().any(|s| s == 4), "MAV_STATE_ACTIVE while flying: {states:?}");
+    let texts = seen["statustext"].to_string();
+    assert!(texts.contains("landmarks converged") && texts.contains("camera up"), "{texts}");
+
+    // Accuracy: converged landmarks against the world's true shoreline.
+    let path = state.join("results/area/landmarks.csv");
+    let landmarks = parse_landmarks_csv(&std::fs::read_to_string(&path).unwrap(), "landmarks.csv").unwrap();
+    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
+    let e = evaluate(&landmarks, &world.ground_truth, &[], 6.0);
+    println!("live coastline: {} landmarks, mean {:.2} m, max {:.2} m", e.landmarks, e.mean_m, e.max_m);
+    assert!(e.landmarks >= 30, "{e:?}");
+    assert_eq!(e.gt20, 0, "{e:?}");
+    assert!(e.mean_m < 3.0, "the seed's coastline reached 2.82 m: {e:?}");
+    assert!(state.join("results/area/area.kml").exists());
+}
+
+fn train_small_model(dir: &Path) -> PathBuf {
+    let views = dir.join("views");
+    let out = Command::new(BIN)
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "indoor-floor",
+            "--views",
+            "400",
+            "--width",
+            "320",
+            "--height",
+            "240",
+        ])
+        .arg("--out")
+        .arg(&views)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let model = dir.join("floor.model");
+    let out = Command::new(BIN)
+        .args(["indoor", "train", "--dataset"])
+        .arg(&views)
+        .arg("--out")
+        .arg(&model)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    model
+}
+
+#[test]
+fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = train_small_model(dir.path());
+    // The zone: where the mission is 12 s in.
+    let world = World::build(&Scenario::load("indoor-floor").unwrap()).unwrap();
+    let zone = Mission::plan(&world).unwrap().state(12.0).position;
+    let radius = 0.6;
+    let state = dir.path().join("state");
+    let sets = [
+        format!("indoor.model={}", model.display()),
+        "camera.width=320".into(),
+        "camera.height=240".into(),
+        "camera.fps=15".into(),
+        "indoor.landing_enabled=true".into(),
+        format!("indoor.landing_x_m={}", zone.x),
+        format!("indoor.landing_y_m={}", zone.y),
+        format!("indoor.landing_radius_m={radius}"),
+    ];
+    let mut args: Vec<&str> = Vec::new();
+    for s in &sets {
+        args.extend(["--set", s]);
+    }
+    args.extend(["--vehicle", "--duration", "--vehicle", "35"]);
+    let seen = closed_loop("indoor", 40.0, &state, &args);
+    let text = log(&state);
+    assert_eq!(seen["daemon_exit"], 0, "{text}");
+
+    // VISION_POSITION_ESTIMATE at about the camera rate while flying, close to the truth.
+    let vpe = seen["vpe"].as_array().unwrap();
+    let lpn = seen["lpn"].as_array().unwrap();
+    assert!(vpe.len() > 60, "{} estimates: {text}", vpe.len());
+    let t0 = vpe[0][0].as_f64().unwrap();
+    let t1 = vpe[vpe.len() - 1][0].as_f64().unwrap();
+    let rate = (vpe.len() - 1) as f64 / (t1 - t0);
+    assert!(rate > 9.0, "estimates at {rate:.1} Hz, camera 15 Hz");
+    let mut errors: Vec<f64> = vpe
+        .iter()
+        .zip(lpn)
+        .skip(30) // the particle filter's first second
+        .map(|(v, p)| {
+            let (x, y) = (v[1].as_f64().unwrap(), v[2].as_f64().unwrap());
+            ((x - p[0].as_f64().unwrap()).powi(2) + (y - p[1].as_f64().unwrap()).powi(2)).sqrt()
+        })
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    let median = errors[errors.len() / 2];
+    println!("indoor live: {} estimates at {rate:.1} Hz, median error {median:.3} m", vpe.len());
+    assert!(median < 0.3, "median error {median} m");
+    assert!(vpe.iter().all(|v| v[3].as_f64().unwrap() > 0.0), "covariance set");
+
+    // The landing: commanded, acknowledged, and down inside the zone.
+    assert!(seen["land_commands"].as_u64().unwrap() >= 1, "{text}");
+    assert!(seen["land_acks"].as_array().unwrap().iter().any(|r| r == 0), "{seen}");
+    assert_eq!(seen["on_ground"], true);
+    let truth = std::fs::read_to_string(state.join("truth.csv")).unwrap();
+    let last: Vec<f64> =
+        truth.lines().last().unwrap().split(',').take(3).map(|c| c.parse().unwrap()).collect();
+    let miss = ((last[1] - zone.x).powi(2) + (last[2] - zone.y).powi(2)).sqrt();
+    println!("landed {miss:.2} m from the zone centre");
+    assert!(miss < radius, "landed {miss} m from the centre of a {radius} m zone");
+    assert!(seen["statustext"].to_string().contains("landing zone reached"));
+}
+
+fn wait_for(path: &Path, what: &str, limit: Duration) -> String {
+    let start = Instant::now();
+    loop {
+        let text = std::fs::read_to_string(path).unwrap_or_default();
+        if text.contains(what) {
+            return text;
+        }
+        assert!(start.elapsed() < limit, "`{what}` not in {} within {limit:?}:\n{text}", path.display());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+fn daemon(state: &Path, sets: &[String]) -> std::process::Child {
+    std::fs::create_dir_all(state).unwrap();
+    let log = std::fs::File::create(state.join("mavloc.log")).unwrap();
+    let mut cmd = Command::new(BIN);
+    cmd.args(["run", "--mavlink", &format!("udpin:127.0.0.1:{}", free_port())])
+        .args(["--set", &format!("daemon.state_dir={}", state.display())]);
+    for s in sets {
+        cmd.args(["--set", s]);
+    }
+    cmd.env("RUST_LOG", "mavloc=info").stdout(log.try_clone().unwrap()).stderr(log).spawn().unwrap()
+}
+
+fn sigterm(child: &mut std::process::Child) -> std::process::ExitStatus {
+    // SAFETY: a plain kill(2) on our own child.
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let start = Instant::now();
+    loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            return s;
+        }
+        assert!(start.elapsed() < Duration::from_secs(5), "no exit after SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn dataset_replay_gives_the_offline_landmarks() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let out = Command::new(BIN)
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--frames",
+            "60",
+            "--width",
+            "480",
+            "--height",
+            "270",
+        ])
+        .arg("--out")
+        .arg(&ds)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let offline = dir.path().join("offline");
+    let out = Command::new(BIN)
+        .args(["area", "--set", "area.downscale=1", "--set", "area.band_px=13", "--dataset"])
+        .arg(&ds)
+        .arg("--out")
+        .arg(&offline)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let state = dir.path().join("state");
+    let mut child = daemon(
+        &state,
+        &[
+            "camera.source=dataset".into(),
+            format!("camera.path={}", ds.display()),
+            "camera.realtime=false".into(),
+            "area.downscale=1".into(),
+            "area.band_px=13".into(),
+        ],
+    );
+    wait_for(&state.join("mavloc.log"), "camera source ended", Duration::from_secs(60));
+    // The last frame may still be in the pipeline: SIGTERM waits for it and writes results.
+    assert!(sigterm(&mut child).success());
+    let read = |p: PathBuf| parse_landmarks_csv(&std::fs::read_to_string(&p).unwrap(), "csv").unwrap();
+    let (a, b) = (read(offline.join("landmarks.csv")), read(state.join("results/area/landmarks.csv")));
+    assert!(!a.is_empty());
+    assert_eq!(a.len(), b.len(), "same landmarks");
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.id, y.id);
+        assert!((x.position - y.position).norm() < 1e-3, "{x:?} vs {y:?}");
+    }
+}
+
+#[test]
+fn a_missing_v4l2_device_is_named_and_the_daemon_stays_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let mut child =
+        daemon(&state, &["camera.source=v4l2".into(), "camera.device=/dev/video-mavloc-absent".into()]);
+    let text = wait_for(&state.join("mavloc.log"), "camera lost", Duration::from_secs(20));
+    assert!(text.contains("V4L2 device /dev/video-mavloc-absent does not exist"), "{text}");
+    // Still running, still writing its status.
+    wait_for(&state.join("status.json"), "\"pipeline\"", Duration::from_secs(5));
+    assert!(child.try_wait().unwrap().is_none(), "the daemon keeps running without its camera");
+    assert!(sigterm(&mut child).success());
+}

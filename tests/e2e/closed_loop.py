@@ -1,0 +1,130 @@
+#!/usr/bin/env python3
+"""The closed loop end to end: `mavloc sim vehicle` and `mavloc run` (sim camera) talking
+over UDP loopback through this script, which relays their datagrams as mavlink-router
+would and decodes a copy of every one with pymavlink (an independent MAVLink
+implementation) to see what each side says.
+
+Usage: closed_loop.py MAVLOC_BINARY MODE SECONDS STATE_DIR [--set KEY=VALUE ...]
+       [--vehicle ARG ...]
+MODE is "area" (coastline) or "indoor" (indoor-floor). Prints one JSON object with what was
+seen; exit status 0 unless a process failed to start. Every wait is bounded."""
+
+import json
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import common as mav2  # noqa: E402
+
+BIN, MODE, SECONDS, STATE = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+rest = sys.argv[5:]
+daemon_sets, vehicle_args = [], []
+i = 0
+while i < len(rest):
+    if rest[i] == "--set":
+        daemon_sets += ["--set", rest[i + 1]]
+        i += 2
+    elif rest[i] == "--vehicle":
+        vehicle_args.append(rest[i + 1])
+        i += 2
+    else:
+        sys.exit(f"unexpected argument {rest[i]}")
+
+
+def bound_socket():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    return s
+
+
+# The vehicle sends to `from_vehicle`; the daemon listens on a port we pick and we reach
+# it from `to_daemon`.
+from_vehicle = bound_socket()
+to_daemon = bound_socket()
+probe = bound_socket()
+daemon_port = probe.getsockname()[1]
+probe.close()
+
+scenario = "coastline" if MODE == "area" else "indoor-floor"
+os.makedirs(STATE, exist_ok=True)
+log = open(os.path.join(STATE, "mavloc.log"), "w")
+vlog = open(os.path.join(STATE, "vehicle.log"), "w")
+env = dict(os.environ, RUST_LOG="mavloc=info")
+daemon = subprocess.Popen(
+    [BIN, "run", "--mavlink", f"udpin:127.0.0.1:{daemon_port}",
+     "--set", f"daemon.state_dir={STATE}", "--set", f"daemon.pipeline={MODE}",
+     "--set", "camera.source=sim", "--set", f"camera.scenario={scenario}"] + daemon_sets,
+    stdout=log, stderr=subprocess.STDOUT, env=env)
+vehicle = subprocess.Popen(
+    [BIN, "sim", "vehicle", "--scenario", scenario,
+     "--mavlink", f"udpout:127.0.0.1:{from_vehicle.getsockname()[1]}",
+     "--truth-log", os.path.join(STATE, "truth.csv")] + vehicle_args,
+    stdout=vlog, stderr=subprocess.STDOUT)
+
+parse_v = mav2.MAVLink(None)
+parse_d = mav2.MAVLink(None)
+parse_v.robust_parsing = parse_d.robust_parsing = True
+vehicle_addr = None
+seen = {
+    "daemon_messages": {}, "vehicle_messages": {}, "statustext": [], "lmk": 0,
+    "vpe": [], "lpn": [], "land_commands": 0, "land_acks": [], "on_ground": False,
+    "named": {}, "daemon_heartbeat_states": [],
+}
+start = time.time()
+last_lpn = None
+while time.time() - start < SECONDS:
+    if vehicle.poll() is not None and MODE == "indoor" and seen["on_ground"]:
+        break
+    r, _, _ = select.select([from_vehicle, to_daemon], [], [], 0.1)
+    for s in r:
+        data, addr = s.recvfrom(4096)
+        now = time.time() - start
+        if s is from_vehicle:
+            vehicle_addr = addr
+            to_daemon.sendto(data, ("127.0.0.1", daemon_port))
+            for m in parse_v.parse_buffer(data) or []:
+                t = m.get_type()
+                seen["vehicle_messages"][t] = seen["vehicle_messages"].get(t, 0) + 1
+                if t == "LOCAL_POSITION_NED":
+                    last_lpn = (m.x, m.y)
+                elif t == "COMMAND_ACK" and m.command == mav2.MAV_CMD_NAV_LAND:
+                    seen["land_acks"].append(m.result)
+                elif t == "EXTENDED_SYS_STATE" and m.landed_state == mav2.MAV_LANDED_STATE_ON_GROUND:
+                    seen["on_ground"] = True
+        else:
+            if vehicle_addr:
+                from_vehicle.sendto(data, vehicle_addr)
+            for m in parse_d.parse_buffer(data) or []:
+                t = m.get_type()
+                seen["daemon_messages"][t] = seen["daemon_messages"].get(t, 0) + 1
+                if t == "STATUSTEXT":
+                    seen["statustext"].append(m.text)
+                elif t == "DEBUG_VECT" and m.name == "LMK":
+                    seen["lmk"] += 1
+                elif t == "VISION_POSITION_ESTIMATE":
+                    seen["vpe"].append([now, m.x, m.y, m.covariance[0], m.covariance[6]])
+                    if last_lpn is not None:
+                        seen["lpn"].append(list(last_lpn))
+                elif t == "NAMED_VALUE_FLOAT":
+                    seen["named"][m.name] = m.value
+                elif t == "COMMAND_LONG" and m.command == mav2.MAV_CMD_NAV_LAND:
+                    seen["land_commands"] += 1
+                elif t == "HEARTBEAT":
+                    seen["daemon_heartbeat_states"].append(m.system_status)
+
+for p in (daemon, vehicle):
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+for p in (daemon, vehicle):
+    try:
+        p.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        p.kill()
+seen["daemon_exit"] = daemon.returncode
+seen["elapsed_s"] = time.time() - start
+print(json.dumps(seen))
