@@ -374,7 +374,7 @@ impl Vehicle {
                             Some(s) => {
                                 s.hz = match c.param2 {
                                     x if x < 0.0 => 0.0,
-                                    x if x == 0.0 => s.default_hz,
+                                    0.0 => s.default_hz,
                                     us => 1e6 / us as f64,
                                 };
                                 s.next = t;
@@ -401,22 +401,20 @@ impl Vehicle {
                 self.ack(c.command, result, from);
             }
             MavMessage::GIMBAL_DEVICE_SET_ATTITUDE(g)
-                if g.target_system == self.system_id && g.target_component == GIMBAL_COMPONENT =>
+                if g.target_system == self.system_id
+                    && g.target_component == GIMBAL_COMPONENT
+                    && g.q.iter().all(|c| c.is_finite()) =>
             {
-                if g.q.iter().all(|c| c.is_finite()) {
-                    let q =
-                        nalgebra::Quaternion::new(g.q[0] as f64, g.q[1] as f64, g.q[2] as f64, g.q[3] as f64);
-                    if q.norm() > 0.5 {
-                        let q = UnitQuaternion::from_quaternion(q);
-                        // Yaw in the vehicle frame: turn it into earth frame.
-                        let q = if g.flags.contains(GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME)
-                        {
-                            q
-                        } else {
-                            UnitQuaternion::from_axis_angle(&Vec3::z_axis(), self.state.attitude[2]) * q
-                        };
-                        self.setpoint = Some((t, q));
-                    }
+                let q = nalgebra::Quaternion::new(g.q[0] as f64, g.q[1] as f64, g.q[2] as f64, g.q[3] as f64);
+                if q.norm() > 0.5 {
+                    let q = UnitQuaternion::from_quaternion(q);
+                    // Yaw in the vehicle frame: turn it into earth frame.
+                    let q = if g.flags.contains(GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME) {
+                        q
+                    } else {
+                        UnitQuaternion::from_axis_angle(&Vec3::z_axis(), self.state.attitude[2]) * q
+                    };
+                    self.setpoint = Some((t, q));
                 }
             }
             MavMessage::TIMESYNC(ts) if ts.tc1 == 0 => {

@@ -49,7 +49,7 @@ impl SimCamera {
         Ok(SimCamera {
             renderer: Renderer::new(world),
             noise: s.camera.sim_noise.then(|| scenario.noise.clone()),
-            rng: rand::rngs::StdRng::seed_from_u64(scenario.seed ^ 0xca3e_7a),
+            rng: rand::rngs::StdRng::seed_from_u64(scenario.seed ^ 0x00ca_3e7a),
             scenario,
             k,
             period: 1.0 / s.camera.fps,

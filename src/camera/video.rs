@@ -273,12 +273,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for (i, v) in [(1, 10.0), (0, 200.0)] {
             let m = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
-            imgcodecs::imwrite(
-                &dir.path().join(format!("{i}.png")).to_string_lossy(),
-                &m,
-                &core::Vector::new(),
-            )
-            .unwrap();
+            imgcodecs::imwrite(dir.path().join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
         }
         let c = Camera {
             path: dir.path().to_string_lossy().into(),

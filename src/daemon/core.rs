@@ -383,24 +383,26 @@ impl Core {
                     };
                 }
             }
-            MavMessage::COMMAND_ACK(a) if self.is_autopilot(&f) && a.command == MavCmd::MAV_CMD_NAV_LAND => {
-                if self.landing.is_some() {
-                    match a.result {
-                        MavResult::MAV_RESULT_ACCEPTED => {
-                            self.landing = None;
-                            self.status(MavSeverity::MAV_SEVERITY_NOTICE, "autopilot accepted the landing");
-                        }
-                        // Still working on it: wait, do not resend.
-                        MavResult::MAV_RESULT_IN_PROGRESS => {
-                            self.landing = self.landing.map(|(tries, _)| (tries, now + 5.0));
-                        }
-                        other => {
-                            self.landing = None;
-                            self.status(
-                                MavSeverity::MAV_SEVERITY_ERROR,
-                                &format!("autopilot refused the landing: {other:?}"),
-                            );
-                        }
+            MavMessage::COMMAND_ACK(a)
+                if self.is_autopilot(&f)
+                    && a.command == MavCmd::MAV_CMD_NAV_LAND
+                    && self.landing.is_some() =>
+            {
+                match a.result {
+                    MavResult::MAV_RESULT_ACCEPTED => {
+                        self.landing = None;
+                        self.status(MavSeverity::MAV_SEVERITY_NOTICE, "autopilot accepted the landing");
+                    }
+                    // Still working on it: wait, do not resend.
+                    MavResult::MAV_RESULT_IN_PROGRESS => {
+                        self.landing = self.landing.map(|(tries, _)| (tries, now + 5.0));
+                    }
+                    other => {
+                        self.landing = None;
+                        self.status(
+                            MavSeverity::MAV_SEVERITY_ERROR,
+                            &format!("autopilot refused the landing: {other:?}"),
+                        );
                     }
                 }
             }
