@@ -64,15 +64,18 @@ pub struct RunArgs {
 
 #[derive(Debug, Args)]
 pub struct DemoArgs {
-    /// Seed of the simulated worlds and noise.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Output folder for datasets, results and plots.
+    /// Output folder for results, plots and logs.
     #[arg(long, default_value = "out/demo")]
     pub out: PathBuf,
-    /// Frames per flight (6 per second of flight).
-    #[arg(long, default_value_t = 360)]
-    pub frames: usize,
+    /// Seconds of coastline flight before the vehicle lands.
+    #[arg(long, default_value_t = 90.0)]
+    pub coast_s: f64,
+    /// Longest indoor flight, seconds (mavloc's landing normally ends it sooner).
+    #[arg(long, default_value_t = 60.0)]
+    pub indoor_s: f64,
+    /// Views of the floor rendered to train the indoor model.
+    #[arg(long, default_value_t = 1000)]
+    pub views: usize,
 }
 
 #[derive(Debug, Subcommand)]

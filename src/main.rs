@@ -53,14 +53,13 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             let loaded = load(config_file(cli.config), cli.overrides)?;
             mavloc::logging::init(&loaded.settings.daemon.log);
             let opts = mavloc::demo::DemoOptions {
+                bin: std::env::current_exe()?,
                 out: args.out,
-                frames: args.frames,
-                width: 960,
-                height: 540,
-                seed: args.seed,
+                coast_s: args.coast_s,
+                indoor_s: args.indoor_s,
+                views: args.views,
             };
-            let report =
-                mavloc::demo::run(&loaded.settings, &opts, |stage| eprintln!("mavloc demo: {stage}"))?;
+            let report = mavloc::demo::run(&opts, |stage| eprintln!("mavloc demo: {stage}"))?;
             print!("{report}");
             Ok(if report.passed() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }

@@ -118,9 +118,15 @@ fn indoor_train_names_a_missing_dataset() {
 #[test]
 fn demo_prints_its_report() {
     let dir = tempfile::tempdir().unwrap();
-    let out = stdout_of(mavloc().args(["demo", "--frames", "60", "--out"]).arg(dir.path()));
-    assert!(out.contains("coastline") && out.contains("cliff") && out.contains("result PASS"), "{out}");
-    assert!(dir.path().join("coastline/ukf/views.png").exists());
+    // A short version: 25 s of coastline, a small indoor model.
+    let out = stdout_of(
+        mavloc()
+            .args(["demo", "--coast-s", "25", "--indoor-s", "45", "--views", "400", "--out"])
+            .arg(dir.path()),
+    );
+    assert!(out.contains("coastline") && out.contains("indoor") && out.contains("result PASS"), "{out}");
+    assert!(dir.path().join("coastline/state/results/area/views.png").exists());
+    assert!(dir.path().join("indoor/state/results/indoor/trajectory.png").exists());
 }
 
 #[test]
