@@ -46,7 +46,7 @@ fn log(state: &Path) -> String {
 }
 
 #[test]
-fn coastline_flight_converges_landmarks_near_the_true_shore() {
+fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore() {
     let dir = tempfile::tempdir().unwrap();
     let state = dir.path().join("state");
     let seen = closed_loop(
@@ -75,6 +75,10 @@ fn coastline_flight_converges_landmarks_near_the_true_shore() {
     assert!(seen["named"]["FR_DONE"].as_f64().unwrap() > 100.0, "about 6 Hz for 35 s: {seen}");
     let states = seen["daemon_heartbeat_states"].as_array().unwrap();
     assert!(states.iter().any(|s| s == 4), "MAV_STATE_ACTIVE while flying: {states:?}");
+    // Gimbal-manager control taken once, pitch/yaw setpoints accepted by the vehicle.
+    assert_eq!(seen["commands"]["1001"], 1, "one DO_GIMBAL_MANAGER_CONFIGURE: {seen}");
+    assert!(seen["commands"]["1000"].as_u64().unwrap() > 20, "DO_GIMBAL_MANAGER_PITCHYAW stream: {seen}");
+    assert!(seen["acks"]["1000:0"].as_u64().unwrap() > 20, "accepted: {seen}");
     let texts = seen["statustext"].to_string();
     assert!(texts.contains("landmarks converged") && texts.contains("camera up"), "{texts}");
 

@@ -13,6 +13,9 @@
 //!   speed (no take-off: the pipelines have nothing to see on the ground). After
 //!   `duration_s` of mission, or on MAV_CMD_NAV_LAND (ACKed), it descends vertically and
 //!   reports LANDING, then ON_GROUND, and disarms.
+//! - As gimbal manager (like PX4 with MNT_MODE_OUT=2) it accepts
+//!   MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE (one primary controller) and
+//!   MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW from that controller, passed to the gimbal.
 //! - The gimbal (component 154, MAV_COMP_ID_GIMBAL) points the camera at the mission's
 //!   border targets and reports GIMBAL_DEVICE_ATTITUDE_STATUS with YAW_IN_EARTH_FRAME, or,
 //!   when GIMBAL_DEVICE_SET_ATTITUDE arrives, holds the commanded attitude for as long as
@@ -87,6 +90,8 @@ pub struct Vehicle {
     pub state: State,
     rates: Vec<Stream>,
     setpoint: Option<(f64, UnitQuaternion<f64>)>,
+    /// Who controls the gimbal through the manager (system, component).
+    manager: Option<(u8, u8)>,
     system_id: u8,
     pub out: Vec<(u8, MavMessage)>,
 }
@@ -139,6 +144,7 @@ impl Vehicle {
             state,
             rates,
             setpoint: None,
+            manager: None,
             system_id,
             out: Vec::new(),
         })
@@ -392,6 +398,31 @@ impl Vehicle {
                             MavResult::MAV_RESULT_DENIED
                         }
                     }
+                    // The autopilot as gimbal manager (as PX4 is): one controller at a
+                    // time; its pitch/yaw setpoints go to the gimbal device.
+                    MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE if self.has_gimbal => {
+                        let primary = (c.param1, c.param2);
+                        if primary.0 >= 0.0 && primary.1 >= 0.0 {
+                            self.manager = Some((primary.0 as u8, primary.1 as u8));
+                        }
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
+                    MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW if self.has_gimbal => {
+                        if self.manager.is_some_and(|m| m != from) {
+                            MavResult::MAV_RESULT_DENIED
+                        } else if !(c.param1.is_finite() && c.param2.is_finite()) {
+                            MavResult::MAV_RESULT_UNSUPPORTED // rate control is not simulated
+                        } else {
+                            let (pitch, yaw) =
+                                ((c.param1 as f64).to_radians(), (c.param2 as f64).to_radians());
+                            let earth = (c.param5 as u32) & 64 != 0;
+                            let yaw = if earth { yaw } else { yaw + self.state.attitude[2] };
+                            let r = mavloc_geometry::GimbalChain::YawPitchRoll
+                                .rotation(mavloc_geometry::GimbalAngles { yaw, pitch, roll: 0.0 });
+                            self.setpoint = Some((t, UnitQuaternion::from_rotation_matrix(&r)));
+                            MavResult::MAV_RESULT_ACCEPTED
+                        }
+                    }
                     MavCmd::MAV_CMD_NAV_LAND => {
                         self.land(t);
                         MavResult::MAV_RESULT_ACCEPTED
@@ -622,5 +653,57 @@ mod tests {
         );
         assert!(v.gimbal_attitude(5.5).angle_to(&down) < 1e-6);
         assert!(v.gimbal_attitude(8.0).angle_to(&down) > 0.01, "released after the hold");
+    }
+
+    #[test]
+    fn the_gimbal_manager_takes_one_controller_and_its_pitch_yaw() {
+        let mut v = vehicle("coastline");
+        let cmd = |command, p: [f32; 5]| {
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command,
+                param1: p[0],
+                param2: p[1],
+                param3: p[2],
+                param4: p[3],
+                param5: p[4],
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            })
+        };
+        let mavloc = (1, 191);
+        v.handle(
+            mavloc,
+            &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, [1.0, 191.0, -1.0, -1.0, 0.0]),
+            1.0,
+        );
+        v.handle(
+            mavloc,
+            &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, [-30.0, 45.0, f32::NAN, f32::NAN, 64.0]),
+            1.0,
+        );
+        v.handle(
+            (255, 190),
+            &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, [-90.0, 0.0, f32::NAN, f32::NAN, 64.0]),
+            1.1,
+        );
+        let results: Vec<MavResult> = v
+            .out
+            .iter()
+            .filter_map(|(_, m)| match m {
+                MavMessage::COMMAND_ACK(a) => Some(a.result),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            results,
+            [MavResult::MAV_RESULT_ACCEPTED, MavResult::MAV_RESULT_ACCEPTED, MavResult::MAV_RESULT_DENIED]
+        );
+        let a =
+            mavloc_geometry::GimbalChain::YawPitchRoll.angles(&v.gimbal_attitude(1.5).to_rotation_matrix());
+        assert!(
+            (a.pitch.to_degrees() + 30.0).abs() < 1e-4 && (a.yaw.to_degrees() - 45.0).abs() < 1e-4,
+            "{a:?}"
+        );
     }
 }

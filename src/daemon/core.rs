@@ -101,6 +101,11 @@ pub struct Core {
     pub armed: bool,
     /// A landing command in flight: tries so far, time of the next try.
     landing: Option<(u32, f64)>,
+    /// Gimbal-manager control taken (with `gimbal.aim = "border"`), and when the last
+    /// pitch/yaw setpoint went out.
+    gimbal_control: bool,
+    last_aim: f64,
+    aim_refused: bool,
 }
 
 fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
@@ -148,6 +153,9 @@ impl Core {
             landed_state: None,
             armed: false,
             landing: None,
+            gimbal_control: false,
+            last_aim: f64::NEG_INFINITY,
+            aim_refused: false,
         }
     }
 
@@ -406,6 +414,31 @@ impl Core {
                     }
                 }
             }
+            MavMessage::COMMAND_ACK(a)
+                if self.is_autopilot(&f)
+                    && matches!(
+                        a.command,
+                        MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE
+                            | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
+                    )
+                    && !matches!(
+                        a.result,
+                        MavResult::MAV_RESULT_ACCEPTED | MavResult::MAV_RESULT_IN_PROGRESS
+                    ) =>
+            {
+                // Refused: say so once, and take control again before the next setpoint.
+                self.gimbal_control = false;
+                if !self.aim_refused {
+                    self.aim_refused = true;
+                    self.status(
+                        MavSeverity::MAV_SEVERITY_WARNING,
+                        &format!(
+                            "autopilot refused {:?}: {:?}; is it a gimbal manager (PX4: MNT_MODE_OUT=2)?",
+                            a.command, a.result
+                        ),
+                    );
+                }
+            }
             MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
                 if t.tc1 == 0 {
                     // The autopilot syncing to us: answer with our time.
@@ -499,6 +532,7 @@ impl Core {
             self.counters.autopilot_reboots += 1;
             self.aligner.reset();
             self.streams = vec![StreamState::Pending { tries: 0, next_s: 0 }; STREAMS.len()];
+            self.gimbal_control = false;
             self.status(MavSeverity::MAV_SEVERITY_WARNING, "autopilot rebooted; re-requesting its streams");
             // reset() cleared the clock; keep this stamp.
             self.aligner.clock.observe_stamp(stamp, now);
@@ -706,6 +740,55 @@ impl Core {
             self.status(MavSeverity::MAV_SEVERITY_NOTICE, "landing requested: sending MAV_CMD_NAV_LAND");
             self.landing = Some((0, now));
         }
+    }
+
+    /// Points the camera (with `gimbal.aim = "border"`): takes gimbal-manager control with
+    /// MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, then sends MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
+    /// with an earth-frame yaw, at most 5 times a second. The autopilot's gimbal manager
+    /// (PX4 with MNT_MODE_OUT=2, or the simulated vehicle) passes it to the gimbal device.
+    pub fn aim_gimbal(&mut self, yaw: f64, pitch: f64, now: f64) {
+        if self.settings.gimbal.aim != crate::settings::GimbalAim::Border
+            || !self.autopilot_found
+            || now - self.last_aim < 0.2
+        {
+            return;
+        }
+        self.last_aim = now;
+        let target = self.settings.mavlink.autopilot_system_id;
+        let command = |command, p: [f32; 7]| {
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                param1: p[0],
+                param2: p[1],
+                param3: p[2],
+                param4: p[3],
+                param5: p[4],
+                param6: p[5],
+                param7: p[6],
+                command,
+                target_system: target,
+                target_component: 1,
+                confirmation: 0,
+            })
+        };
+        if !self.gimbal_control {
+            self.gimbal_control = true;
+            // Primary control to us; secondary unchanged (-1); all gimbals (device id 0).
+            let (sys, comp) = (self.system_id as f32, self.component_id as f32);
+            self.send(command(
+                MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+                [sys, comp, -1.0, -1.0, 0.0, 0.0, 0.0],
+            ));
+            self.status(
+                MavSeverity::MAV_SEVERITY_INFO,
+                "gimbal: taking manager control to keep the border in view",
+            );
+        }
+        // Flags: GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME (64); rates NaN = angles only.
+        let (p, y) = (pitch.to_degrees() as f32, yaw.to_degrees() as f32);
+        self.send(command(
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+            [p, y, f32::NAN, f32::NAN, 64.0, 0.0, 0.0],
+        ));
     }
 
     /// The autopilot says it is on the ground: a downward camera sees the floor up close,

@@ -133,6 +133,7 @@ impl LivePipeline for AreaLive {
         };
         let input =
             FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
+        report.aim = border_bearing(&small_mask, &frame.pose.camera, self.pipeline.intrinsics());
         let r = match self.pipeline.process(&input) {
             Ok(r) => r,
             Err(e) => {
@@ -182,6 +183,43 @@ impl LivePipeline for AreaLive {
         let _ = dir;
         self.write(&self.dir)
     }
+}
+
+/// Earth-frame bearing (yaw, pitch) of the centroid of the mask's border pixels: where
+/// the camera should look to keep the border in the middle of the picture. `None` when
+/// too little border is in view to say.
+fn border_bearing(
+    mask: &opencv::core::Mat,
+    pose: &crate::geometry::CameraPose,
+    k: &Intrinsics,
+) -> Option<(f64, f64)> {
+    use opencv::{core, imgproc, prelude::*};
+    let kernel = imgproc::get_structuring_element(
+        imgproc::MORPH_RECT,
+        core::Size::new(3, 3),
+        core::Point::new(-1, -1),
+    )
+    .ok()?;
+    let mut edge = opencv::core::Mat::default();
+    imgproc::morphology_ex(
+        mask,
+        &mut edge,
+        imgproc::MORPH_GRADIENT,
+        &kernel,
+        core::Point::new(-1, -1),
+        1,
+        core::BORDER_REPLICATE,
+        imgproc::morphology_default_border_value().ok()?,
+    )
+    .ok()?;
+    let m = imgproc::moments(&edge, true).ok()?;
+    // At least a few dozen border pixels, or the centroid is noise.
+    if m.m00 < 30.0 || edge.rows() == 0 {
+        return None;
+    }
+    let px = crate::geometry::Pixel::new(m.m10 / m.m00, m.m01 / m.m00);
+    let b = pose.pixel_bearing(k, px);
+    Some((b.yaw, b.pitch))
 }
 
 /// The indoor pipeline, live.

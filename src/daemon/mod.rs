@@ -432,6 +432,9 @@ fn worker_event(core: &mut Core, live: &mut Live, ev: WorkerEvent, now: f64) {
         WorkerEvent::Report { capture_s, attitude, report, .. } => {
             live.give_credit();
             core.publish(&report, capture_s, attitude);
+            if let Some((yaw, pitch)) = report.aim {
+                core.aim_gimbal(yaw, pitch, now);
+            }
             if report.landing_requested {
                 core.request_landing(now);
             }

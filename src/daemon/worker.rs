@@ -41,6 +41,9 @@ pub struct Report {
     pub events: Vec<String>,
     /// The landing trigger fired on this frame.
     pub landing_requested: bool,
+    /// Where to point the camera to keep the target's border in view: earth-frame yaw and
+    /// pitch, radians (area pipeline).
+    pub aim: Option<(f64, f64)>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]

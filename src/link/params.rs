@@ -46,6 +46,7 @@ use Kind::*;
 pub const PARAMS: &[ParamDef] = &[
     p("LOC_PIPELINE", "daemon.pipeline", Enum(&["none", "area", "indoor"])),
     p("LOC_FRAME_AGE", "daemon.max_frame_age_s", Float),
+    p("GMB_AIM", "gimbal.aim", Enum(&["mission", "border"])),
     p("GMB_USE_TELEM", "gimbal.use_telemetry", Bool),
     p("GMB_MNT_YAW", "gimbal.mount_yaw_deg", Float),
     p("GMB_MNT_PITCH", "gimbal.mount_pitch_deg", Float),

@@ -179,6 +179,7 @@ pub const ENUM_KEYS: &[(&str, &[&str])] = &[
     ("daemon.pipeline", &["area", "indoor", "none"]),
     ("camera.source", &["v4l2", "file", "dataset", "sim", "none"]),
     ("gimbal.chain", &["yaw-pitch-roll", "yaw-roll-pitch"]),
+    ("gimbal.aim", &["mission", "border"]),
     ("area.method", &["ukf", "ground-plane"]),
     ("indoor.dictionary", &["competitive", "k-means"]),
     ("indoor.motion_model", &["velocity", "noise"]),

@@ -170,6 +170,7 @@ impl Camera {
 #[serde(deny_unknown_fields, default)]
 pub struct Gimbal {
     pub chain: GimbalChain,
+    pub aim: GimbalAim,
     pub use_telemetry: bool,
     pub mount_yaw_deg: f64,
     pub mount_pitch_deg: f64,
@@ -183,6 +184,7 @@ impl Default for Gimbal {
     fn default() -> Self {
         Gimbal {
             chain: GimbalChain::YawPitchRoll,
+            aim: GimbalAim::Mission,
             use_telemetry: true,
             mount_yaw_deg: 0.0,
             mount_pitch_deg: -90.0,
@@ -192,6 +194,16 @@ impl Default for Gimbal {
             roll_offset_deg: 0.0,
         }
     }
+}
+
+/// Who points the gimbal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GimbalAim {
+    /// The mission's region-of-interest items or the gimbal's own pointing.
+    Mission,
+    /// mavloc takes gimbal-manager control and keeps the segmented border in view.
+    Border,
 }
 
 /// Area localisation method.

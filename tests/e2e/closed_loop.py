@@ -73,7 +73,7 @@ vehicle_addr = None
 seen = {
     "daemon_messages": {}, "vehicle_messages": {}, "statustext": [], "lmk": 0,
     "vpe": [], "lpn": [], "land_commands": 0, "land_acks": [], "on_ground": False,
-    "named": {}, "daemon_heartbeat_states": [],
+    "named": {}, "daemon_heartbeat_states": [], "commands": {}, "acks": {},
 }
 start = time.time()
 last_lpn = None
@@ -92,8 +92,11 @@ while time.time() - start < SECONDS:
                 seen["vehicle_messages"][t] = seen["vehicle_messages"].get(t, 0) + 1
                 if t == "LOCAL_POSITION_NED":
                     last_lpn = (m.x, m.y)
-                elif t == "COMMAND_ACK" and m.command == mav2.MAV_CMD_NAV_LAND:
-                    seen["land_acks"].append(m.result)
+                elif t == "COMMAND_ACK":
+                    key = f"{m.command}:{m.result}"
+                    seen["acks"][key] = seen["acks"].get(key, 0) + 1
+                    if m.command == mav2.MAV_CMD_NAV_LAND:
+                        seen["land_acks"].append(m.result)
                 elif t == "EXTENDED_SYS_STATE" and m.landed_state == mav2.MAV_LANDED_STATE_ON_GROUND:
                     seen["on_ground"] = True
         else:
@@ -112,8 +115,10 @@ while time.time() - start < SECONDS:
                         seen["lpn"].append(list(last_lpn))
                 elif t == "NAMED_VALUE_FLOAT":
                     seen["named"][m.name] = m.value
-                elif t == "COMMAND_LONG" and m.command == mav2.MAV_CMD_NAV_LAND:
-                    seen["land_commands"] += 1
+                elif t == "COMMAND_LONG":
+                    seen["commands"][str(m.command)] = seen["commands"].get(str(m.command), 0) + 1
+                    if m.command == mav2.MAV_CMD_NAV_LAND:
+                        seen["land_commands"] += 1
                 elif t == "HEARTBEAT":
                     seen["daemon_heartbeat_states"].append(m.system_status)
 
