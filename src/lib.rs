@@ -10,14 +10,18 @@
 //!   It is its own crate so the simulator (`sim/`) shares it without a dependency cycle.
 //! * [`area`]: the area pipeline (seed 1): band, SIFT, landmark library with one UKF each,
 //!   the ground-plane baseline, border-line fit, evaluation, dataset runner.
-//! * [`indoor`]: the indoor pipeline (seed 2); so far the landing trigger.
+//! * [`indoor`]: the indoor pipeline (seed 2): textons, k-NN, particle filter, landing
+//!   trigger, training and offline runs.
 //! * [`output`]: result files (CSV, PLY, GeoJSON, KML), written atomically.
 //! * [`filter`]: a generic unscented Kalman filter (const-generic dimensions, models as
 //!   traits, numerically guarded), the static-landmark bearing model, and the 2D particle
 //!   filter of the indoor pipeline.
 //! * [`settings`]: the layered, validated configuration (`config/mavloc.toml`).
-//! * [`link`]: the MAVLink side; so far connection addresses.
-//! * [`demo`]: the end-to-end demonstration `make demo` runs.
+//! * [`link`]: the MAVLink side: addresses, framing, signing, parameters, transports.
+//! * [`camera`]: frame sources (V4L2, file, dataset replay, the simulated camera).
+//! * [`align`]: time alignment of frames with the autopilot's telemetry.
+//! * [`daemon`]: `mavloc run`, wiring link -> alignment -> pipeline worker -> outputs.
+//! * [`demo`]: the end-to-end demonstration `make demo` runs (vehicle + daemon, live).
 //! * [`logging`]: tracing set-up (plain lines for journald, colour on a terminal).
 //! * [`cli`]: command-line definitions; `main.rs` only dispatches.
 //!

@@ -13,7 +13,7 @@
 //!   speed (no take-off: the pipelines have nothing to see on the ground). After
 //!   `duration_s` of mission, or on MAV_CMD_NAV_LAND (ACKed), it descends vertically and
 //!   reports LANDING, then ON_GROUND, and disarms.
-//! - As gimbal manager (like PX4 with MNT_MODE_OUT=2) it accepts
+//! - As gimbal manager (like PX4 with MNT_MODE_IN=4) it accepts
 //!   MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE (one primary controller) and
 //!   MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW from that controller, passed to the gimbal.
 //! - The gimbal (component 154, MAV_COMP_ID_GIMBAL) points the camera at the mission's

@@ -433,7 +433,7 @@ impl Core {
                     self.status(
                         MavSeverity::MAV_SEVERITY_WARNING,
                         &format!(
-                            "autopilot refused {:?}: {:?}; is it a gimbal manager (PX4: MNT_MODE_OUT=2)?",
+                            "autopilot refused {:?}: {:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?",
                             a.command, a.result
                         ),
                     );
@@ -745,7 +745,7 @@ impl Core {
     /// Points the camera (with `gimbal.aim = "border"`): takes gimbal-manager control with
     /// MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, then sends MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW
     /// with an earth-frame yaw, at most 5 times a second. The autopilot's gimbal manager
-    /// (PX4 with MNT_MODE_OUT=2, or the simulated vehicle) passes it to the gimbal device.
+    /// (PX4 with MNT_MODE_IN=4, or the simulated vehicle) passes it to the gimbal device.
     pub fn aim_gimbal(&mut self, yaw: f64, pitch: f64, now: f64) {
         if self.settings.gimbal.aim != crate::settings::GimbalAim::Border
             || !self.autopilot_found
