@@ -239,6 +239,8 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     let heartbeat_period = 1.0 / core.settings.mavlink.heartbeat_hz;
     let mut next_heartbeat = 0.0;
     let mut next_second = 1.0;
+    // Dropped frames are logged every 10 s when there were any, not one line per frame.
+    let (mut next_drop_log, mut dropped_logged) = (10.0, 0u64);
     let mut next_watchdog = 0.0;
     let mut link_state = String::from("opening");
     let mut ready = false;
@@ -302,6 +304,17 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
                     next_second = t + 1.0;
                     publish_counters(&mut core, &link, t);
                     let _ = write_status(&dir, &core, &link, &link_state, t);
+                }
+                if t >= next_drop_log {
+                    next_drop_log = t + 10.0;
+                    let dropped = core.counters.frames_dropped;
+                    if dropped > dropped_logged {
+                        tracing::warn!(
+                            "{} frames dropped in the last 10 s ({dropped} in all): the pipeline is slower than the camera, or telemetry is late",
+                            dropped - dropped_logged
+                        );
+                        dropped_logged = dropped;
+                    }
                 }
                 if watchdog && t >= next_watchdog {
                     notify(&[sd_notify::NotifyState::Watchdog]);
