@@ -749,7 +749,7 @@ impl Core {
     pub fn aim_gimbal(&mut self, yaw: f64, pitch: f64, now: f64) {
         if self.settings.gimbal.aim != crate::settings::GimbalAim::Border
             || !self.autopilot_found
-            || now - self.last_aim < 0.2
+            || now - self.last_aim < 0.2 - 1e-6
         {
             return;
         }
@@ -992,5 +992,125 @@ mod tests {
         assert_eq!(chunks.len(), 3);
         assert!(chunks.iter().all(|(id, _)| *id == chunks[0].0 && *id != 0));
         assert_eq!(chunks.iter().map(|c| c.1).collect::<Vec<_>>(), vec![0, 1, 2]);
+    }
+}
+
+#[cfg(test)]
+mod landing_tests {
+    use super::*;
+    use crate::link::params::ParamStore;
+    use mavlink::{MavHeader, MavlinkVersion};
+
+    fn from_autopilot(message: MavMessage) -> Frame {
+        Frame {
+            version: MavlinkVersion::V2,
+            header: MavHeader { system_id: 1, component_id: 1, sequence: 0 },
+            message,
+            auth: Auth::Unsigned,
+        }
+    }
+
+    fn flying_core(landing_enabled: bool) -> Core {
+        let mut s = Settings::default();
+        s.indoor.landing_enabled = landing_enabled;
+        let mut c = Core::new(s, ParamStore::in_memory(), false);
+        let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_QUADROTOR,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+            base_mode: MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED,
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        });
+        c.handle(from_autopilot(hb), 0.0);
+        c.handle(
+            from_autopilot(MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
+                vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
+                landed_state: MavLandedState::MAV_LANDED_STATE_IN_AIR,
+            })),
+            0.0,
+        );
+        c.out.clear();
+        c
+    }
+
+    fn land_commands(c: &Core) -> usize {
+        c.out
+            .iter()
+            .filter(|o| matches!(&o.message, MavMessage::COMMAND_LONG(l) if l.command == MavCmd::MAV_CMD_NAV_LAND))
+            .count()
+    }
+
+    #[test]
+    fn nav_land_is_retried_until_acknowledged() {
+        let mut c = flying_core(true);
+        c.request_landing(1.0);
+        c.tick(1.0);
+        c.tick(1.5);
+        assert_eq!(land_commands(&c), 1, "once a second");
+        c.tick(2.05);
+        assert_eq!(land_commands(&c), 2);
+        let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+            command: MavCmd::MAV_CMD_NAV_LAND,
+            result: MavResult::MAV_RESULT_ACCEPTED,
+            ..Default::default()
+        });
+        c.handle(from_autopilot(ack), 2.1);
+        c.tick(5.0);
+        assert_eq!(land_commands(&c), 2, "no more after the ACK");
+    }
+
+    #[test]
+    fn no_landing_when_disabled_or_on_the_ground() {
+        let mut c = flying_core(false);
+        c.request_landing(1.0);
+        c.tick(1.0);
+        assert_eq!(land_commands(&c), 0);
+        let mut c = flying_core(true);
+        c.handle(
+            from_autopilot(MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
+                vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
+                landed_state: MavLandedState::MAV_LANDED_STATE_ON_GROUND,
+            })),
+            0.5,
+        );
+        assert!(c.on_ground());
+        c.request_landing(1.0);
+        c.tick(1.0);
+        assert_eq!(land_commands(&c), 0);
+    }
+
+    #[test]
+    fn border_aiming_takes_control_once_then_streams_at_most_5_hz() {
+        let mut c = flying_core(false);
+        c.aim_gimbal(0.3, -0.5, 1.0);
+        assert!(c.out.is_empty(), "gimbal.aim = mission: mavloc leaves the gimbal alone");
+        c.settings.gimbal.aim = crate::settings::GimbalAim::Border;
+        for i in 0..10 {
+            c.aim_gimbal(0.3, -0.5, 1.0 + i as f64 * 0.1);
+        }
+        let count = |cmd| {
+            c.out
+                .iter()
+                .filter(|o| matches!(&o.message, MavMessage::COMMAND_LONG(l) if l.command == cmd))
+                .count()
+        };
+        assert_eq!(count(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE), 1);
+        assert_eq!(count(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW), 5, "1 s at 5 Hz");
+        let py = c
+            .out
+            .iter()
+            .find_map(|o| match &o.message {
+                MavMessage::COMMAND_LONG(l) if l.command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
+                    Some(l.clone())
+                }
+                _ => None,
+            })
+            .unwrap();
+        assert!(
+            (py.param1 - (-0.5f32).to_degrees()).abs() < 1e-4
+                && (py.param2 - 0.3f32.to_degrees()).abs() < 1e-4
+        );
+        assert_eq!(py.param5, 64.0, "earth-frame yaw");
     }
 }
