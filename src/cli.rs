@@ -52,6 +52,26 @@ pub enum Command {
         #[command(subcommand)]
         command: ConfigCommand,
     },
+    /// Import real data into a dataset.
+    Import {
+        #[command(subcommand)]
+        command: ImportCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+pub enum ImportCommand {
+    /// Geotagged drone photos (EXIF GPS, DJI XMP gimbal and flight attitude) to a dataset.
+    Photos {
+        /// Folder of JPEG photos.
+        dir: PathBuf,
+        /// Dataset folder to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Intrinsics (TOML: fx, fy, cx, cy) instead of the estimate from the focal length.
+        #[arg(long)]
+        calibration: Option<PathBuf>,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -201,6 +221,9 @@ pub struct AreaArgs {
     /// Process at most this many frames.
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Write masks.png: frames beside their target masks (check the segmenter).
+    #[arg(long)]
+    pub debug_masks: bool,
 }
 
 #[derive(Debug, Subcommand)]

@@ -21,6 +21,7 @@
 //! * [`camera`]: frame sources (V4L2, file, dataset replay, the simulated camera).
 //! * [`align`]: time alignment of frames with the autopilot's telemetry.
 //! * [`daemon`]: `mavloc run`, wiring link -> alignment -> pipeline worker -> outputs.
+//! * [`import`]: geotagged drone photos (EXIF, DJI XMP) to a dataset.
 //! * [`demo`]: the end-to-end demonstration `make demo` runs (vehicle + daemon, live).
 //! * [`logging`]: tracing set-up (plain lines for journald, colour on a terminal).
 //! * [`cli`]: command-line definitions; `main.rs` only dispatches.
@@ -37,6 +38,7 @@ pub mod cli;
 pub mod daemon;
 pub mod demo;
 pub mod filter;
+pub mod import;
 pub mod indoor;
 pub mod link;
 pub mod logging;

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 use mavloc::cli::{
-    AreaArgs, Cli, Command, ConfigCommand, EvalCommand, IndoorCommand, RenderArgs, SimCommand,
+    AreaArgs, Cli, Command, ConfigCommand, EvalCommand, ImportCommand, IndoorCommand, RenderArgs, SimCommand,
 };
 use mavloc::settings::{self, Layers, Loaded};
 
@@ -127,6 +127,22 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             mavloc::logging::init(&loaded.settings.daemon.log);
             indoor(command, &loaded.settings)
         }
+        Command::Import { command: ImportCommand::Photos { dir, out, calibration } } => {
+            let r = mavloc::import::import_photos(&dir, &out, calibration.as_deref())
+                .map_err(anyhow::Error::msg)?;
+            println!(
+                "{}: {} photos imported, {} skipped; fx {:.1} px from the {}",
+                out.display(),
+                r.imported.len(),
+                r.skipped.len(),
+                r.fx_px,
+                r.intrinsics_from
+            );
+            for (name, why) in &r.skipped {
+                println!("  skipped {name}: {why}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Eval { command: EvalCommand::Area { dataset, result, json } } => {
             eval_area(&dataset, &result, json)
         }
@@ -238,6 +254,7 @@ fn area_run(args: AreaArgs, settings: &mavloc::settings::Settings) -> anyhow::Re
         method,
         trace: args.trace,
         max_frames: args.frames,
+        debug_masks: args.debug_masks,
     };
     let bar = progress_bar("area");
     let summary = run(&opts, settings, |done, total| {

@@ -24,8 +24,14 @@ fn settings() -> Settings {
 }
 
 fn run_and_eval(dataset: &std::path::Path, out: &std::path::Path, method: AreaMethod) -> AreaEvaluation {
-    let opts =
-        RunOptions { dataset: dataset.into(), out: out.into(), method, trace: false, max_frames: None };
+    let opts = RunOptions {
+        dataset: dataset.into(),
+        out: out.into(),
+        method,
+        trace: false,
+        max_frames: None,
+        debug_masks: false,
+    };
     let summary = run(&opts, &settings(), |_, _| {}).unwrap();
     assert!(summary.complete);
     let landmarks =
@@ -72,8 +78,14 @@ fn trace_records_every_update() {
     let dir = tempfile::tempdir().unwrap();
     let ds = render(dir.path(), "coastline", 30);
     let out = dir.path().join("traced");
-    let opts =
-        RunOptions { dataset: ds, out: out.clone(), method: AreaMethod::Ukf, trace: true, max_frames: None };
+    let opts = RunOptions {
+        dataset: ds,
+        out: out.clone(),
+        method: AreaMethod::Ukf,
+        trace: true,
+        max_frames: None,
+        debug_masks: false,
+    };
     run(&opts, &settings(), |_, _| {}).unwrap();
     let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
     let rows: Vec<&str> = trace.lines().skip(1).collect();

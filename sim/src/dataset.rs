@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! DIR/
-//!   frames/NNNNNN.png      RGB frames
+//!   frames/NNNNNN.png      RGB frames (.jpg for imported photos)
 //!   masks/NNNNNN.png       target masks (255 inside the target area, 0 outside)
 //!   telemetry.jsonl        one JSON object per frame: time, true and measured pose, gimbal
 //!   camera.toml            intrinsics, resolution, gimbal kinematic chain
@@ -398,8 +398,18 @@ impl Dataset {
         Ok(Dataset { dir: dir.to_path_buf(), camera, records, ground_truth })
     }
 
+    /// `frames/NNNNNN.png`, or `.jpg` where the dataset holds photos (`mavloc import`).
     pub fn frame_path(&self, r: &TelemetryRecord) -> PathBuf {
-        self.dir.join("frames").join(format!("{:06}.png", r.frame))
+        let png = self.dir.join("frames").join(format!("{:06}.png", r.frame));
+        if png.exists() {
+            return png;
+        }
+        let jpg = png.with_extension("jpg");
+        if jpg.exists() {
+            jpg
+        } else {
+            png
+        }
     }
 
     pub fn mask_path(&self, r: &TelemetryRecord) -> PathBuf {

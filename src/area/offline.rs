@@ -60,6 +60,8 @@ pub struct RunOptions {
     pub trace: bool,
     /// Stop after this many frames.
     pub max_frames: Option<usize>,
+    /// Write `masks.png`, a contact sheet of frames and their target masks.
+    pub debug_masks: bool,
 }
 
 /// The measured camera pose of a record, with the configured static gimbal corrections.
@@ -168,12 +170,21 @@ pub fn run(
     let mut timing = StageTiming::default();
     let mut frame_ms = Vec::new();
     let mut match_ms = Vec::new();
+    // At most 12 frames on the contact sheet, spread over the run.
+    let sheet_every = (total as usize).div_ceil(12).max(1);
+    let mut sheet = Vec::new();
     let start = Instant::now();
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
         let frame_path = ds.frame_path(record);
         let mask_path = ds.mask_path(record);
         let img = imgcodecs::imread(&frame_path, imgcodecs::IMREAD_COLOR)?;
-        let mask = imgcodecs::imread(&mask_path, imgcodecs::IMREAD_GRAYSCALE)?;
+        let mask = match super::segment::segment(&img, &s.area)? {
+            Some(m) => m,
+            None => imgcodecs::imread(&mask_path, imgcodecs::IMREAD_GRAYSCALE)?,
+        };
+        if opts.debug_masks && !img.empty() && !mask.empty() && sheet_every > 0 && i % sheet_every == 0 {
+            sheet.push((record.frame, img.clone(), mask.clone()));
+        }
         if img.empty()
             || mask.empty()
             || (img.cols(), img.rows()) != (k_full.width as i32, k_full.height as i32)
@@ -254,5 +265,8 @@ pub fn run(
     summary.match_ms_at_500 = window(&match_ms, 495);
     summary.complete = true;
     write_results(&opts.out, &frame, &name, &results, &mut summary)?;
+    if opts.debug_masks {
+        super::segment::contact_sheet(&opts.out.join("masks.png"), &sheet)?;
+    }
     Ok(summary)
 }

@@ -44,6 +44,7 @@ pub struct AreaLive {
     frames: u64,
     no_mask_warned: bool,
     started: std::time::Instant,
+    settings: crate::settings::Area,
 }
 
 impl AreaLive {
@@ -75,6 +76,7 @@ impl AreaLive {
             frames: 0,
             no_mask_warned: false,
             started: std::time::Instant::now(),
+            settings: s.area.clone(),
         })
     }
 
@@ -173,6 +175,7 @@ impl LivePipeline for AreaLive {
     }
 
     fn apply(&mut self, s: &Settings) {
+        self.settings = s.area.clone();
         self.downscale = s.area.downscale.max(1);
         if let Err(e) = self.pipeline.reconfigure(&s.area, self.k_full.downscaled(self.downscale)) {
             tracing::warn!("area: new settings not applied: {e}");

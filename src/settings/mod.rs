@@ -181,6 +181,7 @@ pub const ENUM_KEYS: &[(&str, &[&str])] = &[
     ("gimbal.chain", &["yaw-pitch-roll", "yaw-roll-pitch"]),
     ("gimbal.aim", &["mission", "border"]),
     ("area.method", &["ukf", "ground-plane"]),
+    ("area.segmenter", &["masks", "water", "hsv"]),
     ("indoor.dictionary", &["competitive", "k-means"]),
     ("indoor.motion_model", &["velocity", "noise"]),
 ];
@@ -333,6 +334,8 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
             .try_parsing(true)
             .list_separator(",")
             .with_list_parse_key("camera.distortion")
+            .with_list_parse_key("area.hsv_low")
+            .with_list_parse_key("area.hsv_high")
             .source(Some(env_map)),
     );
     if !cli_pairs.is_empty() {
@@ -465,6 +468,20 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range("area.init_sigma_m", a.init_sigma_m, 0.1, 1000.0);
     v.range("area.ground_down_m", a.ground_down_m, -10_000.0, 10_000.0);
     v.range_int("area.max_descriptors", a.max_descriptors.into(), 1, 1000);
+    for (key, hsv) in [("area.hsv_low", &a.hsv_low), ("area.hsv_high", &a.hsv_high)] {
+        let ok = hsv.len() == 3
+            && hsv.iter().all(|c| c.is_finite() && *c >= 0.0)
+            && hsv[0] <= 180.0
+            && hsv[1] <= 255.0
+            && hsv[2] <= 255.0;
+        if !ok {
+            v.problem(
+                key,
+                format!("{hsv:?}"),
+                "three values: H 0..=180, S 0..=255, V 0..=255 (OpenCV ranges)",
+            );
+        }
+    }
 
     // [indoor]
     let i = &s.indoor;

@@ -236,6 +236,21 @@ pub struct Area {
     pub init_sigma_m: f64,
     pub ground_down_m: f64,
     pub max_descriptors: u32,
+    pub segmenter: Segmenter,
+    pub hsv_low: Vec<f64>,
+    pub hsv_high: Vec<f64>,
+}
+
+/// Where target masks come from (`area.segmenter`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Segmenter {
+    /// The dataset's `masks/` (rendered or made elsewhere); the sim camera's own.
+    Masks,
+    /// Open water, by local smoothness and colour.
+    Water,
+    /// A box in HSV (`hsv_low` .. `hsv_high`).
+    Hsv,
 }
 
 impl Default for Area {
@@ -258,6 +273,9 @@ impl Default for Area {
             init_sigma_m: 20.0,
             ground_down_m: 0.0,
             max_descriptors: 8,
+            segmenter: Segmenter::Masks,
+            hsv_low: vec![90.0, 60.0, 30.0],
+            hsv_high: vec![130.0, 255.0, 255.0],
         }
     }
 }
