@@ -280,6 +280,12 @@ fn area_run(args: AreaArgs, settings: &mavloc::settings::Settings) -> anyhow::Re
             summary.band_ms, summary.sift_ms, summary.match_estimate_ms, summary.purge_add_ms
         );
     }
+    if let (Some(m), Some(p90)) = (summary.residual_median_px, summary.residual_p90_px) {
+        println!("reprojection residuals of converged landmarks: median {m:.1} px, 90th percentile {p90:.1} px (per frame: residuals.csv)");
+    }
+    for f in &summary.yaw_off_180_frames {
+        println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
+    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -107,3 +107,63 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
         serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 3);
 }
+
+#[test]
+fn the_residual_report_names_a_frame_whose_yaw_is_half_a_turn_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let bin = env!("CARGO_BIN_EXE_mavloc");
+    let out = Command::new(bin)
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--frames",
+            "60",
+            "--width",
+            "480",
+            "--height",
+            "270",
+        ])
+        .arg("--out")
+        .arg(&ds)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    // Frame 30's recorded gimbal yaw turned by 180 deg, as in some real DJI logs.
+    let path = ds.join("telemetry.jsonl");
+    let text: Vec<String> = std::fs::read_to_string(&path)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let mut r: serde_json::Value = serde_json::from_str(l).unwrap();
+            if r["frame"] == 30 {
+                let y = r["measured"]["gimbal_deg"][0].as_f64().unwrap();
+                r["measured"]["gimbal_deg"][0] = (y + 180.0).into();
+            }
+            r.to_string()
+        })
+        .collect();
+    std::fs::write(&path, text.join("\n") + "\n").unwrap();
+    let result = dir.path().join("r");
+    let out = Command::new(bin)
+        .args(["area", "--set", "area.downscale=1", "--set", "area.band_px=13", "--dataset"])
+        .arg(&ds)
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("frame 30: residuals say its recorded yaw is off by about 180 deg"), "{stdout}");
+    let csv = std::fs::read_to_string(result.join("residuals.csv")).unwrap();
+    let flagged: Vec<&str> = csv.lines().skip(1).filter(|l| l.ends_with(",1")).collect();
+    assert_eq!(flagged.len(), 1, "only frame 30: {csv}");
+    assert!(flagged[0].starts_with("30,"));
+    // The others reproject within a few pixels (seed noise: 0.5 deg, 0.5 m).
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
+    assert!(summary["residual_median_px"].as_f64().unwrap() < 15.0, "{summary}");
+    assert_eq!(summary["yaw_off_180_frames"], serde_json::json!([30]));
+}

@@ -18,6 +18,7 @@ pub mod eval;
 pub mod features;
 pub mod library;
 pub mod offline;
+pub mod residuals;
 pub mod segment;
 
 use std::time::{Duration, Instant};

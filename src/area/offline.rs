@@ -24,6 +24,8 @@ use crate::settings::{AreaMethod, Settings};
 use mavloc_sim::dataset::{Dataset, PoseRecord};
 
 const CHECKPOINT_FRAMES: u64 = 100;
+/// Datasets this short (photo surveys) get the residual report without `--trace`.
+pub const RESIDUAL_MAX_FRAMES: usize = 100;
 /// The baseline keeps one border pixel in this many along each contour.
 const BASELINE_STEP_PX: usize = 8;
 
@@ -48,6 +50,15 @@ pub struct RunSummary {
     /// library if descriptors were not capped (SIFT depends on how much band is in view).
     pub match_ms_at_50: Option<f64>,
     pub match_ms_at_500: Option<f64>,
+    /// Reprojection residuals of converged landmarks (pixels at full resolution), when
+    /// computed (`residuals.csv`): the median and 90th percentile over frames of each
+    /// frame's median, weighted by its matches; and frames whose yaw looks off by 180 deg.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub residual_median_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub residual_p90_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub yaw_off_180_frames: Vec<u64>,
     pub complete: bool,
 }
 
@@ -148,8 +159,11 @@ pub fn run(
         AreaMethod::Ukf => "ukf",
         AreaMethod::GroundPlane => "ground-plane",
     };
+    let residuals = opts.trace || ds.records.len() <= RESIDUAL_MAX_FRAMES;
+    let mut seen: Vec<(u64, u64, crate::geometry::Pixel)> = Vec::new();
+    let mut poses = std::collections::BTreeMap::new();
     let mut pipeline = match opts.method {
-        AreaMethod::Ukf => Some(AreaPipeline::new(&s.area, k)?.with_trace(opts.trace)),
+        AreaMethod::Ukf => Some(AreaPipeline::new(&s.area, k)?.with_trace(residuals)),
         AreaMethod::GroundPlane => None,
     };
     let mut trace_file = if opts.trace {
@@ -205,6 +219,10 @@ pub fn run(
                 match_ms.push(report.timing.match_estimate.as_secs_f64() * 1000.0);
                 timing += report.timing;
                 results.extend(report.converged);
+                if residuals {
+                    poses.insert(record.frame, pose);
+                    seen.extend(report.trace.iter().map(|t| (t.frame, t.landmark, t.pixel)));
+                }
                 if let Some(f) = trace_file.as_mut() {
                     for t in &report.trace {
                         writeln!(
@@ -263,6 +281,20 @@ pub fn run(
     summary.frame_ms_at_500 = window(&frame_ms, 495);
     summary.match_ms_at_50 = window(&match_ms, 45);
     summary.match_ms_at_500 = window(&match_ms, 495);
+    if residuals && pipeline.is_some() {
+        let rows = super::residuals::per_frame(&seen, &results, &poses, &k, downscale as f64);
+        let mut all: Vec<f64> = Vec::new();
+        for r in &rows {
+            all.extend(std::iter::repeat_n(r.median_px, r.landmarks.max(1)));
+        }
+        if !all.is_empty() {
+            all.sort_by(f64::total_cmp);
+            summary.residual_median_px = Some(all[all.len() / 2]);
+            summary.residual_p90_px = Some(all[((all.len() - 1) as f64 * 0.9) as usize]);
+        }
+        summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
+        output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
+    }
     summary.complete = true;
     write_results(&opts.out, &frame, &name, &results, &mut summary)?;
     if opts.debug_masks {
