@@ -144,6 +144,19 @@ impl fmt::Display for DemoReport {
     }
 }
 
+/// The child gets SIGTERM when the demo dies, so a killed demo leaves no vehicle or
+/// daemon behind.
+fn die_with_parent(cmd: &mut Command) -> &mut Command {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: prctl is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            Ok(())
+        })
+    }
+}
+
 fn free_port() -> anyhow::Result<u16> {
     Ok(std::net::UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port())
 }
@@ -174,9 +187,13 @@ impl Flight {
         for s in sets {
             daemon.args(["--set", s]);
         }
-        let daemon = daemon.env("RUST_LOG", "mavloc=info").stdout(log.try_clone()?).stderr(log).spawn()?;
+        let daemon = die_with_parent(&mut daemon)
+            .env("RUST_LOG", "mavloc=info")
+            .stdout(log.try_clone()?)
+            .stderr(log)
+            .spawn()?;
         let vlog = std::fs::File::create(dir.join("vehicle.log"))?;
-        let vehicle = Command::new(bin)
+        let vehicle = die_with_parent(&mut Command::new(bin))
             .args([
                 "sim",
                 "vehicle",

@@ -215,6 +215,15 @@ fn daemon(state: &Path, sets: &[String]) -> std::process::Child {
     for s in sets {
         cmd.args(["--set", s]);
     }
+    // A failing test must not leave its daemon running: SIGTERM when the test's thread ends.
+    use std::os::unix::process::CommandExt;
+    // SAFETY: prctl is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            Ok(())
+        });
+    }
     cmd.env("RUST_LOG", "mavloc=info").stdout(log.try_clone().unwrap()).stderr(log).spawn().unwrap()
 }
 

@@ -9,6 +9,7 @@ Usage: closed_loop.py MAVLOC_BINARY MODE SECONDS STATE_DIR [--set KEY=VALUE ...]
 MODE is "area" (coastline) or "indoor" (indoor-floor). Prints one JSON object with what was
 seen; exit status 0 unless a process failed to start. Every wait is bounded."""
 
+import ctypes
 import json
 import os
 import select
@@ -50,6 +51,11 @@ probe = bound_socket()
 daemon_port = probe.getsockname()[1]
 probe.close()
 
+def die_with_parent():
+    # PR_SET_PDEATHSIG: if this script is killed (test timeout), its children go too.
+    ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)
+
+
 scenario = "coastline" if MODE == "area" else "indoor-floor"
 os.makedirs(STATE, exist_ok=True)
 log = open(os.path.join(STATE, "mavloc.log"), "w")
@@ -59,12 +65,12 @@ daemon = subprocess.Popen(
     [BIN, "run", "--mavlink", f"udpin:127.0.0.1:{daemon_port}",
      "--set", f"daemon.state_dir={STATE}", "--set", f"daemon.pipeline={MODE}",
      "--set", "camera.source=sim", "--set", f"camera.scenario={scenario}"] + daemon_sets,
-    stdout=log, stderr=subprocess.STDOUT, env=env)
+    stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=die_with_parent)
 vehicle = subprocess.Popen(
     [BIN, "sim", "vehicle", "--scenario", scenario,
      "--mavlink", f"udpout:127.0.0.1:{from_vehicle.getsockname()[1]}",
      "--truth-log", os.path.join(STATE, "truth.csv")] + vehicle_args,
-    stdout=vlog, stderr=subprocess.STDOUT)
+    stdout=vlog, stderr=subprocess.STDOUT, preexec_fn=die_with_parent)
 
 parse_v = mav2.MAVLink(None)
 parse_d = mav2.MAVLink(None)
