@@ -121,6 +121,7 @@ fn demo_prints_its_report() {
     // A short version: 25 s of coastline, a small indoor model.
     let out = stdout_of(
         mavloc()
+            .timeout(std::time::Duration::from_secs(300))
             .args(["demo", "--coast-s", "25", "--indoor-s", "45", "--views", "400", "--out"])
             .arg(dir.path()),
     );
