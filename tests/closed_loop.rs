@@ -62,6 +62,8 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
             "area.downscale=1",
             "--set",
             "area.band_px=13",
+            "--set",
+            "gimbal.aim=border",
             "--vehicle",
             "--duration",
             "--vehicle",
@@ -162,19 +164,36 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     let t1 = vpe[vpe.len() - 1][0].as_f64().unwrap();
     let rate = (vpe.len() - 1) as f64 / (t1 - t0);
     assert!(rate > 9.0, "estimates at {rate:.1} Hz, camera 15 Hz");
-    let mut errors: Vec<f64> = vpe
+    // Plausible values: against the vehicle's latest LOCAL_POSITION_NED as the relay saw
+    // it (which runs ahead of the estimate by the processing latency, 0.5 m/s x ~0.2 s).
+    let mut lag_errors: Vec<f64> = vpe
         .iter()
         .zip(lpn)
-        .skip(30) // the particle filter's first second
+        .skip(30) // the particle filter's first seconds
         .map(|(v, p)| {
             let (x, y) = (v[1].as_f64().unwrap(), v[2].as_f64().unwrap());
             ((x - p[0].as_f64().unwrap()).powi(2) + (y - p[1].as_f64().unwrap()).powi(2)).sqrt()
         })
         .collect();
+    lag_errors.sort_by(f64::total_cmp);
+    let lag_median = lag_errors[lag_errors.len() / 2];
+    assert!(lag_median < 1.0, "estimates far from the vehicle: median {lag_median} m");
+    // Accuracy: each estimate against the pose its frame was rendered from.
+    let rows =
+        mavloc::indoor::offline::read_trajectory(&state.join("results/indoor/trajectory.csv")).unwrap();
+    let mut errors: Vec<f64> = rows
+        .iter()
+        .skip(30)
+        .map(|r| (r.x - r.true_x).hypot(r.y - r.true_y))
+        .filter(|e| e.is_finite())
+        .collect();
     errors.sort_by(f64::total_cmp);
     let median = errors[errors.len() / 2];
-    println!("indoor live: {} estimates at {rate:.1} Hz, median error {median:.3} m", vpe.len());
-    assert!(median < 0.3, "median error {median} m");
+    println!(
+        "indoor live: {} estimates at {rate:.1} Hz, median error {median:.3} m at the capture ({lag_median:.3} m against the latest telemetry)",
+        vpe.len()
+    );
+    assert!(median < 0.2, "median error {median} m");
     assert!(vpe.iter().all(|v| v[3].as_f64().unwrap() > 0.0), "covariance set");
 
     // The landing: commanded, acknowledged, and down inside the zone.
