@@ -89,14 +89,15 @@ pub fn measured_pose(r: &PoseRecord, ds: &Dataset, s: &Settings) -> CameraPose {
     corrected.camera_pose(ds.camera.chain, ds.camera.gimbal_frame)
 }
 
-/// Writes the result files of a run (each atomically), `summary.json` last.
+/// Writes the result files of a run (each atomically), `summary.json` last; returns the
+/// border lines it fitted.
 pub fn write_results(
     out: &Path,
     frame: &LocalFrame,
     name: &str,
     landmarks: &[LandmarkRecord],
     summary: &mut RunSummary,
-) -> std::io::Result<()> {
+) -> std::io::Result<Vec<Vec<crate::geometry::Vec3>>> {
     let points: Vec<_> = landmarks.iter().map(|l| l.position).collect();
     let borders = border::fit(&points, &BorderParams::default());
     summary.landmarks = landmarks.len();
@@ -113,7 +114,8 @@ pub fn write_results(
     )?;
     output::write_atomic(&out.join("border.csv"), border_csv(&borders).as_bytes())?;
     let json = serde_json::to_string_pretty(summary).expect("summary serialises");
-    output::write_atomic(&out.join("summary.json"), json.as_bytes())
+    output::write_atomic(&out.join("summary.json"), json.as_bytes())?;
+    Ok(borders)
 }
 
 fn border_csv(lines: &[Vec<crate::geometry::Vec3>]) -> String {

@@ -15,7 +15,6 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector2;
 
 use super::worker::{LiveFrame, LivePipeline, PositionEstimate, Report};
-use crate::area::border::{self, BorderParams};
 use crate::area::features::prepare;
 use crate::area::offline::{write_results, RunSummary};
 use crate::area::{AreaPipeline, FrameInput};
@@ -92,7 +91,9 @@ impl AreaLive {
         l
     }
 
-    fn write(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+    /// Writes the result files; returns them and the border lines fitted.
+    fn write(&self) -> std::io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
+        let dir = &self.dir;
         let landmarks = self.all_landmarks();
         let elapsed = self.started.elapsed().as_secs_f64();
         let mut summary = RunSummary {
@@ -103,11 +104,13 @@ impl AreaLive {
             ..RunSummary::default()
         };
         let frame = LocalFrame::new(self.origin);
-        write_results(dir, &frame, "mavloc run: area", &landmarks, &mut summary)?;
-        Ok(["landmarks.csv", "landmarks.ply", "area.geojson", "area.kml", "border.csv", "summary.json"]
-            .iter()
-            .map(|f| dir.join(f))
-            .collect())
+        let lines = write_results(dir, &frame, "mavloc run: area", &landmarks, &mut summary)?;
+        let files =
+            ["landmarks.csv", "landmarks.ply", "area.geojson", "area.kml", "border.csv", "summary.json"]
+                .iter()
+                .map(|f| dir.join(f))
+                .collect();
+        Ok((files, lines))
     }
 }
 
@@ -159,10 +162,8 @@ impl LivePipeline for AreaLive {
             ("LMK_FEAT", r.features as f32),
         ];
         if self.frames.is_multiple_of(AREA_CHECKPOINT_FRAMES) {
-            match self.write(&self.dir) {
-                Ok(_) => {
-                    let points: Vec<_> = self.all_landmarks().iter().map(|l| l.position).collect();
-                    let lines = border::fit(&points, &BorderParams::default());
+            match self.write() {
+                Ok((_, lines)) => {
                     let length: f64 =
                         lines.iter().flat_map(|l| l.windows(2).map(|w| (w[1] - w[0]).norm())).sum();
                     report.counters.push(("BRD_LINES", lines.len() as f32));
@@ -182,9 +183,8 @@ impl LivePipeline for AreaLive {
         }
     }
 
-    fn write_results(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>> {
-        let _ = dir;
-        self.write(&self.dir)
+    fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+        self.write().map(|(files, _)| files)
     }
 }
 
@@ -357,8 +357,7 @@ impl LivePipeline for IndoorLive {
         self.settings.indoor = indoor;
     }
 
-    fn write_results(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>> {
-        let _ = dir;
+    fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
         let summary = serde_json::json!({
             "frames": self.frames,
             "landing_fired": self.trigger.fired(),

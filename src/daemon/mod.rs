@@ -496,12 +496,7 @@ fn stop_worker(live: &mut Live) {
 }
 
 fn start_worker(core: &mut Core, live: &mut Live, k: PipelineKind) {
-    let w = Worker::start(
-        factory(k, live.results.clone()),
-        core.settings.clone(),
-        live.results.clone(),
-        live.worker_tx.clone(),
-    );
+    let w = Worker::start(factory(k, live.results.clone()), core.settings.clone(), live.worker_tx.clone());
     live.worker = Some((k, w));
 }
 

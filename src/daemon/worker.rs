@@ -7,7 +7,7 @@
 //! and the worker goes on with the next frame: one bad frame must not stop the daemon.
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::{Arc, Condvar, Mutex};
 
 use crate::align::AlignedPose;
@@ -61,9 +61,9 @@ pub trait LivePipeline: Send {
     fn process(&mut self, frame: &LiveFrame) -> Report;
     /// Applies tuned parameters without a restart.
     fn apply(&mut self, settings: &Settings);
-    /// Writes the complete current results into `dir` (atomically per file); returns
-    /// the files written.
-    fn write_results(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>>;
+    /// Writes the complete current results (atomically per file, in the pipeline's own
+    /// results folder); returns the files written.
+    fn write_results(&self) -> std::io::Result<Vec<PathBuf>>;
 }
 
 /// Builds a fresh pipeline (at start, reset, and after a panic).
@@ -117,7 +117,6 @@ impl Worker {
     pub fn start(
         factory: Factory,
         settings: Settings,
-        results_dir: PathBuf,
         events: tokio::sync::mpsc::UnboundedSender<Event>,
     ) -> Worker {
         let shared = Arc::new((Mutex::new(Mailbox::default()), Condvar::new()));
@@ -125,7 +124,7 @@ impl Worker {
         let s2 = shared.clone();
         let thread = std::thread::Builder::new()
             .name("mavloc-pipeline".into())
-            .spawn(move || run(factory, settings, results_dir, s2, events))
+            .spawn(move || run(factory, settings, s2, events))
             .expect("spawn pipeline thread");
         Worker { shared, thread: Some(thread), dropped }
     }
@@ -173,7 +172,6 @@ fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
 fn run(
     factory: Factory,
     mut settings: Settings,
-    dir: PathBuf,
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
     events: tokio::sync::mpsc::UnboundedSender<Event>,
 ) {
@@ -211,11 +209,11 @@ fn run(
                     }
                 },
                 Request::Snapshot(reply) => {
-                    let _ = reply.send(pipeline.write_results(&dir).map_err(|e| e.to_string()));
+                    let _ = reply.send(pipeline.write_results().map_err(|e| e.to_string()));
                 }
                 Request::Stop => {
-                    let files = pipeline.write_results(&dir).unwrap_or_else(|e| {
-                        tracing::error!("cannot write results to {}: {e}", dir.display());
+                    let files = pipeline.write_results().unwrap_or_else(|e| {
+                        tracing::error!("cannot write the pipeline's results: {e}");
                         Vec::new()
                     });
                     let _ = events.send(Event::Stopped { files });
@@ -261,6 +259,7 @@ mod tests {
     /// Counts frames; panics on frame 3.
     struct Fragile {
         seen: u64,
+        dir: PathBuf,
     }
 
     impl LivePipeline for Fragile {
@@ -272,8 +271,8 @@ mod tests {
             Report { counters: vec![("SEEN", self.seen as f32)], ..Report::default() }
         }
         fn apply(&mut self, _: &Settings) {}
-        fn write_results(&self, dir: &Path) -> std::io::Result<Vec<PathBuf>> {
-            let p = dir.join("seen.txt");
+        fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+            let p = self.dir.join("seen.txt");
             crate::output::write_atomic(&p, self.seen.to_string().as_bytes())?;
             Ok(vec![p])
         }
@@ -304,8 +303,10 @@ mod tests {
     fn a_panicking_frame_restarts_the_pipeline_not_the_worker() {
         let dir = tempfile::tempdir().unwrap();
         let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
-        let factory: Factory = Box::new(|_| Ok(Box::new(Fragile { seen: 0 }) as Box<dyn LivePipeline>));
-        let w = Worker::start(factory, Settings::default(), dir.path().to_path_buf(), tx);
+        let out = dir.path().to_path_buf();
+        let factory: Factory =
+            Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));
+        let w = Worker::start(factory, Settings::default(), tx);
         let mut events = Vec::new();
         for i in 0..6 {
             w.offer(frame(i));
