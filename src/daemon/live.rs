@@ -44,6 +44,8 @@ pub struct AreaLive {
     no_mask_warned: bool,
     started: std::time::Instant,
     settings: crate::settings::Area,
+    /// `gimbal.aim = "border"`: report where the border is, per frame.
+    aim: bool,
 }
 
 impl AreaLive {
@@ -76,6 +78,7 @@ impl AreaLive {
             no_mask_warned: false,
             started: std::time::Instant::now(),
             settings: s.area.clone(),
+            aim: s.gimbal.aim == crate::settings::GimbalAim::Border,
         })
     }
 
@@ -138,7 +141,9 @@ impl LivePipeline for AreaLive {
         };
         let input =
             FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
-        report.aim = border_bearing(&small_mask, &frame.pose.camera, self.pipeline.intrinsics());
+        if self.aim {
+            report.aim = border_bearing(&small_mask, &frame.pose.camera, self.pipeline.intrinsics());
+        }
         let r = match self.pipeline.process(&input) {
             Ok(r) => r,
             Err(e) => {
@@ -177,6 +182,7 @@ impl LivePipeline for AreaLive {
 
     fn apply(&mut self, s: &Settings) {
         self.settings = s.area.clone();
+        self.aim = s.gimbal.aim == crate::settings::GimbalAim::Border;
         self.downscale = s.area.downscale.max(1);
         if let Err(e) = self.pipeline.reconfigure(&s.area, self.k_full.downscaled(self.downscale)) {
             tracing::warn!("area: new settings not applied: {e}");
