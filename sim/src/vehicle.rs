@@ -70,7 +70,7 @@ pub struct VehicleOptions {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Phase {
     Mission,
-    Landing { since: f64 },
+    Landing,
     Landed,
 }
 
@@ -84,8 +84,8 @@ pub struct Vehicle {
     pub phase: Phase,
     /// Mission time offset and where the descent started.
     start_s: f64,
-    landing_from: Option<State>,
-    landing_since: Option<f64>,
+    /// The state the descent started from, and when.
+    descent: Option<(State, f64)>,
     /// Current true state.
     pub state: State,
     rates: Vec<Stream>,
@@ -139,8 +139,7 @@ impl Vehicle {
             lag_s: scenario.noise.gimbal_lag_s,
             phase: Phase::Mission,
             start_s,
-            landing_from: None,
-            landing_since: None,
+            descent: None,
             state,
             rates,
             setpoint: None,
@@ -156,7 +155,7 @@ impl Vehicle {
 
     /// The true state at vehicle time `t` (seconds since boot).
     fn true_state(&self, t: f64) -> State {
-        let (Some(from), Some(since)) = (self.landing_from, self.landing_since) else {
+        let Some((from, since)) = self.descent else {
             return self.mission.state(self.start_s + t);
         };
         let p = from.position;
@@ -183,9 +182,8 @@ impl Vehicle {
     /// Starts the descent at time `t` (idempotent).
     pub fn land(&mut self, t: f64) {
         if self.phase == Phase::Mission {
-            self.landing_from = Some(self.true_state(t));
-            self.landing_since = Some(t);
-            self.phase = Phase::Landing { since: t };
+            self.descent = Some((self.true_state(t), t));
+            self.phase = Phase::Landing;
         }
     }
 
@@ -196,7 +194,7 @@ impl Vehicle {
     /// Advances to time `t`: phase changes and due streams.
     pub fn step(&mut self, t: f64) {
         self.state = self.true_state(t);
-        if let Phase::Landing { .. } = self.phase {
+        if let Phase::Landing = self.phase {
             if self.state.velocity.z == 0.0 {
                 self.phase = Phase::Landed;
             }
@@ -235,7 +233,7 @@ impl Vehicle {
             0 => {
                 let (sub, status) = match self.phase {
                     Phase::Mission => (4, MavState::MAV_STATE_ACTIVE),
-                    Phase::Landing { .. } => (6, MavState::MAV_STATE_ACTIVE),
+                    Phase::Landing => (6, MavState::MAV_STATE_ACTIVE),
                     Phase::Landed => (3, MavState::MAV_STATE_STANDBY), // AUTO.LOITER
                 };
                 let mut base = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -314,7 +312,7 @@ impl Vehicle {
                 vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
                 landed_state: match self.phase {
                     Phase::Mission => MavLandedState::MAV_LANDED_STATE_IN_AIR,
-                    Phase::Landing { .. } => MavLandedState::MAV_LANDED_STATE_LANDING,
+                    Phase::Landing => MavLandedState::MAV_LANDED_STATE_LANDING,
                     Phase::Landed => MavLandedState::MAV_LANDED_STATE_ON_GROUND,
                 },
             }),
@@ -607,7 +605,7 @@ mod tests {
             }),
             1.0,
         );
-        assert!(matches!(v.phase, Phase::Landing { .. }));
+        assert!(matches!(v.phase, Phase::Landing));
         for i in 0..100 {
             v.step(1.0 + i as f64 * 0.05);
         }
