@@ -94,6 +94,14 @@ fn texture(grey: &Mat) -> opencv::Result<Mat> {
     Ok(t)
 }
 
+/// Pixels of an HSV image inside the box `low` ..= `high`.
+fn hsv_in(hsv: &Mat, low: [f64; 3], high: [f64; 3]) -> opencv::Result<Mat> {
+    let mut out = Mat::default();
+    let (l, h) = (Scalar::new(low[0], low[1], low[2], 0.0), Scalar::new(high[0], high[1], high[2], 0.0));
+    core::in_range(hsv, &l, &h, &mut out)?;
+    Ok(out)
+}
+
 fn water(small: &Mat) -> opencv::Result<Mat> {
     let mut grey = Mat::default();
     imgproc::cvt_color(small, &mut grey, imgproc::COLOR_BGR2GRAY, 0)?;
@@ -106,22 +114,10 @@ fn water(small: &Mat) -> opencv::Result<Mat> {
     // Not vegetation (green hue with some saturation) and not bright sand or foam.
     let mut hsv = Mat::default();
     imgproc::cvt_color(small, &mut hsv, imgproc::COLOR_BGR2HSV, 0)?;
-    let mut veg = Mat::default();
-    core::in_range(
-        &hsv,
-        &Scalar::new(30.0, 60.0, 20.0, 0.0),
-        &Scalar::new(85.0, 255.0, 255.0, 0.0),
-        &mut veg,
-    )?;
+    let veg = hsv_in(&hsv, [30.0, 60.0, 20.0], [85.0, 255.0, 255.0])?;
     // Light and colourless: sand, foam, and paving (roads, paths and roofs are as smooth
     // as water from the air, but brighter and greyer than open water).
-    let mut bright = Mat::default();
-    core::in_range(
-        &hsv,
-        &Scalar::new(0.0, 0.0, 140.0, 0.0),
-        &Scalar::new(180.0, 45.0, 255.0, 0.0),
-        &mut bright,
-    )?;
+    let bright = hsv_in(&hsv, [0.0, 0.0, 140.0], [180.0, 45.0, 255.0])?;
     let mut not_land = Mat::default();
     core::bitwise_or(&veg, &bright, &mut not_land, &core::no_array())?;
     let mut land_free = Mat::default();
@@ -134,14 +130,7 @@ fn water(small: &Mat) -> opencv::Result<Mat> {
 fn hsv_box(small: &Mat, low: &[f64], high: &[f64]) -> opencv::Result<Mat> {
     let mut hsv = Mat::default();
     imgproc::cvt_color(small, &mut hsv, imgproc::COLOR_BGR2HSV, 0)?;
-    let mut raw = Mat::default();
-    core::in_range(
-        &hsv,
-        &Scalar::new(low[0], low[1], low[2], 0.0),
-        &Scalar::new(high[0], high[1], high[2], 0.0),
-        &mut raw,
-    )?;
-    clean(&raw)
+    clean(&hsv_in(&hsv, [low[0], low[1], low[2]], [high[0], high[1], high[2]])?)
 }
 
 /// The target mask of a BGR frame (255 inside), at the frame's size. `None` for
