@@ -330,7 +330,7 @@ fn indoor(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Result
         zone.x, zone.y
     ));
     let sets = vec![
-        format!("daemon.pipeline=indoor"),
+        "daemon.pipeline=indoor".into(),
         format!("indoor.model={m}"),
         "camera.width=320".into(),
         "camera.height=240".into(),

@@ -111,7 +111,7 @@ fn water(small: &Mat) -> opencv::Result<Mat> {
     let t = otsu(&tex)?.min(40.0);
     let mut smooth = Mat::default();
     imgproc::threshold(&tex, &mut smooth, t, 255.0, imgproc::THRESH_BINARY_INV)?;
-    // Not vegetation (green hue with some saturation) and not bright sand or foam.
+    // Not vegetation (green hue with some saturation).
     let mut hsv = Mat::default();
     imgproc::cvt_color(small, &mut hsv, imgproc::COLOR_BGR2HSV, 0)?;
     let veg = hsv_in(&hsv, [30.0, 60.0, 20.0], [85.0, 255.0, 255.0])?;
