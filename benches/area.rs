@@ -91,7 +91,7 @@ fn stages(c: &mut Criterion) {
             |mut fs| {
                 for (f, t) in fs.iter_mut().zip(&truth) {
                     let bt = bearing_between(&observer, t).unwrap();
-                    let _ = f.update(&BearingModel { observer }, &Vector2::new(bt.yaw, bt.pitch), &r);
+                    let _ = f.update(&BearingModel::new(observer), &Vector2::new(bt.yaw, bt.pitch), &r);
                 }
                 fs
             },

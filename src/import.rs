@@ -22,8 +22,12 @@
 //!   width (h = 3w/4 in the formula), as DJI's 16:9 modes are: the FC300S's 3.61 mm on its
 //!   6.17 mm-wide sensor gives 2340 px at 4000 px, this rule 2311 px, the 16:9 diagonal
 //!   2121 px. A calibration file (`--calibration FILE`, TOML with fx, fy, cx, cy)
-//!   overrides this; the estimate is good to a few per cent, which the residual report of
-//!   `mavloc area` shows as a scale error.
+//!   overrides this. The estimate is good to a few per cent. Along one straight line of
+//!   nadir photos a focal error trades against height (landmarks move up or down by
+//!   metres) and barely shows in the residual report: README "Real photos" has the table.
+//! - The origin's altitude is EXIF GPS altitude minus RelativeAltitude. EXIF altitude is
+//!   above sea level, not the ellipsoid, so absolute heights in the results are off by the
+//!   geoid (about 30 m at the sample); local heights and map positions are not.
 //! - Frames are the original JPEGs, copied unchanged (`frames/NNNNNN.jpg`); photos have no
 //!   ground truth, so each record's `true` pose repeats the measured one.
 

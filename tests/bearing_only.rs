@@ -152,7 +152,7 @@ fn run(settings: &Settings, seed: u64) -> anyhow::Result<DemoReport> {
             }
             let b = reported.pixel_bearing(&k, px);
             let z = Vector2::new(b.yaw, b.pitch);
-            let model = BearingModel { observer: reported.position };
+            let model = BearingModel::new(reported.position);
             match &mut track.ukf {
                 None => {
                     // Seed sec. 5.3: start from the ground-plane guess, wide covariance.

@@ -99,13 +99,56 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     println!("{stdout}");
     assert!(result.join("masks.png").exists(), "contact sheet");
-    // Written whatever converged (with three photos, little or nothing does yet: see
-    // the README's real-photos section).
-    let kml = std::fs::read_to_string(result.join("area.kml")).unwrap();
-    assert!(kml.contains("<kml"), "{kml}");
+    assert!(result.join("views.png").exists(), "top and side view");
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 3);
+    // Landmarks seen in all three photos converge (the survey config asks for three
+    // sightings), consistently with every photo they were seen in.
+    let n = summary["landmarks"].as_u64().unwrap();
+    assert!(n >= 10, "{summary}");
+    assert!(summary["residual_p90_px"].as_f64().unwrap() < 80.0, "{summary}");
+    assert_eq!(summary["yaw_off_180_frames"], serde_json::json!(null), "{summary}");
+    let residuals = std::fs::read_to_string(result.join("residuals.csv")).unwrap();
+    assert_eq!(residuals.lines().count(), 4, "a row per photo: {residuals}");
+
+    // Over the right place: the lake shore beside the flight line, on the lake's side.
+    // Each landmark lies within the photos' footprint (69 m wide from 40 m) and south-east
+    // of the line the drone flew (the photos look north-east with the water on their right;
+    // Lake Superior is south-east of Duluth's shore).
+    let geo: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(result.join("area.geojson")).unwrap()).unwrap();
+    let photos: Vec<(f64, f64)> = ["DJI_0030.JPG", "DJI_0031.JPG", "DJI_0032.JPG"]
+        .iter()
+        .map(|p| {
+            let t = read_tags(&sample().join(p)).unwrap();
+            (t.lat_deg, t.lon_deg)
+        })
+        .collect();
+    let metres = |(lat, lon): (f64, f64), (lat0, lon0): (f64, f64)| {
+        let north = (lat - lat0).to_radians() * 6_371_000.0;
+        let east = (lon - lon0).to_radians() * 6_371_000.0 * lat0.to_radians().cos();
+        (north, east)
+    };
+    let mut landmarks = 0;
+    for f in geo["features"].as_array().unwrap() {
+        if f["properties"]["kind"] != "landmark" {
+            continue;
+        }
+        landmarks += 1;
+        let c = f["geometry"]["coordinates"].as_array().unwrap();
+        let at = (c[1].as_f64().unwrap(), c[0].as_f64().unwrap());
+        let nearest = photos.iter().map(|&p| metres(at, p)).map(|(n, e)| n.hypot(e)).fold(f64::MAX, f64::min);
+        assert!(nearest < 40.0, "landmark {at:?} is {nearest:.0} m from the nearest photo");
+        // Side of the flight line (first to last photo): positive = to its right.
+        let (ln, le) = metres(photos[2], photos[0]);
+        let (pn, pe) = metres(at, photos[0]);
+        let right = (ln * pe - le * pn) / ln.hypot(le);
+        assert!(right > 5.0, "landmark {at:?} is {right:.1} m right of the flight line");
+    }
+    assert_eq!(landmarks as u64, n);
+    let kml = std::fs::read_to_string(result.join("area.kml")).unwrap();
+    assert_eq!(kml.matches("<Point>").count() as u64, n, "every landmark in the KML");
 }
 
 #[test]

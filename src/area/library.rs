@@ -13,6 +13,7 @@ use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
 use crate::output::LandmarkRecord;
 
 const DESCRIPTOR_LEN: usize = 128;
+const ACROSS_FACTOR: f64 = 1.0;
 
 /// One landmark: descriptors seen so far (capped) and its position filter.
 pub struct Landmark {
@@ -93,6 +94,8 @@ pub struct LibraryParams {
     pub bearing_noise: Matrix2<f64>,
     pub bearing_sd_rad: f64,
     pub ukf: UkfParams,
+    /// Iterations of the landmark update (1 = the seed's UKF update).
+    pub ukf_iterations: u32,
     pub init_sigma_m: f64,
     pub ground_down_m: f64,
     pub max_descriptors: usize,
@@ -114,6 +117,7 @@ impl LibraryParams {
             bearing_noise: crate::filter::bearing_noise(sd),
             bearing_sd_rad: sd,
             ukf: UkfParams { alpha: a.ukf_alpha, beta: a.ukf_beta, kappa: a.ukf_kappa },
+            ukf_iterations: a.ukf_iterations,
             init_sigma_m: a.init_sigma_m,
             ground_down_m: a.ground_down_m,
             max_descriptors: a.max_descriptors as usize,
@@ -250,9 +254,10 @@ impl Library {
             used[fi] = true;
             stats.matched += 1;
             let px = features.pixels[fi];
-            let b = pose.pixel_bearing(k, px);
-            let z = Vector2::new(b.yaw, b.pitch);
-            let model = BearingModel { observer: pose.position };
+            // Measured about the pixel's own ray: well conditioned at any camera tilt,
+            // nadir photos included (see `BearingModel`).
+            let model = BearingModel::about(pose.position, &pose.direction(k, px));
+            let z = BearingModel::ZERO;
             let landmark = &mut self.landmarks[li];
             let Ok(pred) = landmark.ukf.predict_measurement(&model, &self.params.bearing_noise) else {
                 stats.gated += 1;
@@ -260,8 +265,17 @@ impl Library {
             };
             let y = model.residual(&z, &pred.z);
             let d = pred.mahalanobis(&y);
-            let accepted =
-                d <= self.params.mahalanobis_max && landmark.ukf.update_predicted(&model, &pred, &z).is_ok();
+            let accepted = d <= self.params.mahalanobis_max
+                && landmark
+                    .ukf
+                    .update_iterated(
+                        &model,
+                        &pred,
+                        &z,
+                        &self.params.bearing_noise,
+                        self.params.ukf_iterations,
+                    )
+                    .is_ok();
             if accepted {
                 stats.updated += 1;
                 let row = features.descriptors.at_row::<f32>(fi as i32)?;
@@ -274,12 +288,17 @@ impl Library {
             if let Some(t) = trace.as_deref_mut() {
                 let p = landmark.ukf.covariance();
                 let m = landmark.ukf.state();
+                // Reported in local NED like the seed's fig. 6.2, not in the ray's frame.
+                let local = |z: &Vector2<f64>| {
+                    let b = model.to_local(z);
+                    [b.yaw, b.pitch]
+                };
                 t.push(TraceEntry {
                     frame,
                     landmark: landmark.id,
                     pixel: px,
-                    measurement: [z.x, z.y],
-                    prediction: [pred.z.x, pred.z.y],
+                    measurement: local(&z),
+                    prediction: local(&pred.z),
                     mahalanobis: d,
                     accepted,
                     mean: [m.x, m.y, m.z],
@@ -324,6 +343,7 @@ impl Library {
         used: &[bool],
         pose: &CameraPose,
         k: &Intrinsics,
+        mut created: Option<&mut Vec<(u64, Pixel)>>,
     ) -> usize {
         let room = self.params.l_max.saturating_sub(self.landmarks.len());
         if room == 0 {
@@ -350,13 +370,16 @@ impl Library {
                 continue;
             }
             let d: Vec3 = ray / range;
-            let across = (3.0 * range * self.params.bearing_sd_rad).max(0.3);
+            let across = (ACROSS_FACTOR * range * self.params.bearing_sd_rad).max(0.3);
             let along = self.params.init_sigma_m.max(across);
             let p0 =
                 Matrix3::identity() * across.powi(2) + d * d.transpose() * (along.powi(2) - across.powi(2));
             let Ok(ukf) = Ukf::new(ground, p0, self.params.ukf) else { continue };
             let Ok(row) = features.descriptors.at_row::<f32>(fi as i32) else { continue };
             self.push(Landmark::new(ukf, row, frame));
+            if let Some(c) = created.as_deref_mut() {
+                c.push((self.next_id - 1, px));
+            }
             added += 1;
         }
         added

@@ -26,7 +26,7 @@ use std::time::{Duration, Instant};
 use opencv::core::Mat;
 use opencv::prelude::*;
 
-use crate::geometry::{CameraPose, Intrinsics};
+use crate::geometry::{CameraPose, Intrinsics, Pixel};
 use crate::output::LandmarkRecord;
 use crate::settings::Area as AreaSettings;
 use features::FeatureExtractor;
@@ -65,6 +65,11 @@ pub struct FrameReport {
     pub landmarks: usize,
     /// Per-update history, when tracing is on.
     pub trace: Vec<TraceEntry>,
+    /// When tracing is on: where each landmark was seen in this frame, `(landmark,
+    /// pixel)`: the landmarks created here and every match, gated ones included (the
+    /// residual report checks each ray a landmark was built from, and a frame whose pose
+    /// is wrong has all its matches gated).
+    pub sightings: Vec<(u64, Pixel)>,
     pub timing: StageTiming,
 }
 
@@ -165,7 +170,9 @@ impl AreaPipeline {
         let (purged, converged) = self.library.purge(input.index);
         report.purged = purged;
         report.converged = converged;
-        report.added = self.library.add(input.index, &features, &used, &input.pose, &self.k);
+        let created = if self.trace { Some(&mut report.sightings) } else { None };
+        report.added = self.library.add(input.index, &features, &used, &input.pose, &self.k, created);
+        report.sightings.extend(report.trace.iter().map(|t| (t.landmark, t.pixel)));
         report.landmarks = self.library.landmarks.len();
         report.timing =
             StageTiming { band: t1 - t0, sift: t2 - t1, match_estimate: t3 - t2, purge_add: t3.elapsed() };

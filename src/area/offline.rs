@@ -223,7 +223,7 @@ pub fn run(
                 results.extend(report.converged);
                 if residuals {
                     poses.insert(record.frame, pose);
-                    seen.extend(report.trace.iter().map(|t| (t.frame, t.landmark, t.pixel)));
+                    seen.extend(report.sightings.iter().map(|&(id, px)| (record.frame, id, px)));
                 }
                 if let Some(f) = trace_file.as_mut() {
                     for t in &report.trace {
@@ -283,8 +283,10 @@ pub fn run(
     summary.frame_ms_at_500 = window(&frame_ms, 495);
     summary.match_ms_at_50 = window(&match_ms, 45);
     summary.match_ms_at_500 = window(&match_ms, 495);
+    let mut marks = std::collections::BTreeMap::new();
     if residuals && pipeline.is_some() {
         let rows = super::residuals::per_frame(&seen, &results, &poses, &k, downscale as f64);
+        marks = super::residuals::marks(&seen, &results, &poses, &k, downscale as f64);
         let mut all: Vec<f64> = Vec::new();
         for r in &rows {
             all.extend(std::iter::repeat_n(r.median_px, r.landmarks.max(1)));
@@ -298,9 +300,21 @@ pub fn run(
         output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
     }
     summary.complete = true;
-    write_results(&opts.out, &frame, &name, &results, &mut summary)?;
+    let borders = write_results(&opts.out, &frame, &name, &results, &mut summary)?;
+    if !results.is_empty() {
+        // Top and side view of what was found (`mavloc eval area` redraws it over the
+        // ground truth when there is one). A figure is a convenience: failing to draw one
+        // is reported, not fatal, since the results are already written.
+        let points: Vec<_> = results.iter().map(|l| l.position).collect();
+        let title = format!("{} landmarks, local NED around the dataset origin", points.len());
+        if let Err(e) =
+            output::plot::landmark_views(&opts.out.join("views.png"), &points, &[], &borders, &title)
+        {
+            tracing::warn!("views.png not drawn: {e}");
+        }
+    }
     if opts.debug_masks {
-        super::segment::contact_sheet(&opts.out.join("masks.png"), &sheet)?;
+        super::segment::contact_sheet(&opts.out.join("masks.png"), &sheet, &marks)?;
     }
     Ok(summary)
 }

@@ -92,6 +92,26 @@ pub fn per_frame(
 }
 
 /// `residuals.csv`.
+/// Per frame, each converged landmark's sighting and where its estimate reprojects
+/// (`None` behind the camera), in full-resolution pixels: what the contact sheet draws.
+pub fn marks(
+    seen: &[(u64, u64, Pixel)],
+    landmarks: &[LandmarkRecord],
+    poses: &BTreeMap<u64, CameraPose>,
+    k: &Intrinsics,
+    scale: f64,
+) -> BTreeMap<u64, Vec<(Pixel, Option<Pixel>)>> {
+    let position: HashMap<u64, Vec3> = landmarks.iter().map(|l| (l.id, l.position)).collect();
+    let full = |p: Pixel| Pixel::new(p.u * scale, p.v * scale);
+    let mut out: BTreeMap<u64, Vec<(Pixel, Option<Pixel>)>> = BTreeMap::new();
+    for (frame, id, px) in seen {
+        if let (Some(p), Some(pose)) = (position.get(id), poses.get(frame)) {
+            out.entry(*frame).or_default().push((full(*px), pose.project(k, p).map(full)));
+        }
+    }
+    out
+}
+
 pub fn csv(rows: &[FrameResiduals]) -> String {
     let mut s = String::from("frame,landmarks,median_px,p90_px,median_yaw180_px,yaw_off_180\n");
     for r in rows {

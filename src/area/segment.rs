@@ -163,14 +163,34 @@ pub fn segment(frame: &Mat, s: &AreaSettings) -> opencv::Result<Option<Mat>> {
 }
 
 /// A PNG contact sheet: each frame (scaled to 480 px wide) beside itself with the mask
-/// tinted red and its outline drawn, one row per frame, with the frame's index.
-pub fn contact_sheet(path: &std::path::Path, rows: &[(u64, Mat, Mat)]) -> opencv::Result<()> {
+/// tinted red and its outline drawn, one row per frame, with the frame's index; on the
+/// frame, `marks` (full-resolution sightings of converged landmarks and their
+/// reprojections, from [`super::residuals::marks`]).
+pub fn contact_sheet(
+    path: &std::path::Path,
+    rows: &[(u64, Mat, Mat)],
+    marks: &std::collections::BTreeMap<u64, Vec<(crate::geometry::Pixel, Option<crate::geometry::Pixel>)>>,
+) -> opencv::Result<()> {
     let w = 480;
     let mut tiles: Vec<Mat> = Vec::new();
     for (index, frame, mask) in rows {
         let h = (frame.rows() as f64 * w as f64 / frame.cols() as f64).round() as i32;
         let mut a = Mat::default();
         imgproc::resize(frame, &mut a, Size::new(w, h), 0.0, 0.0, imgproc::INTER_AREA)?;
+        // Converged landmarks: a green ring where SIFT saw it, a red line to where the
+        // estimate reprojects (drawn 3x longer so a 20 px residual shows on a 480 px tile).
+        let s = w as f64 / frame.cols() as f64;
+        let at = |p: &crate::geometry::Pixel| Point::new((p.u * s).round() as i32, (p.v * s).round() as i32);
+        for (seen, reprojected) in marks.get(index).map(Vec::as_slice).unwrap_or(&[]) {
+            if let Some(r) = reprojected {
+                let end =
+                    crate::geometry::Pixel::new(seen.u + 3.0 * (r.u - seen.u), seen.v + 3.0 * (r.v - seen.v));
+                let red = Scalar::new(0.0, 0.0, 255.0, 0.0);
+                imgproc::line(&mut a, at(seen), at(&end), red, 1, imgproc::LINE_AA, 0)?;
+            }
+            let green = Scalar::new(0.0, 255.0, 0.0, 0.0);
+            imgproc::circle(&mut a, at(seen), 4, green, 1, imgproc::LINE_AA, 0)?;
+        }
         let mut m = Mat::default();
         imgproc::resize(mask, &mut m, Size::new(w, h), 0.0, 0.0, imgproc::INTER_NEAREST)?;
         let mut red = a.try_clone()?;

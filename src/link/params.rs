@@ -68,6 +68,7 @@ pub const PARAMS: &[ParamDef] = &[
     p("AREA_UKF_ALPHA", "area.ukf_alpha", Float),
     p("AREA_UKF_BETA", "area.ukf_beta", Float),
     p("AREA_UKF_KAPPA", "area.ukf_kappa", Float),
+    p("AREA_UKF_ITER", "area.ukf_iterations", Int),
     p("AREA_INIT_SIG", "area.init_sigma_m", Float),
     p("AREA_GROUND_D", "area.ground_down_m", Float),
     p("AREA_MAX_DESC", "area.max_descriptors", Int),

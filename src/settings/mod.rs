@@ -465,6 +465,7 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range("area.ukf_alpha", a.ukf_alpha, 0.001, 1.0);
     v.range("area.ukf_beta", a.ukf_beta, 0.0, 10.0);
     v.range("area.ukf_kappa", a.ukf_kappa, -2.9, 10.0); // n + kappa > 0 for n = 3
+    v.range_int("area.ukf_iterations", a.ukf_iterations.into(), 1, 20);
     v.range("area.init_sigma_m", a.init_sigma_m, 0.1, 1000.0);
     v.range("area.ground_down_m", a.ground_down_m, -10_000.0, 10_000.0);
     v.range_int("area.max_descriptors", a.max_descriptors.into(), 1, 1000);
