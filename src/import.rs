@@ -21,14 +21,16 @@
 //!   no distortion; a photo wider than 4:3 is taken as a crop of a 4:3 sensor of the same
 //!   width (h = 3w/4 in the formula), as DJI's 16:9 modes are: the FC300S's 3.61 mm on its
 //!   6.17 mm-wide sensor gives 2340 px at 4000 px, this rule 2311 px, the 16:9 diagonal
-//!   2121 px. A calibration file (`--calibration FILE`, TOML with fx, fy, cx, cy)
-//!   overrides this. The estimate is good to a few per cent. Along one straight line of
+//!   2121 px. A calibration file (`--calibration FILE`, TOML with fx, fy, cx, cy and
+//!   optionally OpenCV's `distortion` coefficients) overrides this; with distortion the
+//!   frames are written undistorted (same camera matrix, JPEG quality 95), so the dataset
+//!   stays pinhole like every other. The estimate is good to a few per cent. Along one straight line of
 //!   nadir photos a focal error trades against height (landmarks move up or down by
 //!   metres) and barely shows in the residual report: README "Real photos" has the table.
 //! - The origin's altitude is EXIF GPS altitude minus RelativeAltitude. EXIF altitude is
 //!   above sea level, not the ellipsoid, so absolute heights in the results are off by the
 //!   geoid (about 30 m at the sample); local heights and map positions are not.
-//! - Frames are the original JPEGs, copied unchanged (`frames/NNNNNN.jpg`); photos have no
+//! - Frames are the original JPEGs, copied unchanged unless undistorted (`frames/NNNNNN.jpg`); photos have no
 //!   ground truth, so each record's `true` pose repeats the measured one.
 
 use std::collections::BTreeMap;
@@ -224,14 +226,60 @@ fn exif_seconds(t: &str) -> Option<f64> {
     Some(days as f64 * 86400.0 + p[3] * 3600.0 + p[4] * 60.0 + p[5])
 }
 
-/// Intrinsics override: a TOML file with fx, fy, cx, cy (pixels at the photos' size).
-#[derive(Clone, Copy, Debug, serde::Deserialize)]
+/// Intrinsics override: a TOML file with fx, fy, cx, cy (pixels at the photos' size) and
+/// optionally `distortion`, OpenCV's coefficients `[k1, k2, p1, p2(, k3(, k4, k5, k6))]`
+/// (what `calibrateCamera` or OpenDroneMap's `cameras.json` give).
+#[derive(Clone, Debug, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Calibration {
     pub fx: f64,
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
+    #[serde(default)]
+    pub distortion: Vec<f64>,
+}
+
+impl Calibration {
+    fn check(&self) -> Result<(), String> {
+        if ![0, 4, 5, 8].contains(&self.distortion.len()) {
+            return Err(format!(
+                "distortion has {} coefficients; OpenCV's model takes 4, 5 or 8 ([k1, k2, p1, p2, k3, ...])",
+                self.distortion.len()
+            ));
+        }
+        if let Some(d) = self.distortion.iter().find(|d| !d.is_finite()) {
+            return Err(format!("distortion coefficient {d} is not a finite number"));
+        }
+        Ok(())
+    }
+
+    /// Whether the photos need undistorting.
+    fn distorted(&self) -> bool {
+        self.distortion.iter().any(|&d| d != 0.0)
+    }
+}
+
+/// Writes `src` undistorted with camera matrix `(fx, fy, cx, cy)` and `distortion`, keeping
+/// the same camera matrix, so the dataset's pinhole intrinsics hold for the new frame.
+/// JPEG at quality 95: the frames stay photos, at a fifth of PNG's size.
+fn undistort_photo(src: &Path, dest: &Path, c: &Calibration) -> Result<(), String> {
+    use opencv::core::{Mat, Vector};
+    use opencv::prelude::*;
+    let err = |e: opencv::Error| format!("{}: {e}", src.display());
+    let img = opencv::imgcodecs::imread(src, opencv::imgcodecs::IMREAD_COLOR).map_err(err)?;
+    if img.empty() {
+        return Err(format!("{}: not a readable image", src.display()));
+    }
+    let k = Mat::from_slice_2d(&[[c.fx, 0.0, c.cx], [0.0, c.fy, c.cy], [0.0, 0.0, 1.0]]).map_err(err)?;
+    let d = Mat::from_slice(&c.distortion).map_err(err)?.try_clone().map_err(err)?;
+    let mut out = Mat::default();
+    opencv::calib3d::undistort(&img, &mut out, &k, &d, &k).map_err(err)?;
+    let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 95]);
+    if !opencv::imgcodecs::imwrite(dest, &out, &params).map_err(err)? {
+        return Err(format!("cannot write {}", dest.display()));
+    }
+    Ok(())
 }
 
 /// What an import did.
@@ -291,11 +339,20 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
     }
     let origin = Geodetic::new(first.lat_deg, first.lon_deg, first.absolute_alt_m - first.relative_alt_m);
     origin.validate().map_err(|e| format!("{}: {e}", first.name))?;
+    let mut undistort = None;
     let (fx, fy, cx, cy, from) = match calibration {
         Some(p) => {
             let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
             let c: Calibration = toml::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?;
-            (c.fx, c.fy, c.cx, c.cy, format!("calibration file {}", p.display()))
+            c.check().map_err(|e| format!("{}: {e}", p.display()))?;
+            let from = if c.distorted() {
+                format!("calibration file {} (frames undistorted)", p.display())
+            } else {
+                format!("calibration file {}", p.display())
+            };
+            let v = (c.fx, c.fy, c.cx, c.cy, from);
+            undistort = Some(c).filter(Calibration::distorted);
+            v
         }
         None => {
             let f35 = first.focal_35mm.expect("checked");
@@ -328,7 +385,13 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
     let mut lines = String::new();
     for (i, (s, path, t)) in photos.iter().enumerate() {
         let dest = out.join("frames").join(format!("{i:06}.jpg"));
-        std::fs::copy(path, &dest).map_err(|e| format!("{} -> {}: {e}", path.display(), dest.display()))?;
+        match &undistort {
+            Some(c) => undistort_photo(path, &dest, c)?,
+            None => {
+                std::fs::copy(path, &dest)
+                    .map_err(|e| format!("{} -> {}: {e}", path.display(), dest.display()))?;
+            }
+        }
         let p = frame.to_ned(&Geodetic::new(t.lat_deg, t.lon_deg, t.absolute_alt_m));
         let pose = PoseRecord {
             position: p.into(),

@@ -76,6 +76,74 @@ fn a_calibration_file_overrides_the_focal_length_estimate() {
     assert_eq!((ds.camera.fy, ds.camera.cx, ds.camera.cy), (2341.0, 2001.0, 1120.0));
 }
 
+/// With distortion coefficients the frames are undistorted: what the original shows at
+/// the distorted position of a pixel (OpenCV's model, k1 only here) the imported frame
+/// shows at the pixel itself. Patches compared by normalised cross-correlation (0.6-0.9
+/// where they should match, about 0 in place), at points where k1 = -0.1 moves the image
+/// by tens of pixels.
+#[test]
+fn a_calibration_with_distortion_undistorts_the_frames() {
+    use opencv::core::{Mat, Rect};
+    use opencv::prelude::*;
+    let dir = tempfile::tempdir().unwrap();
+    let cal = dir.path().join("cal.toml");
+    let (fx, cx, cy, k1): (f64, f64, f64, f64) = (2311.0, 1999.5, 1124.5, -0.1);
+    std::fs::write(
+        &cal,
+        format!("fx = {fx}\nfy = {fx}\ncx = {cx}\ncy = {cy}\ndistortion = [{k1}, 0.0, 0.0, 0.0, 0.0]\n"),
+    )
+    .unwrap();
+    let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal)).unwrap();
+    assert!(r.intrinsics_from.contains("undistorted"), "{}", r.intrinsics_from);
+    let ds = mavloc_sim::Dataset::open(&dir.path().join("ds")).unwrap();
+    let grey = |p: &Path| opencv::imgcodecs::imread(p, opencv::imgcodecs::IMREAD_GRAYSCALE).unwrap();
+    let imported = grey(&ds.frame_path(&ds.records[0]));
+    let original = grey(&sample().join("DJI_0030.JPG"));
+    assert_eq!((imported.cols(), imported.rows()), (4000, 2250));
+    let patch = |img: &Mat, u: f64, v: f64| -> Vec<f64> {
+        let roi = Mat::roi(img, Rect::new(u.round() as i32 - 20, v.round() as i32 - 20, 41, 41)).unwrap();
+        let mut out = Vec::new();
+        for y in 0..41 {
+            for x in 0..41 {
+                out.push(*roi.at_2d::<u8>(y, x).unwrap() as f64);
+            }
+        }
+        out
+    };
+    let ncc = |a: &[f64], b: &[f64]| {
+        let (ma, mb) = (a.iter().sum::<f64>() / a.len() as f64, b.iter().sum::<f64>() / b.len() as f64);
+        let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+        for (x, y) in a.iter().zip(b) {
+            ab += (x - ma) * (y - mb);
+            aa += (x - ma).powi(2);
+            bb += (y - mb).powi(2);
+        }
+        ab / (aa * bb).sqrt()
+    };
+    for (u, v) in [(800.0f64, 500.0f64), (3200.0, 600.0), (900.0, 1750.0), (3100.0, 1700.0), (600.0, 1100.0)]
+    {
+        let (x, y) = ((u - cx) / fx, (v - cy) / fx);
+        let f = 1.0 + k1 * (x * x + y * y);
+        let (ud, vd) = (fx * x * f + cx, fx * y * f + cy);
+        assert!((ud - u).hypot(vd - v) > 15.0, "the test point ({u}, {v}) moves too little");
+        let here = patch(&imported, u, v);
+        let moved = ncc(&here, &patch(&original, ud, vd));
+        let unmoved = ncc(&here, &patch(&original, u, v));
+        assert!(
+            moved > 0.5 && moved > unmoved + 0.3,
+            "({u}, {v}): {moved:.2} at the distorted point, {unmoved:.2} in place"
+        );
+    }
+    // A wrong number of coefficients is named.
+    std::fs::write(
+        &cal,
+        "fx = 2311.0\nfy = 2311.0\ncx = 1999.5\ncy = 1124.5\ndistortion = [0.1, 0.0, 0.0]\n",
+    )
+    .unwrap();
+    let e = import_photos(&sample(), &dir.path().join("ds2"), Some(&cal)).unwrap_err();
+    assert!(e.contains("cal.toml") && e.contains("distortion has 3 coefficients"), "{e}");
+}
+
 #[test]
 fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     let dir = tempfile::tempdir().unwrap();
