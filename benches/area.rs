@@ -85,7 +85,11 @@ fn stages(c: &mut Criterion) {
             Ukf::new(t + Vec3::new(3.0, -2.0, 1.0), Matrix3::identity() * 25.0, UkfParams::default()).unwrap()
         })
         .collect();
-    c.bench_function("area_ukf_update_200_landmarks", |b| {
+    // The same updates in the three ways the library can make them: the seed's local
+    // yaw/pitch, bearings about the measured ray (what the library does), and that with
+    // five iterations (the photo-survey setting).
+    let mut group = c.benchmark_group("area_ukf_update_200_landmarks");
+    group.bench_function("local_yaw_pitch", |b| {
         b.iter_batched(
             || filters.clone(),
             |mut fs| {
@@ -98,6 +102,25 @@ fn stages(c: &mut Criterion) {
             BatchSize::SmallInput,
         )
     });
+    for iterations in [1, 5] {
+        let name = format!("about_ray_{iterations}_iterations");
+        group.bench_function(name, |b| {
+            b.iter_batched(
+                || filters.clone(),
+                |mut fs| {
+                    for (f, t) in fs.iter_mut().zip(&truth) {
+                        let model = BearingModel::about(observer, &(t - observer));
+                        if let Ok(pred) = f.predict_measurement(&model, &r) {
+                            let _ = f.update_iterated(&model, &pred, &BearingModel::ZERO, &r, iterations);
+                        }
+                    }
+                    fs
+                },
+                BatchSize::SmallInput,
+            )
+        });
+    }
+    group.finish();
 
     // Purge 20 of 220 landmarks.
     let descriptor = vec![0.5f32; 128];
