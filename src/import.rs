@@ -42,6 +42,9 @@ use crate::geometry::{Geodetic, LocalFrame};
 use mavloc_sim::dataset::{CameraFile, PoseRecord, TelemetryRecord};
 use mavloc_sim::mission::GimbalFrame;
 
+/// `config/photo-survey.toml`, written into every imported dataset as its own settings.
+pub const PHOTO_SURVEY_SETTINGS: &str = include_str!("../config/photo-survey.toml");
+
 /// Diagonal of the 35 mm film frame (36 x 24 mm), millimetres.
 const FILM_DIAGONAL_MM: f64 = 43.266_615;
 
@@ -410,6 +413,9 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
             .map_err(|e| format!("{}: {e}", out.join(name).display()))
     };
     write("camera.toml", toml::to_string(&camera).map_err(|e| e.to_string())?.as_bytes())?;
+    // The settings photos need (segment water, the photo-survey tuning), so `mavloc area
+    // --dataset D` runs right without a --config; edit the file to change them.
+    write(mavloc_sim::dataset::SETTINGS_FILE, PHOTO_SURVEY_SETTINGS.as_bytes())?;
     let tags: Vec<&PhotoTags> = photos.iter().map(|(_, _, t)| t).collect();
     write("photos.json", serde_json::to_string_pretty(&tags).map_err(|e| e.to_string())?.as_bytes())?;
     // Last: its presence marks a complete dataset.

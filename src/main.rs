@@ -118,8 +118,21 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Area(args) => {
-            let loaded = load(config_file(cli.config), cli.overrides)?;
+            // A dataset may carry the settings it needs (an imported photo survey does).
+            let own = args.dataset.join(mavloc_sim::dataset::SETTINGS_FILE);
+            let mut layers = Layers::from_process(config_file(cli.config), cli.overrides);
+            layers.dataset = own.exists().then(|| own.clone());
+            let loaded = settings::load(&layers)?;
             mavloc::logging::init(&loaded.settings.daemon.log);
+            let from_dataset: Vec<&str> = loaded
+                .origins
+                .iter()
+                .filter(|(_, o)| **o == own.display().to_string())
+                .map(|(k, _)| k.as_str())
+                .collect();
+            if !from_dataset.is_empty() {
+                println!("settings from the dataset's {}: {}", own.display(), from_dataset.join(", "));
+            }
             area_run(args, &loaded.settings)
         }
         Command::Indoor { command } => {

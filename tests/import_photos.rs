@@ -152,11 +152,12 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     let out =
         Command::new(bin).args(["import", "photos"]).arg(sample()).arg("--out").arg(&ds).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // The dataset carries the photo-survey settings: no --config needed.
+    let own = std::fs::read_to_string(ds.join("mavloc.toml")).unwrap();
+    assert_eq!(own, mavloc::import::PHOTO_SURVEY_SETTINGS);
     let result = dir.path().join("r");
-    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/photo-survey.toml");
     let out = Command::new(bin)
-        .arg("--config")
-        .arg(&config)
+        .env_remove("MAVLOC_CONFIG")
         .args(["area", "--debug-masks", "--dataset"])
         .arg(&ds)
         .arg("--out")
@@ -166,6 +167,7 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let stdout = String::from_utf8_lossy(&out.stdout);
     println!("{stdout}");
+    assert!(stdout.contains("settings from the dataset's") && stdout.contains("area.segmenter"), "{stdout}");
     assert!(result.join("masks.png").exists(), "contact sheet");
     assert!(result.join("views.png").exists(), "top and side view");
     let summary: serde_json::Value =

@@ -11,6 +11,8 @@
 //!   ground_truth.geojson   the same in WGS84 (RFC 7946: lon, lat, alt)
 //!   scenario.toml          everything needed to re-render the dataset
 //!   mission.plan           the flight as a QGroundControl plan
+//!   mavloc.toml            optional: settings the data needs, layered over the
+//!                          configuration file by `mavloc area` (imported photos have one)
 //! ```
 //!
 //! Files are written to a temporary name and renamed, so a crash leaves either the old file
@@ -30,6 +32,9 @@ use crate::mission::{GimbalFrame, Mission, State};
 use crate::render::Renderer;
 use crate::scenario::{NoiseSpec, Scenario};
 use crate::world::World;
+
+/// Settings a dataset carries for the commands that run on it (see the module doc).
+pub const SETTINGS_FILE: &str = "mavloc.toml";
 
 /// A pose as the dataset records it.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -13,7 +13,6 @@ use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
 use crate::output::LandmarkRecord;
 
 const DESCRIPTOR_LEN: usize = 128;
-const ACROSS_FACTOR: f64 = 1.0;
 
 /// One landmark: descriptors seen so far (capped) and its position filter.
 pub struct Landmark {
@@ -370,7 +369,10 @@ impl Library {
                 continue;
             }
             let d: Vec3 = ray / range;
-            let across = (ACROSS_FACTOR * range * self.params.bearing_sd_rad).max(0.3);
+            // Across the ray the first sighting is one bearing measurement like any other:
+            // one bearing SD. (Three SDs, as before, let the next photos pull a landmark off
+            // its first ray by 100 px; with video the many later updates hid it.)
+            let across = (range * self.params.bearing_sd_rad).max(0.3);
             let along = self.params.init_sigma_m.max(across);
             let p0 =
                 Matrix3::identity() * across.powi(2) + d * d.transpose() * (along.powi(2) - across.powi(2));

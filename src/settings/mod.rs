@@ -1,8 +1,11 @@
 //! Configuration loading and validation.
 //!
-//! Layers, later wins: built-in defaults ([`Settings::default`]) < the TOML file <
+//! Layers, later wins: built-in defaults ([`Settings::default`]) < the TOML file < the
+//! dataset's own settings (`DATASET/mavloc.toml`, for commands that run on a dataset) <
 //! `MAVLOC_SECTION__KEY` environment variables < `--set section.key=value` on the command
-//! line. The `config` crate merges the layers; before it does, every layer is checked
+//! line. A dataset's settings beat the configuration file because they describe the data
+//! (an imported photo survey has no masks and needs the photo-survey tuning, whatever the
+//! machine's video-tuned file says); the command says which keys they set. The `config` crate merges the layers; before it does, every layer is checked
 //! against the schema (the defaults' own key tree), so an unknown key or a value of the
 //! wrong type is reported with where it came from instead of surfacing as a generic
 //! deserialisation error. After merging, every value is range-checked. All problems are
@@ -69,6 +72,8 @@ pub enum SettingsError {
 #[derive(Clone, Debug, Default)]
 pub struct Layers {
     pub file: Option<PathBuf>,
+    /// Settings a dataset carries (`DATASET/mavloc.toml`), when the command runs on one.
+    pub dataset: Option<PathBuf>,
     /// Environment variables (all of them; those without the prefix are ignored).
     pub env: BTreeMap<String, String>,
     /// `key=value` overrides from the command line, in order.
@@ -78,7 +83,7 @@ pub struct Layers {
 impl Layers {
     /// The process environment and the given file and overrides.
     pub fn from_process(file: Option<PathBuf>, overrides: Vec<String>) -> Layers {
-        Layers { file, env: std::env::vars().collect(), overrides }
+        Layers { file, dataset: None, env: std::env::vars().collect(), overrides }
     }
 }
 
@@ -262,9 +267,9 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     let mut problems = Vec::new();
     let mut origins = BTreeMap::new();
 
-    // Layer 1: the file.
-    let mut file_text = None;
-    if let Some(path) = &layers.file {
+    // Layers 1 and 2: the configuration file, then the dataset's settings.
+    let mut file_texts = Vec::new();
+    for path in layers.file.iter().chain(&layers.dataset) {
         let text = std::fs::read_to_string(path)
             .map_err(|source| SettingsError::Read { path: path.clone(), source })?;
         let doc: toml::Table = text.parse().map_err(|e: toml::de::Error| SettingsError::Syntax {
@@ -276,10 +281,10 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
         for (k, _, o) in &pairs {
             origins.insert(k.clone(), o.clone());
         }
-        file_text = Some(text);
+        file_texts.push(text);
     }
 
-    // Layer 2: the environment.
+    // Layer 3: the environment.
     let mut env_pairs = Vec::new();
     let mut env_map = ::config::Map::new();
     for (var, raw) in &layers.env {
@@ -297,7 +302,7 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     }
     check_layer(&schema, &env_pairs, &mut problems);
 
-    // Layer 3: the command line.
+    // Layer 4: the command line.
     let mut cli_pairs = Vec::new();
     for item in &layers.overrides {
         let origin = format!("command line ({item})");
@@ -324,7 +329,7 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     // Merge with the `config` crate.
     let defaults = Config::try_from(&Settings::default()).map_err(|e| SettingsError::Merge(e.to_string()))?;
     let mut builder = Config::builder().add_source(defaults);
-    if let Some(text) = &file_text {
+    for text in &file_texts {
         builder = builder.add_source(File::from_str(text, FileFormat::Toml));
     }
     builder = builder.add_source(

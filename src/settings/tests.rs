@@ -122,6 +122,7 @@ fn layers_env_over_file_and_cli_over_env() {
     env.insert("HOME".to_string(), "/root".to_string());
     let layers = Layers {
         file: Some(f.path().to_path_buf()),
+        dataset: None,
         env: env.clone(),
         overrides: vec!["area.l_max=500".into(), "mavlink.connection=udpout:127.0.0.1:14550".into()],
     };
@@ -138,6 +139,33 @@ fn layers_env_over_file_and_cli_over_env() {
     // Without the override the environment wins over the file.
     let loaded = load(&Layers { overrides: vec![], ..layers }).unwrap();
     assert_eq!(loaded.settings.area.l_max, 400);
+}
+
+#[test]
+fn a_datasets_settings_beat_the_file_and_lose_to_the_command_line() {
+    let file = write_temp("[area]\nl_max = 300\nsegmenter = \"masks\"\nturnover = 30\n");
+    let dataset = write_temp("[area]\nl_max = 1500\nsegmenter = \"water\"\n");
+    let layers = Layers {
+        file: Some(file.path().to_path_buf()),
+        dataset: Some(dataset.path().to_path_buf()),
+        overrides: vec!["area.l_max=700".into()],
+        ..Layers::default()
+    };
+    let loaded = load(&layers).unwrap();
+    assert_eq!(loaded.settings.area.segmenter, Segmenter::Water, "the dataset's over the file's");
+    assert_eq!(loaded.settings.area.turnover, 30, "the file's where the dataset is silent");
+    assert_eq!(loaded.settings.area.l_max, 700, "the command line's over both");
+    assert_eq!(loaded.origins["area.segmenter"], dataset.path().display().to_string());
+    // The shipped photo-survey settings load as a dataset layer.
+    let survey = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/photo-survey.toml");
+    let loaded = load(&Layers { dataset: Some(survey), ..Layers::default() }).unwrap();
+    assert_eq!(loaded.settings.area.ukf_iterations, 5);
+    // A wrong key in a dataset's settings is named with the file.
+    let bad = write_temp("[area]\nsegmentr = \"water\"\n");
+    let p = problems(load(&Layers { dataset: Some(bad.path().to_path_buf()), ..Layers::default() }));
+    assert_eq!(p.len(), 1, "{p:?}");
+    assert_eq!(p[0].key, "area.segmentr");
+    assert_eq!(p[0].origin, bad.path().display().to_string());
 }
 
 #[test]
