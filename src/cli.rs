@@ -204,7 +204,8 @@ pub struct RenderArgs {
 
 #[derive(Debug, Args)]
 pub struct AreaArgs {
-    /// Dataset folder (the simulation-world format, see README).
+    /// Dataset folder (the simulation-world format, see README); its own settings
+    /// (DATASET/mavloc.toml, e.g. from `mavloc import photos`) go over the config file.
     #[arg(long)]
     pub dataset: PathBuf,
     /// Output folder: landmarks.csv, landmarks.ply, area.geojson, area.kml, border.csv,
