@@ -124,12 +124,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
             layers.dataset = own.exists().then(|| own.clone());
             let loaded = settings::load(&layers)?;
             mavloc::logging::init(&loaded.settings.daemon.log);
-            let from_dataset: Vec<&str> = loaded
-                .origins
-                .iter()
-                .filter(|(_, o)| **o == own.display().to_string())
-                .map(|(k, _)| k.as_str())
-                .collect();
+            let own_origin = own.display().to_string();
+            let from_dataset: Vec<&str> =
+                loaded.origins.iter().filter(|(_, o)| **o == own_origin).map(|(k, _)| k.as_str()).collect();
             if !from_dataset.is_empty() {
                 println!("settings from the dataset's {}: {}", own.display(), from_dataset.join(", "));
             }

@@ -292,9 +292,8 @@ pub fn run(
             all.extend(std::iter::repeat_n(r.median_px, r.landmarks.max(1)));
         }
         if !all.is_empty() {
-            all.sort_by(f64::total_cmp);
-            summary.residual_median_px = Some(all[all.len() / 2]);
-            summary.residual_p90_px = Some(all[((all.len() - 1) as f64 * 0.9) as usize]);
+            summary.residual_median_px = Some(super::residuals::quantile(&mut all, 0.5));
+            summary.residual_p90_px = Some(super::residuals::quantile(&mut all, 0.9));
         }
         summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
         output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;

@@ -31,7 +31,8 @@ pub struct FrameResiduals {
     pub yaw_off_180: bool,
 }
 
-fn quantile(v: &mut [f64], q: f64) -> f64 {
+/// The `q` quantile of `v` (nearest rank; sorts `v`).
+pub(crate) fn quantile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     v[((v.len() - 1) as f64 * q).round() as usize]
 }
@@ -55,15 +56,8 @@ pub fn per_frame(
     k: &Intrinsics,
     scale: f64,
 ) -> Vec<FrameResiduals> {
-    let position: HashMap<u64, Vec3> = landmarks.iter().map(|l| (l.id, l.position)).collect();
-    let mut by_frame: BTreeMap<u64, Vec<(Vec3, Pixel)>> = BTreeMap::new();
-    for (frame, id, px) in seen {
-        if let Some(p) = position.get(id) {
-            by_frame.entry(*frame).or_default().push((*p, *px));
-        }
-    }
     let mut out = Vec::new();
-    for (frame, obs) in by_frame {
+    for (frame, obs) in by_frame(seen, landmarks) {
         let Some(pose) = poses.get(&frame) else { continue };
         let mut e: Vec<f64> = errors(pose, k, &obs).into_iter().map(|x| x * scale).collect();
         let median = quantile(&mut e, 0.5);
@@ -91,7 +85,18 @@ pub fn per_frame(
     out
 }
 
-/// `residuals.csv`.
+/// Sightings of converged landmarks grouped by frame: (landmark position, pixel).
+fn by_frame(seen: &[(u64, u64, Pixel)], landmarks: &[LandmarkRecord]) -> BTreeMap<u64, Vec<(Vec3, Pixel)>> {
+    let position: HashMap<u64, Vec3> = landmarks.iter().map(|l| (l.id, l.position)).collect();
+    let mut out: BTreeMap<u64, Vec<(Vec3, Pixel)>> = BTreeMap::new();
+    for (frame, id, px) in seen {
+        if let Some(p) = position.get(id) {
+            out.entry(*frame).or_default().push((*p, *px));
+        }
+    }
+    out
+}
+
 /// Per frame, each converged landmark's sighting and where its estimate reprojects
 /// (`None` behind the camera), in full-resolution pixels: what the contact sheet draws.
 pub fn marks(
@@ -101,17 +106,18 @@ pub fn marks(
     k: &Intrinsics,
     scale: f64,
 ) -> BTreeMap<u64, Vec<(Pixel, Option<Pixel>)>> {
-    let position: HashMap<u64, Vec3> = landmarks.iter().map(|l| (l.id, l.position)).collect();
     let full = |p: Pixel| Pixel::new(p.u * scale, p.v * scale);
-    let mut out: BTreeMap<u64, Vec<(Pixel, Option<Pixel>)>> = BTreeMap::new();
-    for (frame, id, px) in seen {
-        if let (Some(p), Some(pose)) = (position.get(id), poses.get(frame)) {
-            out.entry(*frame).or_default().push((full(*px), pose.project(k, p).map(full)));
-        }
-    }
-    out
+    by_frame(seen, landmarks)
+        .into_iter()
+        .filter_map(|(frame, obs)| {
+            let pose = poses.get(&frame)?;
+            let drawn = obs.iter().map(|(p, px)| (full(*px), pose.project(k, p).map(full))).collect();
+            Some((frame, drawn))
+        })
+        .collect()
 }
 
+/// `residuals.csv`.
 pub fn csv(rows: &[FrameResiduals]) -> String {
     let mut s = String::from("frame,landmarks,median_px,p90_px,median_yaw180_px,yaw_off_180\n");
     for r in rows {

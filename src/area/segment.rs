@@ -42,19 +42,25 @@ fn morph(src: &Mat, op: i32, size: i32) -> opencv::Result<Mat> {
     Ok(out)
 }
 
-/// Opening and closing, then only regions of at least MIN_REGION_FRACTION of the image,
-/// with their holes filled.
-fn clean(raw: &Mat) -> opencv::Result<Mat> {
-    let m = morph(raw, imgproc::MORPH_OPEN, 7)?;
-    let m = morph(&m, imgproc::MORPH_CLOSE, 15)?;
-    let mut contours: Vector<Vector<Point>> = Vector::new();
+/// Outer outlines of a mask's regions (holes not traced).
+fn outlines(mask: &Mat) -> opencv::Result<Vector<Vector<Point>>> {
+    let mut contours = Vector::new();
     imgproc::find_contours(
-        &m,
+        mask,
         &mut contours,
         imgproc::RETR_EXTERNAL,
         imgproc::CHAIN_APPROX_SIMPLE,
         Point::new(0, 0),
     )?;
+    Ok(contours)
+}
+
+/// Opening and closing, then only regions of at least MIN_REGION_FRACTION of the image,
+/// with their holes filled.
+fn clean(raw: &Mat) -> opencv::Result<Mat> {
+    let m = morph(raw, imgproc::MORPH_OPEN, 7)?;
+    let m = morph(&m, imgproc::MORPH_CLOSE, 15)?;
+    let contours = outlines(&m)?;
     let min_area = MIN_REGION_FRACTION * (m.rows() * m.cols()) as f64;
     let mut keep: Vector<Vector<Point>> = Vector::new();
     for c in contours.iter() {
@@ -197,17 +203,9 @@ pub fn contact_sheet(
         red.set_to(&Scalar::new(0.0, 0.0, 255.0, 0.0), &m)?;
         let mut b = Mat::default();
         core::add_weighted(&a, 0.55, &red, 0.45, 0.0, &mut b, -1)?;
-        let mut contours: Vector<Vector<Point>> = Vector::new();
-        imgproc::find_contours(
-            &m,
-            &mut contours,
-            imgproc::RETR_EXTERNAL,
-            imgproc::CHAIN_APPROX_SIMPLE,
-            Point::new(0, 0),
-        )?;
         imgproc::draw_contours(
             &mut b,
-            &contours,
+            &outlines(&m)?,
             -1,
             Scalar::new(0.0, 255.0, 255.0, 0.0),
             2,
