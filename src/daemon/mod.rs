@@ -1,4 +1,8 @@
-//! `mavloc run`: the daemon. Tokio tasks around the sans-IO [`core::Core`].
+//! `mavloc run`: the daemon. A thin tokio shell around the sans-I/O [`core::Core`]: it
+//! stamps inputs with the monotonic clock, hands them to the core, does the I/O the core
+//! asks for (sends, worker requests, file writes, sd_notify) and sleeps until the core's
+//! next deadline. All protocol decisions live in the core and are tested there on a
+//! simulated clock; this file only moves data.
 //!
 //! Start-up order, and why:
 //! 1. State directory (systemd's `$STATE_DIRECTORY`, else `daemon.state_dir`): tuned
@@ -8,8 +12,9 @@
 //! 3. Signing key (refused if others can read it) and timestamp.
 //! 4. The link task; READY goes to systemd when it is first up, so `systemctl start`
 //!    returns once mavloc can talk.
-//! 5. The main loop: link frames -> core; timers (heartbeat, stream requests, counters,
-//!    `status.json`); watchdog pings from this loop, so a hung loop gets restarted.
+//! 5. The main loop: link frames, camera frames and worker events -> core; the core's
+//!    deadlines drive heartbeat, stream requests, counters, `status.json` and the
+//!    watchdog pings, so a hung loop gets restarted by systemd.
 //!
 //! Shutdown by broadcast: SIGTERM or SIGINT stops taking frames, asks the pipeline worker
 //! to write its results, saves status and signing timestamp, and returns within 2 s.
@@ -22,17 +27,19 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use anyhow::Context;
-use mavlink::dialects::common::*;
 use tokio::sync::broadcast;
 
-use self::core::{Action, Core, PipelineState};
+use self::core::{
+    Action, CameraEvent as CoreCamera, Core, Input, Mono, PipelineEvent, PipelineState, ShellStats,
+    WorkerRequest,
+};
 use self::worker::{Event as WorkerEvent, Factory, LiveFrame, LivePipeline, Request, Worker};
 use crate::align::AlignError;
 use crate::camera::{self, CameraEvent, Captured, Credits, SourceContext};
-use crate::geometry::{Geodetic, LocalFrame, Vec3};
+use crate::geometry::Geodetic;
 use crate::link::params::ParamStore;
 use crate::link::signing::{self, Signer};
 use crate::link::transport::{self, LinkEvent};
@@ -50,13 +57,15 @@ struct Live {
     camera_thread: Option<std::thread::JoinHandle<()>>,
     pending: VecDeque<Captured>,
     worker: Option<(PipelineKind, Worker)>,
-    worker_tx: tokio::sync::mpsc::UnboundedSender<WorkerEvent>,
-    worker_rx: tokio::sync::mpsc::UnboundedReceiver<WorkerEvent>,
+    worker_tx: tokio::sync::mpsc::Sender<WorkerEvent>,
+    worker_rx: tokio::sync::mpsc::Receiver<WorkerEvent>,
     /// Frames dropped before the worker: no pose, too old, or no pipeline running.
     dropped_before: u64,
     last_align_error: Option<String>,
     /// Newest vehicle sample handed to the sim camera (autopilot time).
     fed_pose_t: f64,
+    next_drop_log: Mono,
+    dropped_logged: u64,
 }
 
 impl Live {
@@ -71,15 +80,6 @@ impl Live {
         self.dropped_before
             + self.worker.as_ref().map(|(_, w)| w.dropped.load(Ordering::Relaxed)).unwrap_or(0)
     }
-}
-
-/// The WGS84 origin of the autopilot's local frame: HOME_POSITION gives both its
-/// geodetic and its local position, so origin = home moved back by its local offset.
-fn autopilot_origin(core: &Core) -> Option<Geodetic> {
-    let h = core.home.as_ref()?;
-    let home = Geodetic::new(h.latitude as f64 * 1e-7, h.longitude as f64 * 1e-7, h.altitude as f64 * 1e-3);
-    home.validate().ok()?;
-    Some(LocalFrame::new(home).to_geodetic(&-Vec3::new(h.x as f64, h.y as f64, h.z as f64)))
 }
 
 /// Builds the factory of the selected pipeline.
@@ -143,10 +143,188 @@ struct SkippedJson {
     bad_signature: u64,
 }
 
+/// Messages pulled from the core per turn of the loop before yielding (quinn's
+/// `MAX_TRANSMIT_DATAGRAMS`): a burst cannot starve the other inputs.
+const MAX_TRANSMIT: usize = 64;
+
+/// The shell's side: I/O handles and the clock.
+struct Shell {
+    started: tokio::time::Instant,
+    dir: PathBuf,
+    link: transport::LinkHandle,
+    link_state: String,
+    live: Live,
+    /// The link's queue was full on the last flush: retry shortly instead of spinning.
+    link_full: bool,
+}
+
+impl Shell {
+    fn now(&self) -> Mono {
+        self.mono(tokio::time::Instant::now())
+    }
+
+    fn mono(&self, t: tokio::time::Instant) -> Mono {
+        Mono(t.saturating_duration_since(self.started).as_micros() as u64)
+    }
+
+    /// After every input: expire timers, do the core's actions, send what it has.
+    fn flush(&mut self, core: &mut Core) {
+        let now = self.now();
+        if core.poll_timeout().is_some_and(|t| t <= now) {
+            core.handle_timeout(now);
+        }
+        while let Some(a) = core.poll_action() {
+            self.act(core, a);
+        }
+        self.link_full = false;
+        for _ in 0..MAX_TRANSMIT {
+            let Ok(permit) = self.link.outgoing.try_reserve() else {
+                self.link_full = true;
+                break;
+            };
+            match core.poll_transmit(now) {
+                Some(o) => permit.send(o),
+                None => break,
+            }
+        }
+    }
+
+    /// When the loop must wake up next.
+    fn wake_at(&self, core: &Core) -> tokio::time::Instant {
+        let now = tokio::time::Instant::now();
+        let at = match core.poll_timeout() {
+            Some(t) => self.started + Duration::from_micros(t.0),
+            None => now + Duration::from_secs(1),
+        };
+        if self.link_full {
+            at.max(now + Duration::from_millis(5))
+        } else {
+            at
+        }
+    }
+
+    fn act(&mut self, core: &mut Core, a: Action) {
+        let now = self.now();
+        match a {
+            Action::Worker(WorkerRequest::Start { kind, token }) => {
+                let result = self.start_pipeline(core, kind);
+                core.handle(Input::Done { now, token, result });
+            }
+            Action::Worker(WorkerRequest::Stop) => stop_worker(&mut self.live),
+            Action::Worker(WorkerRequest::Reset) => self.reset_pipeline(core),
+            Action::Worker(WorkerRequest::Apply(s)) => {
+                if let Some((_, w)) = &self.live.worker {
+                    w.request(Request::Apply(s));
+                }
+            }
+            // Status and the pipeline's results; the ACK says whether both were written.
+            Action::Snapshot { token } => {
+                let status = write_status(&self.dir, core, &self.link, &self.link_state, now);
+                let results = snapshot(&self.live);
+                let result = match (status, results) {
+                    (Ok(()), Ok(_)) => Ok(()),
+                    (Err(e), _) => Err(format!("status.json: {e}")),
+                    (_, Err(e)) => Err(e),
+                };
+                core.handle(Input::Done { now, token, result });
+            }
+            Action::SaveParams { token, json } => {
+                let result = crate::output::write_atomic(&self.dir.join("params.json"), json.as_bytes())
+                    .map_err(|e| e.to_string());
+                core.handle(Input::Done { now, token, result });
+            }
+            Action::Report => {
+                use std::sync::atomic::Ordering::Relaxed;
+                let skipped = *self.link.stats.skipped.lock().expect("stats");
+                let stats = ShellStats {
+                    link_in: self.link.stats.frames_in.load(Relaxed),
+                    link_bad_frames: skipped.total_frames(),
+                    link_garbage_bytes: skipped.garbage_bytes,
+                    frames_dropped: self.live.dropped(),
+                };
+                let newly = stats.frames_dropped - self.live.dropped_logged;
+                // Dropped frames are logged every 10 s when there were any, not one line per frame.
+                if now >= self.live.next_drop_log {
+                    self.live.next_drop_log = now + Duration::from_secs(10);
+                    if newly > 0 {
+                        tracing::warn!(
+                            "{newly} frames dropped in the last 10 s ({} in all): the pipeline is slower than the camera, or telemetry is late",
+                            stats.frames_dropped
+                        );
+                        self.live.dropped_logged = stats.frames_dropped;
+                    }
+                }
+                core.handle(Input::Stats { now, stats });
+                let _ = write_status(&self.dir, core, &self.link, &self.link_state, now);
+            }
+            Action::Watchdog => notify(&[sd_notify::NotifyState::Watchdog]),
+        }
+    }
+
+    /// Whether a pipeline has what it needs, then starts it (unless it already runs).
+    fn start_pipeline(&mut self, core: &Core, k: PipelineKind) -> Result<(), String> {
+        let s = core.settings();
+        if k == PipelineKind::Indoor && !Path::new(&s.indoor.model).exists() {
+            return Err(format!("model {} does not exist", s.indoor.model));
+        }
+        if matches!(&self.live.worker, Some((running, _)) if *running == k) {
+            return Ok(());
+        }
+        stop_worker(&mut self.live);
+        start_worker(core, &mut self.live, k);
+        Ok(())
+    }
+
+    /// The old results are kept, moved aside; the new run starts empty.
+    fn reset_pipeline(&mut self, core: &Core) {
+        let Some((k, _)) = &self.live.worker else { return };
+        let k = *k;
+        stop_worker(&mut self.live);
+        let sub = self.live.results.join(format!("{k:?}").to_lowercase());
+        if sub.exists() {
+            let stamp = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_secs())
+                .unwrap_or(0);
+            let aside = sub
+                .with_file_name(format!("{}-{stamp}", sub.file_name().unwrap_or_default().to_string_lossy()));
+            if let Err(e) = std::fs::rename(&sub, &aside) {
+                tracing::warn!("cannot move {} aside: {e}", sub.display());
+            }
+        }
+        start_worker(core, &mut self.live, k);
+    }
+
+    fn on_worker(&mut self, core: &mut Core, ev: WorkerEvent) {
+        let now = self.now();
+        let event = match ev {
+            WorkerEvent::Report { capture_s, attitude, report, .. } => {
+                self.live.give_credit();
+                PipelineEvent::Report { capture: capture_s, attitude, report }
+            }
+            WorkerEvent::Panicked { frame, message } => {
+                self.live.give_credit();
+                PipelineEvent::Panicked { frame, message }
+            }
+            WorkerEvent::Failed(e) => {
+                self.live.worker = None;
+                PipelineEvent::Failed(e)
+            }
+            WorkerEvent::Stopped { files } => {
+                tracing::info!(
+                    "pipeline results: {}",
+                    files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
+                );
+                return;
+            }
+        };
+        core.handle(Input::Pipeline { now, event });
+    }
+}
+
 /// Runs the daemon until SIGTERM/SIGINT. Returns after a clean shutdown.
 pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
-    let started = Instant::now();
-    let now = || started.elapsed().as_secs_f64();
+    let started = tokio::time::Instant::now();
 
     // 1. State directory.
     let dir = state_dir(&settings);
@@ -191,7 +369,7 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     // 4. Link.
     let address = LinkAddress::parse(&settings.mavlink.connection).map_err(anyhow::Error::msg)?;
     let (shutdown_tx, _) = broadcast::channel::<()>(4);
-    let mut link = transport::spawn(address.clone(), signer, shutdown_tx.subscribe());
+    let link = transport::spawn(address.clone(), signer, shutdown_tx.subscribe());
     tracing::info!(
         "mavloc {} starting: link {address}, component {}, pipeline {:?}, signing {}, state in {}",
         env!("CARGO_PKG_VERSION"),
@@ -206,7 +384,7 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     let lossless = !settings.camera.realtime
         && matches!(settings.camera.source, CameraSource::File | CameraSource::Dataset);
     let ctx = SourceContext {
-        started,
+        started: started.into_std(),
         latest_pose: Arc::new(Mutex::new(None)),
         stop: Arc::new(AtomicBool::new(false)),
         credits: lossless.then(|| Arc::new(Credits::new(1))),
@@ -214,8 +392,8 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     let (camera_tx, camera_rx) = tokio::sync::mpsc::channel(4);
     let camera_thread = (settings.camera.source != CameraSource::None)
         .then(|| camera::spawn(settings.clone(), ctx.clone(), camera_tx));
-    let (worker_tx, worker_rx) = tokio::sync::mpsc::unbounded_channel();
-    let mut live = Live {
+    let (worker_tx, worker_rx) = tokio::sync::mpsc::channel(1024);
+    let live = Live {
         results: dir.join("results"),
         ctx,
         camera_rx,
@@ -227,137 +405,86 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
         dropped_before: 0,
         last_align_error: None,
         fed_pose_t: f64::NEG_INFINITY,
+        next_drop_log: Mono::ZERO + Duration::from_secs(10),
+        dropped_logged: 0,
     };
 
-    let mut core = Core::new(settings.clone(), store, signing);
+    let mut watchdog_usec = 0u64;
+    let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec)
+        .then(|| Duration::from_micros(watchdog_usec / 3));
+    let mut core = Core::new(settings, store.into_tuned(), signing, watchdog);
+    let mut shell = Shell { started, dir, link, link_state: String::from("opening"), live, link_full: false };
     let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
     let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())?;
-    let mut watchdog_usec = 0u64;
-    let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec);
-    let mut tick = tokio::time::interval(Duration::from_millis(100));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let heartbeat_period = 1.0 / core.settings.mavlink.heartbeat_hz;
-    let mut next_heartbeat = 0.0;
-    let mut next_second = 1.0;
-    // Dropped frames are logged every 10 s when there were any, not one line per frame.
-    let (mut next_drop_log, mut dropped_logged) = (10.0, 0u64);
-    let mut next_watchdog = 0.0;
-    let mut link_state = String::from("opening");
     let mut ready = false;
-
-    // Start the configured pipeline, as a drone would at boot.
-    if core.settings.daemon.pipeline != PipelineKind::None {
-        core.actions.push(Action::StartPipeline(core.settings.daemon.pipeline));
-    }
+    shell.flush(&mut core);
 
     loop {
+        let wake = tokio::time::sleep_until(shell.wake_at(&core));
         tokio::select! {
-            ev = link.events.recv() => match ev {
-                Some(LinkEvent::Frame(f)) => {
-                    core.handle(*f, now());
-                    feed_pose(&core, &mut live, now());
-                    offer_pending(&mut core, &mut live, now());
+            ev = shell.link.events.recv() => match ev {
+                Some(LinkEvent::Frame { rx, frame }) => {
+                    let rx = shell.mono(rx);
+                    core.handle(Input::Mav { rx, frame: *frame });
+                    let now = shell.now();
+                    feed_pose(&core, &mut shell.live, now);
+                    offer_pending(&core, &mut shell.live, now);
                 }
                 Some(LinkEvent::Up(what)) => {
-                    link_state = format!("up: {what}");
+                    shell.link_state = format!("up: {what}");
                     if !ready {
                         ready = true;
-                        notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status(&link_state)]);
+                        notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status(&shell.link_state)]);
                     }
                 }
-                Some(LinkEvent::Down(why)) => link_state = format!("down: {why}"),
+                Some(LinkEvent::Down(why)) => shell.link_state = format!("down: {why}"),
                 None => anyhow::bail!("the link task ended unexpectedly"),
             },
-            ev = live.camera_rx.recv(), if live.camera_thread.is_some() => match ev {
-                Some(CameraEvent::Frame(c)) => {
-                    live.pending.push_back(*c);
-                    offer_pending(&mut core, &mut live, now());
-                }
-                Some(CameraEvent::Up(what)) => {
-                    core.camera_live = true;
-                    core.status(MavSeverity::MAV_SEVERITY_INFO, &format!("camera up: {what}"));
-                }
-                Some(CameraEvent::Down { why, fatal }) => {
-                    core.camera_live = false;
-                    let what = if fatal { "camera failed" } else { "camera lost (retrying)" };
-                    core.status(MavSeverity::MAV_SEVERITY_ERROR, &format!("{what}: {why}"));
-                }
-                Some(CameraEvent::Ended(what)) => {
-                    core.camera_live = false;
-                    core.status(MavSeverity::MAV_SEVERITY_INFO, &format!("camera source ended: {what}"));
-                }
-                None => live.camera_thread = None,
-            },
-            ev = live.worker_rx.recv() => if let Some(ev) = ev {
-                worker_event(&mut core, &mut live, ev, now());
-            },
-            _ = tick.tick() => {
-                let t = now();
-                core.tick(t);
-                offer_pending(&mut core, &mut live, t);
-                core.counters.frames_dropped = live.dropped();
-                if t >= next_heartbeat {
-                    core.heartbeat();
-                    next_heartbeat = t + heartbeat_period;
-                }
-                if t >= next_second {
-                    next_second = t + 1.0;
-                    publish_counters(&mut core, &link, t);
-                    let _ = write_status(&dir, &core, &link, &link_state, t);
-                }
-                if t >= next_drop_log {
-                    next_drop_log = t + 10.0;
-                    let dropped = core.counters.frames_dropped;
-                    if dropped > dropped_logged {
-                        tracing::warn!(
-                            "{} frames dropped in the last 10 s ({dropped} in all): the pipeline is slower than the camera, or telemetry is late",
-                            dropped - dropped_logged
-                        );
-                        dropped_logged = dropped;
+            ev = shell.live.camera_rx.recv(), if shell.live.camera_thread.is_some() => {
+                let now = shell.now();
+                let event = match ev {
+                    Some(CameraEvent::Frame(c)) => {
+                        shell.live.pending.push_back(*c);
+                        offer_pending(&core, &mut shell.live, now);
+                        None
                     }
+                    Some(CameraEvent::Up(what)) => Some(CoreCamera::Up(what)),
+                    Some(CameraEvent::Down { why, fatal }) => Some(CoreCamera::Down { why, fatal }),
+                    Some(CameraEvent::Ended(what)) => Some(CoreCamera::Ended(what)),
+                    None => {
+                        shell.live.camera_thread = None;
+                        None
+                    }
+                };
+                if let Some(event) = event {
+                    core.handle(Input::Camera { now, event });
                 }
-                if watchdog && t >= next_watchdog {
-                    notify(&[sd_notify::NotifyState::Watchdog]);
-                    next_watchdog = t + watchdog_usec as f64 * 1e-6 / 3.0;
-                }
+            },
+            ev = shell.live.worker_rx.recv() => if let Some(ev) = ev {
+                shell.on_worker(&mut core, ev);
+            },
+            _ = wake => {
+                // Frames waiting for late telemetry give up on time, not only on input.
+                let now = shell.now();
+                offer_pending(&core, &mut shell.live, now);
             },
             _ = sigterm.recv() => { tracing::info!("SIGTERM: shutting down"); break; }
             _ = sigint.recv() => { tracing::info!("SIGINT: shutting down"); break; }
         }
-        for a in std::mem::take(&mut core.actions) {
-            match a {
-                // Status and the pipeline's results; the ACK says whether both were written.
-                Action::Snapshot { requester } => {
-                    let status = write_status(&dir, &core, &link, &link_state, now());
-                    let results = snapshot(&live);
-                    if let Err(e) = &results {
-                        core.status(MavSeverity::MAV_SEVERITY_ERROR, &format!("snapshot failed: {e}"));
-                    }
-                    let result = match (status, results) {
-                        (Ok(()), Ok(_)) => MavResult::MAV_RESULT_ACCEPTED,
-                        _ => MavResult::MAV_RESULT_FAILED,
-                    };
-                    core.ack(MavCmd::MAV_CMD_USER_2, result, requester);
-                }
-                a => act(&mut core, &mut live, a),
-            }
-        }
-        for o in std::mem::take(&mut core.out) {
-            if link.outgoing.try_send(o).is_err() {
-                link.stats.dropped_out.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            }
-        }
+        shell.flush(&mut core);
     }
 
     // Shutdown: stop frames, flush results, tell the link (which saves the signing
     // timestamp), all within systemd's patience and our 2 s promise.
     notify(&[sd_notify::NotifyState::Stopping]);
+    let Shell { dir, mut link, mut live, started: _, .. } = shell;
     live.ctx.stop.store(true, Ordering::Relaxed);
     if let Some((k, w)) = live.worker.take() {
         tokio::task::block_in_place(|| w.stop());
         tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display());
     }
-    let _ = write_status(&dir, &core, &link, "shutting down", now());
+    let now = Mono(started.elapsed().as_micros() as u64);
+    let _ = write_status(&dir, &core, &link, "shutting down", now);
     let _ = shutdown_tx.send(());
     if tokio::time::timeout(Duration::from_millis(1500), &mut link.task).await.is_err() {
         tracing::warn!("link task did not stop within 1.5 s; leaving it");
@@ -367,13 +494,14 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
 }
 
 /// Hands the sim camera the newest pose the telemetry gives.
-fn feed_pose(core: &Core, live: &mut Live, now: f64) {
-    let Some((t, _)) = core.aligner.vehicle.newest() else { return };
+fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
+    let now = now.secs();
+    let Some((t, _)) = core.aligner().vehicle.newest() else { return };
     if t <= live.fed_pose_t {
         return;
     }
-    let Some(local) = core.aligner.clock.to_local(t) else { return };
-    if let Ok(p) = core.aligner.align(local, now) {
+    let Some(local) = core.aligner().clock.to_local(t) else { return };
+    if let Ok(p) = core.aligner().align(local, now) {
         live.fed_pose_t = t;
         *live.ctx.latest_pose.lock().expect("pose") = Some((local, p.camera));
     }
@@ -382,9 +510,10 @@ fn feed_pose(core: &Core, live: &mut Live, now: f64) {
 /// Gives waiting frames their pose and the worker the newest that has one. A frame
 /// whose telemetry is late waits (boundedly); one that cannot be aligned is dropped,
 /// counted, and logged once per kind of reason.
-fn offer_pending(core: &mut Core, live: &mut Live, now: f64) {
+fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
+    let now = now.secs();
     while let Some(c) = live.pending.pop_front() {
-        let running = matches!(core.pipeline, PipelineState::Running(_)) && live.worker.is_some();
+        let running = matches!(core.pipeline(), PipelineState::Running(_)) && live.worker.is_some();
         // Live frames are not processed while the vehicle is on the ground (replayed ones
         // carry their own pose and are).
         if !running || (c.pose.is_none() && core.on_ground()) {
@@ -393,7 +522,7 @@ fn offer_pending(core: &mut Core, live: &mut Live, now: f64) {
         }
         let pose = match c.pose {
             Some(p) => Ok(p),
-            None => core.aligner.align(c.capture_s, now),
+            None => core.aligner().align(c.capture_s, now),
         };
         let pose = match pose {
             Ok(p) => p,
@@ -419,7 +548,7 @@ fn offer_pending(core: &mut Core, live: &mut Live, now: f64) {
                 continue;
             }
         };
-        if now - c.capture_s > core.settings.daemon.max_frame_age_s && c.pose.is_none() {
+        if now - c.capture_s > core.settings().daemon.max_frame_age_s && c.pose.is_none() {
             live.dropped_before += 1;
             live.give_credit();
             continue;
@@ -431,47 +560,11 @@ fn offer_pending(core: &mut Core, live: &mut Live, now: f64) {
             pose,
             image: c.image,
             mask: c.mask,
-            origin: autopilot_origin(core),
+            origin: core.origin(),
             truth: c.truth,
         };
         if let Some((_, w)) = &live.worker {
             w.offer(frame);
-        }
-    }
-}
-
-fn worker_event(core: &mut Core, live: &mut Live, ev: WorkerEvent, now: f64) {
-    match ev {
-        WorkerEvent::Report { capture_s, attitude, report, .. } => {
-            live.give_credit();
-            core.publish(&report, capture_s, attitude);
-            if let Some((yaw, pitch)) = report.aim {
-                core.aim_gimbal(yaw, pitch, now);
-            }
-            if report.landing_requested {
-                core.request_landing(now);
-            }
-        }
-        WorkerEvent::Panicked { frame, message } => {
-            live.give_credit();
-            core.counters.pipeline_panics += 1;
-            core.status(
-                MavSeverity::MAV_SEVERITY_ERROR,
-                &format!("pipeline panicked on frame {frame}: {message}; restarted"),
-            );
-        }
-        WorkerEvent::Failed(e) => {
-            if let PipelineState::Running(k) = core.pipeline {
-                core.pipeline = PipelineState::Failed(k);
-            }
-            live.worker = None;
-            core.status(MavSeverity::MAV_SEVERITY_ERROR, &format!("pipeline failed: {e}"));
-        }
-        WorkerEvent::Stopped { files } => {
-            tracing::info!(
-                "pipeline results: {}",
-                files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
-            );
         }
     }
 }
@@ -495,101 +588,9 @@ fn stop_worker(live: &mut Live) {
     }
 }
 
-fn start_worker(core: &mut Core, live: &mut Live, k: PipelineKind) {
-    let w = Worker::start(factory(k, live.results.clone()), core.settings.clone(), live.worker_tx.clone());
+fn start_worker(core: &Core, live: &mut Live, k: PipelineKind) {
+    let w = Worker::start(factory(k, live.results.clone()), core.settings().clone(), live.worker_tx.clone());
     live.worker = Some((k, w));
-}
-
-fn act(core: &mut Core, live: &mut Live, a: Action) {
-    match a {
-        Action::StartPipeline(k) => {
-            if let Err(why) = core.can_start(k) {
-                core.status(
-                    MavSeverity::MAV_SEVERITY_ERROR,
-                    &format!("cannot start the {k:?} pipeline: {why}"),
-                );
-                core.pipeline = PipelineState::Failed(k);
-                return;
-            }
-            if core.pipeline != PipelineState::Running(k) || live.worker.is_none() {
-                stop_worker(live);
-                start_worker(core, live, k);
-                core.pipeline = PipelineState::Running(k);
-                let src = format!("{:?}", core.settings.camera.source).to_lowercase();
-                core.status(
-                    MavSeverity::MAV_SEVERITY_INFO,
-                    &format!("{k:?} pipeline started; frames from camera source {src}"),
-                );
-            }
-        }
-        Action::StopPipeline => {
-            if let PipelineState::Running(k) | PipelineState::Failed(k) = core.pipeline {
-                stop_worker(live);
-                core.pipeline = PipelineState::Stopped;
-                core.status(
-                    MavSeverity::MAV_SEVERITY_INFO,
-                    &format!("{k:?} pipeline stopped; results written"),
-                );
-            }
-        }
-        Action::ResetPipeline => {
-            if let PipelineState::Running(k) = core.pipeline {
-                // The old results are kept, moved aside; the new run starts empty.
-                stop_worker(live);
-                let sub = live.results.join(format!("{k:?}").to_lowercase());
-                if sub.exists() {
-                    let stamp = std::time::SystemTime::now()
-                        .duration_since(std::time::UNIX_EPOCH)
-                        .map(|d| d.as_secs())
-                        .unwrap_or(0);
-                    let aside = sub.with_file_name(format!(
-                        "{}-{stamp}",
-                        sub.file_name().unwrap_or_default().to_string_lossy()
-                    ));
-                    if let Err(e) = std::fs::rename(&sub, &aside) {
-                        tracing::warn!("cannot move {} aside: {e}", sub.display());
-                    }
-                }
-                start_worker(core, live, k);
-                core.status(
-                    MavSeverity::MAV_SEVERITY_INFO,
-                    &format!("{k:?} pipeline reset; earlier results kept aside"),
-                );
-            }
-        }
-        Action::Apply(s) => {
-            if let Some((_, w)) = &live.worker {
-                w.request(Request::Apply(s));
-            }
-        }
-        Action::Snapshot { .. } => {}
-    }
-}
-
-fn publish_counters(core: &mut Core, link: &transport::LinkHandle, t: f64) {
-    use std::sync::atomic::Ordering::Relaxed;
-    let skipped = *link.stats.skipped.lock().expect("stats");
-    let (bad_frames, garbage) = (skipped.total_frames(), skipped.garbage_bytes);
-    let ms = (t * 1000.0) as u32;
-    let values: [(&str, f32); 5] = [
-        ("LINK_BAD", bad_frames as f32),
-        ("LINK_JUNK", garbage as f32),
-        ("LINK_IN", link.stats.frames_in.load(Relaxed) as f32),
-        ("FR_DONE", core.counters.frames_processed as f32),
-        ("FR_DROP", core.counters.frames_dropped as f32),
-    ];
-    for (name, value) in values {
-        let msg = MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
-            time_boot_ms: ms,
-            value,
-            name: name.into(),
-        });
-        core.out.push(transport::Outgoing {
-            system_id: core.system_id(),
-            component_id: core.settings.mavlink.component_id,
-            message: msg,
-        });
-    }
 }
 
 /// Rewrites `status.json` atomically; a failure is logged and returned.
@@ -598,19 +599,19 @@ fn write_status(
     core: &Core,
     link: &transport::LinkHandle,
     link_state: &str,
-    t: f64,
+    now: Mono,
 ) -> std::io::Result<()> {
     use std::sync::atomic::Ordering::Relaxed;
     let s = *link.stats.skipped.lock().expect("stats");
-    let (offset, source) = core.aligner.clock.offset();
+    let (offset, source) = core.aligner().clock.offset();
     let status = Status {
-        uptime_s: t,
+        uptime_s: now.secs(),
         link: link_state,
         autopilot_found: core.autopilot_found(),
         system_id: core.system_id(),
         mav_state: format!("{:?}", core.mav_state()),
-        pipeline: format!("{:?}", core.pipeline),
-        counters: &core.counters,
+        pipeline: format!("{:?}", core.pipeline()),
+        counters: core.counters(),
         frames_in: link.stats.frames_in.load(Relaxed),
         frames_out: link.stats.frames_out.load(Relaxed),
         dropped_out: link.stats.dropped_out.load(Relaxed),

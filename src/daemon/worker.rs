@@ -28,33 +28,7 @@ pub struct LiveFrame {
     pub truth: Option<[f64; 3]>,
 }
 
-/// What a pipeline reports after a frame, for the daemon to publish.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Report {
-    /// Live counters, sent as NAMED_VALUE_FLOAT (names at most 10 characters).
-    pub counters: Vec<(&'static str, f32)>,
-    /// Newly converged area landmarks: local NED positions.
-    pub new_landmarks: Vec<[f64; 3]>,
-    /// The indoor estimate: x, y (local NED north, east), their covariance, time.
-    pub position: Option<PositionEstimate>,
-    /// Human-readable events (STATUSTEXT).
-    pub events: Vec<String>,
-    /// The landing trigger fired on this frame.
-    pub landing_requested: bool,
-    /// Where to point the camera to keep the target's border in view: earth-frame yaw and
-    /// pitch, radians (area pipeline).
-    pub aim: Option<(f64, f64)>,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PositionEstimate {
-    pub autopilot_time: f64,
-    pub north: f64,
-    pub east: f64,
-    pub down: f64,
-    /// Covariance of (north, east), m^2.
-    pub cov: [[f64; 2]; 2],
-}
+pub use super::core::{PositionEstimate, Report};
 
 /// A live pipeline: plain synchronous code, no tokio, no MAVLink.
 pub trait LivePipeline: Send {
@@ -114,11 +88,7 @@ pub struct Worker {
 impl Worker {
     /// Starts a worker; `events` receives reports (the daemon's side is async, so the
     /// worker only ever does non-blocking sends).
-    pub fn start(
-        factory: Factory,
-        settings: Settings,
-        events: tokio::sync::mpsc::UnboundedSender<Event>,
-    ) -> Worker {
+    pub fn start(factory: Factory, settings: Settings, events: tokio::sync::mpsc::Sender<Event>) -> Worker {
         let shared = Arc::new((Mutex::new(Mailbox::default()), Condvar::new()));
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let s2 = shared.clone();
@@ -173,7 +143,7 @@ fn run(
     factory: Factory,
     mut settings: Settings,
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
-    events: tokio::sync::mpsc::UnboundedSender<Event>,
+    events: tokio::sync::mpsc::Sender<Event>,
 ) {
     let build = |s: &Settings| match catch_unwind(AssertUnwindSafe(|| factory(s))) {
         Ok(r) => r,
@@ -182,7 +152,7 @@ fn run(
     let mut pipeline = match build(&settings) {
         Ok(p) => p,
         Err(e) => {
-            let _ = events.send(Event::Failed(e));
+            let _ = events.try_send(Event::Failed(e));
             return;
         }
     };
@@ -204,7 +174,7 @@ fn run(
                 Request::Reset => match build(&settings) {
                     Ok(p) => pipeline = p,
                     Err(e) => {
-                        let _ = events.send(Event::Failed(e));
+                        let _ = events.try_send(Event::Failed(e));
                         return;
                     }
                 },
@@ -216,7 +186,7 @@ fn run(
                         tracing::error!("cannot write the pipeline's results: {e}");
                         Vec::new()
                     });
-                    let _ = events.send(Event::Stopped { files });
+                    let _ = events.try_send(Event::Stopped { files });
                     return;
                 }
             }
@@ -225,7 +195,7 @@ fn run(
             match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
                 Ok(report) => {
                     let attitude = f.pose.vehicle.attitude.euler_angles();
-                    let _ = events.send(Event::Report {
+                    let _ = events.try_send(Event::Report {
                         frame: f.index,
                         capture_s: f.capture_s,
                         attitude,
@@ -234,13 +204,13 @@ fn run(
                 }
                 Err(p) => {
                     let message = panic_message(&*p);
-                    let _ = events.send(Event::Panicked { frame: f.index, message });
+                    let _ = events.try_send(Event::Panicked { frame: f.index, message });
                     // The pipeline's state may be half-updated: rebuild it. Results
                     // written so far stay on disk.
                     match build(&settings) {
                         Ok(p) => pipeline = p,
                         Err(e) => {
-                            let _ = events.send(Event::Failed(e));
+                            let _ = events.try_send(Event::Failed(e));
                             return;
                         }
                     }
@@ -302,7 +272,7 @@ mod tests {
     #[test]
     fn a_panicking_frame_restarts_the_pipeline_not_the_worker() {
         let dir = tempfile::tempdir().unwrap();
-        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
         let out = dir.path().to_path_buf();
         let factory: Factory =
             Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));

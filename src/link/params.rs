@@ -263,6 +263,11 @@ impl ParamStore {
         (store, notes)
     }
 
+    /// The tuned values, for the daemon's core (which then owns them).
+    pub fn into_tuned(self) -> BTreeMap<String, f64> {
+        self.tuned
+    }
+
     /// Records a tuned value and writes the file atomically.
     pub fn record(&mut self, name: &str, value: f64) -> std::io::Result<()> {
         self.tuned.insert(name.to_string(), value);

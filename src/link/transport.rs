@@ -29,7 +29,9 @@ pub struct Outgoing {
 /// What the link tells the daemon.
 #[derive(Debug)]
 pub enum LinkEvent {
-    Frame(Box<Frame>),
+    /// A checked frame and when the reader took it off the wire, so queueing delay
+    /// cannot bend time alignment or TIMESYNC.
+    Frame { rx: tokio::time::Instant, frame: Box<Frame> },
     /// The transport is open (for `udpin`: bound; answers go to whoever spoke last).
     Up(String),
     /// The transport closed or failed; the link is retrying.
@@ -95,8 +97,9 @@ impl Session {
                 self.decoder.next_frame(signer)
             };
             let Some(f) = f else { break };
+            let rx = tokio::time::Instant::now();
             self.stats.frames_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if self.events.send(LinkEvent::Frame(Box::new(f))).await.is_err() {
+            if self.events.send(LinkEvent::Frame { rx, frame: Box::new(f) }).await.is_err() {
                 return false;
             }
         }

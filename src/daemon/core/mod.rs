@@ -1,0 +1,975 @@
+//! The daemon's MAVLink logic without sockets, tasks or clocks (sans-I/O, in the manner
+//! of quinn-proto and rustls): [`Input`]s in, messages and [`Action`]s out, time passed
+//! in as [`Mono`]. The async shell ([`super::run`]) stamps inputs, drains the outputs
+//! and sleeps until [`Core::poll_timeout`]; tests drive the same core in simulated time.
+//!
+//! One small module per concern, none referencing another; `Core::handle` routes and
+//! forwards their notices (an autopilot reboot resets streams, timesync and gimbal):
+//!
+//! * [`autopilot`]: found, lost, armed, landed state.
+//! * [`telemetry`]: attitude, position, gimbal, home, into the time aligner; reboots.
+//! * [`streams`]: SET_MESSAGE_INTERVAL requests, one in flight.
+//! * [`params`]: paced PARAM_VALUE output (lists, reads, set answers).
+//! * [`commands`]: inbound COMMAND_LONG decisions and the final ACKs owed.
+//! * [`timesync`]: TIMESYNC both ways.
+//! * [`gimbal`]: gimbal-manager control and rate-limited setpoints.
+//! * [`landing`]: MAV_CMD_NAV_LAND until acknowledged.
+//! * [`health`]: heartbeat, once-a-second report, watchdog.
+//! * [`notes`]: STATUSTEXT, chunked and bounded.
+//!
+//! Output priority ([`Core::poll_transmit`]): ACKs and replies, heartbeat, status texts,
+//! pipeline results, stream requests, timesync, landing, gimbal, parameters last.
+
+pub mod autopilot;
+pub mod commands;
+pub mod gimbal;
+pub mod health;
+pub mod landing;
+pub mod notes;
+pub mod params;
+pub mod streams;
+pub mod telemetry;
+pub mod time;
+pub mod timesync;
+
+#[cfg(test)]
+mod sim;
+#[cfg(test)]
+mod tests;
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::Duration;
+
+use mavlink::dialects::common::*;
+
+use self::autopilot::{ApNotice, Autopilot};
+use self::commands::{Decision, Owed, PipelineRequest};
+use self::gimbal::Gimbal;
+use self::health::Health;
+use self::landing::{Landing, LandingNotice};
+use self::notes::Notes;
+use self::params::ParamPacer;
+use self::streams::Streams;
+use self::telemetry::Telemetry;
+use self::timesync::TimeSync;
+use crate::align::Aligner;
+use crate::geometry::Geodetic;
+use crate::link::codec::{Auth, Frame};
+use crate::link::params::{self as param_table, SetError, Wire};
+use crate::link::transport::Outgoing;
+use crate::settings::{GimbalAim, PipelineKind, Settings};
+
+pub use self::commands::{CMD_PIPELINE, CMD_SNAPSHOT};
+pub use self::streams::STREAMS;
+pub use self::time::Mono;
+
+/// Replies and pipeline results waiting to go out are bounded; past this the oldest
+/// pipeline result is dropped (a newer estimate supersedes it), never an ACK.
+const QUEUE_CAP: usize = 256;
+
+/// What a pipeline reports after a frame, for the daemon to publish.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Report {
+    /// Live counters, sent as NAMED_VALUE_FLOAT (names at most 10 characters).
+    pub counters: Vec<(&'static str, f32)>,
+    /// Newly converged area landmarks: local NED positions.
+    pub new_landmarks: Vec<[f64; 3]>,
+    /// The indoor estimate: x, y (local NED north, east), their covariance, time.
+    pub position: Option<PositionEstimate>,
+    /// Human-readable events (STATUSTEXT).
+    pub events: Vec<String>,
+    /// The landing trigger fired on this frame.
+    pub landing_requested: bool,
+    /// Where to point the camera to keep the target's border in view: earth-frame yaw and
+    /// pitch, radians (area pipeline).
+    pub aim: Option<(f64, f64)>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PositionEstimate {
+    pub autopilot_time: f64,
+    pub north: f64,
+    pub east: f64,
+    pub down: f64,
+    /// Covariance of (north, east), m^2.
+    pub cov: [[f64; 2]; 2],
+}
+
+/// What happened on the pipeline worker.
+#[derive(Debug)]
+pub enum PipelineEvent {
+    /// A frame's results; `capture` is the local capture time (seconds), `attitude` the
+    /// vehicle's roll, pitch, yaw at capture.
+    Report {
+        capture: f64,
+        attitude: (f64, f64, f64),
+        report: Report,
+    },
+    Panicked {
+        frame: u64,
+        message: String,
+    },
+    Failed(String),
+}
+
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CameraEvent {
+    Up(String),
+    Down { why: String, fatal: bool },
+    Ended(String),
+}
+
+/// Counters the shell keeps (link and frame queues), handed in once a second.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ShellStats {
+    pub link_in: u64,
+    pub link_bad_frames: u64,
+    pub link_garbage_bytes: u64,
+    pub frames_dropped: u64,
+}
+
+/// One input to the core, stamped with mavloc's clock.
+#[derive(Debug)]
+pub enum Input {
+    /// A checked frame from the link, stamped on arrival by the reader.
+    Mav {
+        rx: Mono,
+        frame: Frame,
+    },
+    Pipeline {
+        now: Mono,
+        event: PipelineEvent,
+    },
+    Camera {
+        now: Mono,
+        event: CameraEvent,
+    },
+    /// The shell finished work the core asked for under `token`.
+    Done {
+        now: Mono,
+        token: u64,
+        result: Result<(), String>,
+    },
+    Stats {
+        now: Mono,
+        stats: ShellStats,
+    },
+}
+
+/// Work for the pipeline worker.
+#[derive(Clone, Debug, PartialEq)]
+pub enum WorkerRequest {
+    /// Start this pipeline (unless it already runs); answer `Done` with the token.
+    Start {
+        kind: PipelineKind,
+        token: u64,
+    },
+    Stop,
+    /// Results moved aside, the same pipeline started empty.
+    Reset,
+    /// Settings changed over MAVLink; hand them to the running pipeline.
+    Apply(Box<Settings>),
+}
+
+/// Something the shell must do besides sending messages.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Action {
+    Worker(WorkerRequest),
+    /// Write status and results now; answer `Done` with the token.
+    Snapshot {
+        token: u64,
+    },
+    /// Persist the tuned parameters (`params.json`); answer `Done` with the token.
+    SaveParams {
+        token: u64,
+        json: String,
+    },
+    /// Once a second: hand in [`ShellStats`] and rewrite `status.json`.
+    Report,
+    /// systemd's watchdog ping: the core's loop is alive.
+    Watchdog,
+}
+
+/// Pipeline state as the daemon sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PipelineState {
+    Stopped,
+    Starting(PipelineKind),
+    Running(PipelineKind),
+    Failed(PipelineKind),
+}
+
+/// Counters reported to the ground and in `status.json`.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Counters {
+    pub frames_processed: u64,
+    pub frames_dropped: u64,
+    pub pipeline_panics: u64,
+    pub commands_refused: u64,
+    pub params_refused: u64,
+    pub autopilot_reboots: u64,
+    pub statustext_dropped: u64,
+    pub results_dropped: u64,
+}
+
+/// Why the shell owes a `Done`.
+#[derive(Debug)]
+enum Job {
+    Start { kind: PipelineKind, requester: Option<(MavCmd, (u8, u8))> },
+    Snapshot { ack_token: u64 },
+    SaveParams { name: String },
+}
+
+pub struct Core {
+    settings: Settings,
+    tuned: BTreeMap<String, f64>,
+    system_id: u8,
+    component_id: u8,
+    signing: bool,
+    autopilot: Autopilot,
+    telemetry: Telemetry,
+    streams: Streams,
+    timesync: TimeSync,
+    params: ParamPacer,
+    gimbal: Gimbal,
+    landing: Landing,
+    health: Health,
+    notes: Notes,
+    owed: Owed,
+    jobs: BTreeMap<u64, Job>,
+    next_job: u64,
+    /// ACKs and direct replies.
+    replies: VecDeque<MavMessage>,
+    /// Pipeline results (landmarks, position estimates, counters).
+    results: VecDeque<MavMessage>,
+    actions: VecDeque<Action>,
+    heartbeat_requested: bool,
+    pipeline: PipelineState,
+    camera_live: bool,
+    counters: Counters,
+}
+
+impl Core {
+    /// `tuned` are the values already applied to `settings` from `params.json`;
+    /// `watchdog` is systemd's ping period when its watchdog is on.
+    pub fn new(
+        settings: Settings,
+        tuned: BTreeMap<String, f64>,
+        signing: bool,
+        watchdog: Option<Duration>,
+    ) -> Core {
+        let m = &settings.mavlink;
+        let system_id = if m.system_id == 0 { m.autopilot_system_id } else { m.system_id };
+        let mut core = Core {
+            component_id: m.component_id,
+            system_id,
+            signing,
+            autopilot: Autopilot::new(Duration::from_secs_f64(m.autopilot_timeout_s)),
+            telemetry: Telemetry::new(&settings),
+            streams: Streams::default(),
+            timesync: TimeSync::default(),
+            params: ParamPacer::new(param_table::PARAMS.len()),
+            gimbal: Gimbal::default(),
+            landing: Landing::default(),
+            health: Health::new(m.heartbeat_hz, watchdog),
+            notes: Notes::default(),
+            owed: Owed::default(),
+            jobs: BTreeMap::new(),
+            next_job: 0,
+            replies: VecDeque::new(),
+            results: VecDeque::new(),
+            actions: VecDeque::new(),
+            heartbeat_requested: false,
+            pipeline: PipelineState::Stopped,
+            camera_live: false,
+            counters: Counters::default(),
+            tuned,
+            settings,
+        };
+        // Start the configured pipeline, as a drone would at boot.
+        if core.settings.daemon.pipeline != PipelineKind::None {
+            core.start_pipeline(core.settings.daemon.pipeline, None);
+        }
+        core
+    }
+
+    // ---- getters ----
+
+    pub fn settings(&self) -> &Settings {
+        &self.settings
+    }
+
+    pub fn system_id(&self) -> u8 {
+        self.system_id
+    }
+
+    pub fn component_id(&self) -> u8 {
+        self.component_id
+    }
+
+    pub fn autopilot_found(&self) -> bool {
+        self.autopilot.present()
+    }
+
+    pub fn autopilot(&self) -> &Autopilot {
+        &self.autopilot
+    }
+
+    pub fn aligner(&self) -> &Aligner {
+        &self.telemetry.aligner
+    }
+
+    /// The WGS84 origin of the autopilot's local frame, once HOME_POSITION arrived.
+    pub fn origin(&self) -> Option<Geodetic> {
+        self.telemetry.origin()
+    }
+
+    pub fn pipeline(&self) -> PipelineState {
+        self.pipeline
+    }
+
+    pub fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
+    pub fn streams(&self) -> &Streams {
+        &self.streams
+    }
+
+    pub fn gimbal(&self) -> &Gimbal {
+        &self.gimbal
+    }
+
+    pub fn landing(&self) -> &Landing {
+        &self.landing
+    }
+
+    pub fn tuned(&self) -> &BTreeMap<String, f64> {
+        &self.tuned
+    }
+
+    /// PARAM_VALUEs owed but held back by pacing.
+    pub fn params_queued(&self) -> usize {
+        self.params.queued()
+    }
+
+    /// Final command ACKs owed.
+    pub fn acks_owed(&self) -> usize {
+        self.owed.len()
+    }
+
+    /// Live frames are not processed while the vehicle is on the ground: a downward
+    /// camera sees the floor up close, and a landed vehicle needs no position from vision.
+    pub fn on_ground(&self) -> bool {
+        self.autopilot.on_ground()
+    }
+
+    /// MAV_STATE reflecting reality: ACTIVE only while a pipeline runs with frames and
+    /// telemetry; STANDBY while idle or waiting; CRITICAL when the pipeline failed.
+    pub fn mav_state(&self) -> MavState {
+        match self.pipeline {
+            PipelineState::Failed(_) => MavState::MAV_STATE_CRITICAL,
+            PipelineState::Running(_)
+                if self.autopilot.present()
+                    && self.camera_live
+                    && self.telemetry.aligner.clock.offset().0.is_some() =>
+            {
+                MavState::MAV_STATE_ACTIVE
+            }
+            _ => MavState::MAV_STATE_STANDBY,
+        }
+    }
+
+    // ---- inputs ----
+
+    pub fn handle(&mut self, input: Input) {
+        match input {
+            Input::Mav { rx, frame } => self.on_frame(rx, frame),
+            Input::Pipeline { now, event } => self.on_pipeline(now, event),
+            Input::Camera { event, .. } => self.on_camera(event),
+            Input::Done { token, result, .. } => self.on_done(token, result),
+            Input::Stats { now, stats } => self.on_stats(now, stats),
+        }
+    }
+
+    /// Expires whatever is due; a no-op before every deadline.
+    pub fn handle_timeout(&mut self, now: Mono) {
+        if let Some(ApNotice::Lost) = self.autopilot.on_timeout(now) {
+            let t = self.autopilot.timeout().as_secs_f64();
+            self.notes.warn(&format!("autopilot lost (no heartbeat for {t} s)"));
+            self.streams.stop();
+            self.timesync.stop();
+            self.gimbal.release();
+            self.landing.cancel();
+        }
+        if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
+            self.notes.error(&format!("autopilot did not acknowledge MAV_CMD_NAV_LAND after {tries} tries"));
+        }
+        self.health.on_timeout(now);
+        if self.health.take_report() {
+            self.actions.push_back(Action::Report);
+        }
+        if self.health.take_watchdog() {
+            self.actions.push_back(Action::Watchdog);
+        }
+    }
+
+    /// The earliest time `handle_timeout` or `poll_transmit` has something to do.
+    pub fn poll_timeout(&self) -> Option<Mono> {
+        time::earliest([
+            self.autopilot.deadline(),
+            self.health.deadline(),
+            self.streams.deadline(),
+            self.timesync.deadline(),
+            self.landing.deadline(),
+            self.gimbal.deadline(),
+            self.params.deadline(),
+        ])
+    }
+
+    pub fn poll_action(&mut self) -> Option<Action> {
+        self.actions.pop_front()
+    }
+
+    /// The next message to send, in priority order.
+    pub fn poll_transmit(&mut self, now: Mono) -> Option<Outgoing> {
+        let target = self.settings.mavlink.autopilot_system_id;
+        let message = self
+            .replies
+            .pop_front()
+            .or_else(|| self.poll_heartbeat())
+            .or_else(|| {
+                if let Some(line) = self.streams.poll_summary() {
+                    self.notes.warn(&line);
+                }
+                self.notes.pop()
+            })
+            .or_else(|| self.results.pop_front())
+            .or_else(|| self.streams.poll_transmit(now, target))
+            .or_else(|| self.timesync.poll_transmit(now, target))
+            .or_else(|| self.landing.poll_transmit(now, target))
+            .or_else(|| self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id)))
+            .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;
+        Some(Outgoing { system_id: self.system_id, component_id: self.component_id, message })
+    }
+
+    fn poll_heartbeat(&mut self) -> Option<MavMessage> {
+        let due = self.health.take_heartbeat() | std::mem::take(&mut self.heartbeat_requested);
+        due.then(|| {
+            MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+                base_mode: MavModeFlag::empty(),
+                system_status: self.mav_state(),
+                mavlink_version: 3,
+            })
+        })
+    }
+
+    fn reply(&mut self, m: MavMessage) {
+        // ACKs are never dropped; the cap holds only against a peer flooding requests.
+        if self.replies.len() >= QUEUE_CAP * 4 {
+            self.replies.pop_front();
+        }
+        self.replies.push_back(m);
+    }
+
+    fn result(&mut self, m: MavMessage) {
+        if self.results.len() >= QUEUE_CAP {
+            self.results.pop_front();
+            self.counters.results_dropped += 1;
+        }
+        self.results.push_back(m);
+    }
+
+    fn job(&mut self, job: Job) -> u64 {
+        self.next_job += 1;
+        self.jobs.insert(self.next_job, job);
+        self.next_job
+    }
+
+    // ---- frames ----
+
+    fn is_autopilot_system(&self, f: &Frame) -> bool {
+        f.header.system_id == self.settings.mavlink.autopilot_system_id as u32
+    }
+
+    fn is_autopilot(&self, f: &Frame) -> bool {
+        self.is_autopilot_system(f) && f.header.component_id == 1
+    }
+
+    /// Commands and parameter sets: only from the ground station or the autopilot, and
+    /// only signed when signing is on. Returns the reason for a refusal.
+    fn trusted(&self, f: &Frame) -> Result<(), String> {
+        let m = &self.settings.mavlink;
+        let sys = f.header.system_id;
+        if sys != m.gcs_system_id as u32 && sys != m.autopilot_system_id as u32 {
+            return Err(format!("system {sys} is neither the ground station nor the autopilot"));
+        }
+        if self.signing && f.auth != Auth::Signed {
+            return Err("unsigned, and signing is required".into());
+        }
+        Ok(())
+    }
+
+    fn for_us(&self, target_system: u8, target_component: u8, allow_broadcast: bool) -> bool {
+        (target_system == self.system_id || (allow_broadcast && target_system == 0))
+            && (target_component == self.component_id || (allow_broadcast && target_component == 0))
+    }
+
+    fn on_frame(&mut self, rx: Mono, f: Frame) {
+        // Our own messages echoed back by a router or PX4's forwarding.
+        if f.header.system_id == self.system_id as u32 && f.header.component_id == self.component_id {
+            return;
+        }
+        if self.signing && f.auth != Auth::Signed && !self.settings.mavlink.accept_unsigned_telemetry {
+            return;
+        }
+        let from = (f.header.system_id as u8, f.header.component_id);
+        if self.is_autopilot_system(&f) {
+            let fc = self.is_autopilot(&f);
+            if self.telemetry.on_message(rx, &f.message, fc).is_some() {
+                self.on_reboot(rx);
+            }
+        }
+        match &f.message {
+            MavMessage::HEARTBEAT(h)
+                if self.is_autopilot(&f) && h.autopilot != MavAutopilot::MAV_AUTOPILOT_INVALID =>
+            {
+                let what = format!("{:?}, MAVLink {:?}", h.autopilot, f.version);
+                if let Some(ApNotice::Found { sys, what }) = self.autopilot.on_heartbeat(rx, from.0, h, what)
+                {
+                    if self.settings.mavlink.system_id == 0 {
+                        self.system_id = sys;
+                    }
+                    self.notes.info(&format!("autopilot found: system {sys} ({what})"));
+                    self.streams.start();
+                    self.timesync.start(rx);
+                }
+            }
+            MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
+                self.autopilot.on_landed_state(e.landed_state)
+            }
+            MavMessage::COMMAND_ACK(a) if self.is_autopilot(&f) => self.on_autopilot_ack(rx, a),
+            MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
+                let (reply, sample) = self.timesync.on_timesync(rx, t, from);
+                if let Some(r) = reply {
+                    self.reply(r);
+                }
+                if let Some(s) = sample {
+                    self.telemetry.aligner.clock.observe_timesync(s.sent, s.received, s.remote);
+                }
+            }
+            MavMessage::PARAM_REQUEST_LIST(r) if self.for_us(r.target_system, r.target_component, true) => {
+                self.params.on_list();
+            }
+            MavMessage::PARAM_REQUEST_READ(r) if self.for_us(r.target_system, r.target_component, false) => {
+                let i = if r.param_index >= 0 {
+                    Some(r.param_index as usize).filter(|&i| i < param_table::PARAMS.len())
+                } else {
+                    param_name(&r.param_id).and_then(|n| param_table::find(&n)).map(|(i, _)| i)
+                };
+                match i {
+                    Some(i) => self.params.on_single(i),
+                    None => {
+                        let id = param_name(&r.param_id).unwrap_or_else(|| "?".into());
+                        self.notes.warn(&format!("no parameter {id} (index {})", r.param_index));
+                    }
+                }
+            }
+            MavMessage::PARAM_SET(p) if self.for_us(p.target_system, p.target_component, false) => {
+                let name = param_name(&p.param_id).unwrap_or_default();
+                self.param_set(&f, &name, Wire { value: p.param_value, ty: p.param_type });
+            }
+            MavMessage::COMMAND_LONG(c) if self.for_us(c.target_system, c.target_component, true) => {
+                let broadcast = c.target_component == 0 || c.target_system == 0;
+                self.on_command(&f, c, broadcast);
+            }
+            _ => {}
+        }
+    }
+
+    fn on_reboot(&mut self, rx: Mono) {
+        self.counters.autopilot_reboots += 1;
+        self.notes.warn("autopilot rebooted; re-requesting its streams");
+        if self.autopilot.present() {
+            self.streams.start();
+            self.timesync.start(rx);
+        }
+        self.gimbal.release();
+        self.landing.cancel();
+    }
+
+    fn on_autopilot_ack(&mut self, now: Mono, a: &COMMAND_ACK_DATA) {
+        match a.command {
+            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => self.streams.on_ack(a.result),
+            MavCmd::MAV_CMD_NAV_LAND => match self.landing.on_ack(now, a.result) {
+                Some(LandingNotice::Accepted) => {
+                    self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, "autopilot accepted the landing")
+                }
+                Some(LandingNotice::Refused(r)) => {
+                    self.notes.error(&format!("autopilot refused the landing: {r:?}"))
+                }
+                _ => {}
+            },
+            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
+                if let Some(line) = self.gimbal.on_ack(a.command, a.result) {
+                    self.notes.warn(&line);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn param_value(&self, i: usize) -> MavMessage {
+        let def = &param_table::PARAMS[i];
+        let w = param_table::encode(&self.settings, def);
+        MavMessage::PARAM_VALUE(PARAM_VALUE_DATA {
+            param_value: w.value,
+            param_count: param_table::PARAMS.len() as u16,
+            param_index: i as u16,
+            param_id: def.name.into(),
+            param_type: w.ty,
+        })
+    }
+
+    fn param_set(&mut self, f: &Frame, name: &str, w: Wire) {
+        let index = param_table::find(name).map(|(i, _)| i);
+        if let Err(why) = self.trusted(f) {
+            self.counters.params_refused += 1;
+            self.notes.warn(&format!("refused PARAM_SET {name}: {why}"));
+            if let Some(i) = index {
+                self.params.on_single(i);
+            }
+            return;
+        }
+        match param_table::set(&self.settings, name, w) {
+            Ok((new, value)) => {
+                let pipeline_changed = new.daemon.pipeline != self.settings.daemon.pipeline;
+                self.settings = new;
+                self.telemetry.reconfigure(&self.settings);
+                self.tuned.insert(name.to_string(), value);
+                let json = serde_json::to_string_pretty(&self.tuned).expect("map serialises");
+                let token = self.job(Job::SaveParams { name: name.to_string() });
+                self.actions.push_back(Action::SaveParams { token, json });
+                tracing::info!("parameter {name} = {value} (PARAM_SET from system {})", f.header.system_id);
+                self.actions.push_back(Action::Worker(WorkerRequest::Apply(Box::new(self.settings.clone()))));
+                if pipeline_changed
+                    && matches!(self.pipeline, PipelineState::Running(_) | PipelineState::Starting(_))
+                {
+                    match self.settings.daemon.pipeline {
+                        PipelineKind::None => self.stop_pipeline(),
+                        k => self.start_pipeline(k, None),
+                    }
+                }
+                self.params.on_single(index.expect("set succeeded, so it exists"));
+            }
+            Err(e) => {
+                self.counters.params_refused += 1;
+                self.notes.warn(&format!("refused {e}"));
+                if let SetError::Refused { .. } = e {
+                    self.params.on_single(index.expect("refused, so it exists"));
+                }
+            }
+        }
+    }
+
+    fn on_command(&mut self, f: &Frame, c: &COMMAND_LONG_DATA, broadcast: bool) {
+        let from = (f.header.system_id as u8, f.header.component_id);
+        let decision =
+            commands::decide(c, broadcast, self.settings.daemon.pipeline, param_table::PARAMS.len());
+        if decision == Decision::Ignore {
+            return;
+        }
+        if let Err(why) = self.trusted(f) {
+            self.counters.commands_refused += 1;
+            tracing::warn!("refused command {} from {}/{}: {why}", c.command as u32, from.0, from.1);
+            return self.reply(commands::ack(c.command, MavResult::MAV_RESULT_DENIED, from));
+        }
+        let ack = |core: &mut Core, r| core.reply(commands::ack(c.command, r, from));
+        match decision {
+            Decision::Ignore => {}
+            Decision::Ack(r) => ack(self, r),
+            Decision::SendHeartbeat => {
+                ack(self, MavResult::MAV_RESULT_ACCEPTED);
+                self.heartbeat_requested = true;
+            }
+            Decision::SendParam(i) => {
+                ack(self, MavResult::MAV_RESULT_ACCEPTED);
+                self.params.on_single(i);
+            }
+            Decision::Snapshot => {
+                ack(self, MavResult::MAV_RESULT_IN_PROGRESS);
+                if let Some(ack_token) = self.owed.owe(c.command, from) {
+                    let token = self.job(Job::Snapshot { ack_token });
+                    self.actions.push_back(Action::Snapshot { token });
+                }
+            }
+            Decision::Pipeline(PipelineRequest::Start(PipelineKind::None)) => {
+                self.notes.warn("no pipeline configured (LOC_PIPELINE = none)");
+                ack(self, MavResult::MAV_RESULT_DENIED);
+            }
+            Decision::Pipeline(PipelineRequest::Start(k)) => self.start_pipeline(k, Some((c.command, from))),
+            Decision::Pipeline(PipelineRequest::Stop) => {
+                self.stop_pipeline();
+                ack(self, MavResult::MAV_RESULT_ACCEPTED);
+            }
+            Decision::Pipeline(PipelineRequest::Reset) => match self.pipeline {
+                PipelineState::Running(k) => {
+                    self.actions.push_back(Action::Worker(WorkerRequest::Reset));
+                    self.notes.info(&format!("{k:?} pipeline reset; earlier results kept aside"));
+                    ack(self, MavResult::MAV_RESULT_ACCEPTED);
+                }
+                _ => ack(self, MavResult::MAV_RESULT_TEMPORARILY_REJECTED),
+            },
+        }
+    }
+
+    /// Asks the shell to start `kind`; the final ACK (if a command asked) comes with
+    /// its `Done`, since only the shell can tell whether the model file exists.
+    fn start_pipeline(&mut self, kind: PipelineKind, requester: Option<(MavCmd, (u8, u8))>) {
+        if let PipelineKind::Indoor = kind {
+            if self.settings.indoor.model.is_empty() {
+                return self.start_failed(
+                    kind,
+                    requester,
+                    "indoor.model is not set (train one with `mavloc indoor train`)",
+                );
+            }
+        }
+        if self.pipeline == PipelineState::Running(kind) {
+            if let Some((cmd, to)) = requester {
+                self.reply(commands::ack(cmd, MavResult::MAV_RESULT_ACCEPTED, to));
+            }
+            return;
+        }
+        self.pipeline = PipelineState::Starting(kind);
+        let token = self.job(Job::Start { kind, requester });
+        self.actions.push_back(Action::Worker(WorkerRequest::Start { kind, token }));
+    }
+
+    fn start_failed(&mut self, kind: PipelineKind, requester: Option<(MavCmd, (u8, u8))>, why: &str) {
+        self.pipeline = PipelineState::Failed(kind);
+        self.notes.error(&format!("cannot start the {kind:?} pipeline: {why}"));
+        if let Some((cmd, to)) = requester {
+            self.reply(commands::ack(cmd, MavResult::MAV_RESULT_DENIED, to));
+        }
+    }
+
+    fn stop_pipeline(&mut self) {
+        if let PipelineState::Running(k) | PipelineState::Failed(k) | PipelineState::Starting(k) =
+            self.pipeline
+        {
+            self.actions.push_back(Action::Worker(WorkerRequest::Stop));
+            self.pipeline = PipelineState::Stopped;
+            self.notes.info(&format!("{k:?} pipeline stopped; results written"));
+        }
+    }
+
+    fn on_done(&mut self, token: u64, result: Result<(), String>) {
+        let Some(job) = self.jobs.remove(&token) else {
+            tracing::debug!("done for unknown token {token}");
+            return;
+        };
+        match job {
+            Job::Start { kind, requester } => {
+                if self.pipeline != PipelineState::Starting(kind) {
+                    // Stopped or replaced meanwhile: the newer request decides.
+                    if let Some((cmd, to)) = requester {
+                        self.reply(commands::ack(cmd, MavResult::MAV_RESULT_CANCELLED, to));
+                    }
+                    return;
+                }
+                match result {
+                    Ok(()) => {
+                        self.pipeline = PipelineState::Running(kind);
+                        let src = format!("{:?}", self.settings.camera.source).to_lowercase();
+                        self.notes
+                            .info(&format!("{kind:?} pipeline started; frames from camera source {src}"));
+                        if let Some((cmd, to)) = requester {
+                            self.reply(commands::ack(cmd, MavResult::MAV_RESULT_ACCEPTED, to));
+                        }
+                    }
+                    Err(why) => self.start_failed(kind, requester, &why),
+                }
+            }
+            Job::Snapshot { ack_token } => {
+                let result = match &result {
+                    Ok(()) => MavResult::MAV_RESULT_ACCEPTED,
+                    Err(e) => {
+                        self.notes.error(&format!("snapshot failed: {e}"));
+                        MavResult::MAV_RESULT_FAILED
+                    }
+                };
+                if let Some((cmd, to, n)) = self.owed.settle(ack_token) {
+                    for _ in 0..n {
+                        self.reply(commands::ack(cmd, result, to));
+                    }
+                }
+            }
+            Job::SaveParams { name } => {
+                if let Err(e) = result {
+                    self.notes.warn(&format!("{name} set but not saved: {e}"));
+                }
+            }
+        }
+    }
+
+    // ---- pipeline and camera ----
+
+    fn on_pipeline(&mut self, now: Mono, event: PipelineEvent) {
+        match event {
+            PipelineEvent::Report { capture, attitude, report } => {
+                self.publish(now, &report, capture, attitude)
+            }
+            PipelineEvent::Panicked { frame, message } => {
+                self.counters.pipeline_panics += 1;
+                self.notes.error(&format!("pipeline panicked on frame {frame}: {message}; restarted"));
+            }
+            PipelineEvent::Failed(e) => {
+                if let PipelineState::Running(k) | PipelineState::Starting(k) = self.pipeline {
+                    self.pipeline = PipelineState::Failed(k);
+                }
+                self.notes.error(&format!("pipeline failed: {e}"));
+            }
+        }
+    }
+
+    fn on_camera(&mut self, event: CameraEvent) {
+        match event {
+            CameraEvent::Up(what) => {
+                self.camera_live = true;
+                self.notes.info(&format!("camera up: {what}"));
+            }
+            CameraEvent::Down { why, fatal } => {
+                self.camera_live = false;
+                let what = if fatal { "camera failed" } else { "camera lost (retrying)" };
+                self.notes.error(&format!("{what}: {why}"));
+            }
+            CameraEvent::Ended(what) => {
+                self.camera_live = false;
+                self.notes.info(&format!("camera source ended: {what}"));
+            }
+        }
+    }
+
+    fn on_stats(&mut self, now: Mono, s: ShellStats) {
+        self.counters.frames_dropped = s.frames_dropped;
+        self.counters.statustext_dropped = self.notes.dropped;
+        let ms = (now.0 / 1000) as u32;
+        let values: [(&str, f32); 5] = [
+            ("LINK_BAD", s.link_bad_frames as f32),
+            ("LINK_JUNK", s.link_garbage_bytes as f32),
+            ("LINK_IN", s.link_in as f32),
+            ("FR_DONE", self.counters.frames_processed as f32),
+            ("FR_DROP", self.counters.frames_dropped as f32),
+        ];
+        for (name, value) in values {
+            self.result(MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
+                time_boot_ms: ms,
+                value,
+                name: name.into(),
+            }));
+        }
+    }
+
+    /// Publishes what the pipeline found on one frame captured at local time `capture`
+    /// (seconds on mavloc's monotonic clock, the clock its TIMESYNC replies carry, so PX4
+    /// can map the stamps onto its own).
+    ///
+    /// The indoor estimate goes out as VISION_POSITION_ESTIMATE rather than ODOMETRY:
+    /// the pipeline measures horizontal position only, and PX4's EKF2 fuses exactly that
+    /// from VISION_POSITION_ESTIMATE (`EKF2_EV_CTRL` bit 0) with the covariance taken from
+    /// the message; ODOMETRY would need a velocity and frame ids mavloc cannot vouch for.
+    /// Area landmarks go out as DEBUG_VECT named `LMK` (north, east, down in metres,
+    /// local NED of the autopilot), which QGroundControl's MAVLink inspector shows.
+    fn publish(&mut self, now: Mono, report: &Report, capture: f64, attitude: (f64, f64, f64)) {
+        self.counters.frames_processed += 1;
+        let usec = (capture.max(0.0) * 1e6) as u64;
+        for p in &report.new_landmarks {
+            self.result(MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {
+                time_usec: usec,
+                x: p[0] as f32,
+                y: p[1] as f32,
+                z: p[2] as f32,
+                name: "LMK".into(),
+            }));
+        }
+        if let Some(e) = &report.position {
+            self.result(vision_position_estimate(e, usec, attitude));
+        }
+        let ms = (capture.max(0.0) * 1e3) as u32;
+        for &(name, value) in &report.counters {
+            self.result(MavMessage::NAMED_VALUE_FLOAT(NAMED_VALUE_FLOAT_DATA {
+                time_boot_ms: ms,
+                value,
+                name: name.into(),
+            }));
+        }
+        for e in &report.events {
+            self.notes.info(e);
+        }
+        if let Some((yaw, pitch)) = report.aim {
+            if self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present() {
+                self.gimbal.aim(yaw, pitch);
+            }
+        }
+        if report.landing_requested {
+            self.request_landing(now);
+        }
+    }
+
+    /// The landing trigger fired: land if landing is enabled (IND_LAND_EN) and the
+    /// vehicle is armed and in the air.
+    fn request_landing(&mut self, now: Mono) {
+        if !self.settings.indoor.landing_enabled {
+            self.notes.info("landing trigger fired; landing is disabled (IND_LAND_EN 0)");
+            return;
+        }
+        let a = &self.autopilot;
+        if !a.present() || !a.armed() || !a.airborne() {
+            let line = format!(
+                "landing trigger fired, but the vehicle is not armed and in the air (armed {}, landed state {:?}); not landing",
+                a.armed(),
+                a.landed_state()
+            );
+            self.notes.warn(&line);
+            return;
+        }
+        if self.landing.request(now) {
+            self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, "landing requested: sending MAV_CMD_NAV_LAND");
+        }
+    }
+}
+
+fn param_name(id: &mavlink::types::CharArray<16>) -> Option<String> {
+    id.to_str().ok().map(|n| n.trim_end_matches('\0').to_string())
+}
+
+/// Variance reported for what the pipeline does not measure (z, attitude): large enough
+/// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.
+const UNMEASURED_VARIANCE: f32 = 1.0e4;
+
+/// VISION_POSITION_ESTIMATE for an indoor estimate. The covariance is the upper triangle
+/// of the 6x6 (x, y, z, roll, pitch, yaw) matrix, row-major, as MAVLink defines it.
+pub fn vision_position_estimate(e: &PositionEstimate, usec: u64, attitude: (f64, f64, f64)) -> MavMessage {
+    let mut covariance = [0f32; 21];
+    covariance[0] = e.cov[0][0] as f32;
+    covariance[1] = e.cov[0][1] as f32;
+    covariance[6] = e.cov[1][1] as f32;
+    for i in [11, 15, 18, 20] {
+        covariance[i] = UNMEASURED_VARIANCE;
+    }
+    MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
+        usec,
+        x: e.north as f32,
+        y: e.east as f32,
+        z: e.down as f32,
+        roll: attitude.0 as f32,
+        pitch: attitude.1 as f32,
+        yaw: attitude.2 as f32,
+        covariance,
+        reset_counter: 0,
+    })
+}

@@ -1,0 +1,118 @@
+//! STATUSTEXT: what the core says to the ground (and to the log), chunked as MAVLink 2
+//! allows and bounded, so a burst of notices cannot crowd out the heartbeat.
+
+use std::collections::VecDeque;
+
+use mavlink::dialects::common::{MavMessage, MavSeverity, STATUSTEXT_DATA};
+
+/// Text messages waiting to go out. Beyond `CAP` the oldest are dropped and counted: a
+/// flood of notices is worth a counter, not unbounded memory.
+#[derive(Debug, Default)]
+pub struct Notes {
+    queue: VecDeque<MavMessage>,
+    next_id: u16,
+    pub dropped: u64,
+}
+
+const CAP: usize = 64;
+/// Characters per STATUSTEXT chunk (the field's size).
+const CHUNK: usize = 50;
+
+impl Notes {
+    /// Queues `text` (prefixed "mavloc: ") and logs it at the matching level.
+    pub fn push(&mut self, severity: MavSeverity, text: &str) {
+        match severity {
+            MavSeverity::MAV_SEVERITY_EMERGENCY
+            | MavSeverity::MAV_SEVERITY_ALERT
+            | MavSeverity::MAV_SEVERITY_CRITICAL
+            | MavSeverity::MAV_SEVERITY_ERROR => tracing::error!("{text}"),
+            MavSeverity::MAV_SEVERITY_WARNING => tracing::warn!("{text}"),
+            _ => tracing::info!("{text}"),
+        }
+        let line = format!("mavloc: {text}");
+        let chunks: Vec<&[u8]> = line.as_bytes().chunks(CHUNK).collect();
+        // A multi-chunk text shares a non-zero id so the receiver can reassemble it.
+        let id = if chunks.len() > 1 {
+            self.next_id = self.next_id.wrapping_add(1).max(1);
+            self.next_id
+        } else {
+            0
+        };
+        for (i, c) in chunks.iter().enumerate() {
+            let mut text = [0u8; CHUNK];
+            text[..c.len()].copy_from_slice(c);
+            if self.queue.len() >= CAP {
+                self.queue.pop_front();
+                self.dropped += 1;
+            }
+            self.queue.push_back(MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+                severity,
+                text: text.into(),
+                id,
+                chunk_seq: i as u8,
+            }));
+        }
+    }
+
+    pub fn info(&mut self, text: &str) {
+        self.push(MavSeverity::MAV_SEVERITY_INFO, text)
+    }
+
+    pub fn warn(&mut self, text: &str) {
+        self.push(MavSeverity::MAV_SEVERITY_WARNING, text)
+    }
+
+    pub fn error(&mut self, text: &str) {
+        self.push(MavSeverity::MAV_SEVERITY_ERROR, text)
+    }
+
+    pub fn pop(&mut self) -> Option<MavMessage> {
+        self.queue.pop_front()
+    }
+
+    pub fn len(&self) -> usize {
+        self.queue.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.queue.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chunks(n: &mut Notes) -> Vec<(u16, u8)> {
+        std::iter::from_fn(|| n.pop())
+            .map(|m| match m {
+                MavMessage::STATUSTEXT(s) => (s.id, s.chunk_seq),
+                other => panic!("{other:?}"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn long_texts_are_chunked_under_one_nonzero_id() {
+        let mut n = Notes::default();
+        n.info(&"x".repeat(120));
+        let c = chunks(&mut n);
+        assert_eq!(c.iter().map(|c| c.1).collect::<Vec<_>>(), vec![0, 1, 2]);
+        assert!(c.iter().all(|(id, _)| *id == c[0].0 && *id != 0));
+        n.info("short");
+        assert_eq!(chunks(&mut n), vec![(0, 0)], "one chunk: id 0");
+    }
+
+    #[test]
+    fn a_flood_is_bounded_and_counted() {
+        let mut n = Notes::default();
+        for i in 0..1000 {
+            n.warn(&format!("notice {i}"));
+        }
+        assert_eq!(n.len(), CAP);
+        assert_eq!(n.dropped, 1000 - CAP as u64);
+        // The newest survive.
+        let MavMessage::STATUSTEXT(last) = std::iter::from_fn(|| n.pop()).last().unwrap() else { panic!() };
+        assert!(String::from_utf8_lossy(&last.text[..]).contains("notice 999"));
+    }
+}

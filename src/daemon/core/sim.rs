@@ -1,0 +1,316 @@
+//! A deterministic world for the core, modelled on quinn-proto's test `Pair`: the core,
+//! a fake autopilot, a fake ground station and a clock that jumps from one event to the
+//! next. Nothing sleeps: minutes of flight take milliseconds.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use mavlink::dialects::common::*;
+use mavlink::{MavHeader, MavlinkVersion};
+
+use super::*;
+
+pub fn frame(sys: u8, comp: u8, message: MavMessage) -> Frame {
+    Frame {
+        version: MavlinkVersion::V2,
+        header: MavHeader { system_id: sys as u32, component_id: comp, sequence: 0 },
+        message,
+        auth: Auth::Unsigned,
+    }
+}
+
+/// How the fake autopilot answers stream requests.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StreamAnswer {
+    Accept,
+    Refuse,
+    Ignore,
+}
+
+/// A PX4-like flight controller: heartbeat at 1 Hz with its boot clock, telemetry at
+/// 10 Hz once streams are requested, TIMESYNC and command answers.
+pub struct FakeAutopilot {
+    pub booted: Mono,
+    pub alive: bool,
+    pub armed: bool,
+    pub in_air: bool,
+    pub streams: StreamAnswer,
+    pub land_answer: Option<MavResult>,
+    pub land_commands: u32,
+    pub gimbal_commands: Vec<(Mono, COMMAND_LONG_DATA)>,
+    streaming: bool,
+    next_heartbeat: Mono,
+    next_telemetry: Mono,
+}
+
+impl FakeAutopilot {
+    pub fn new(boot: Mono) -> FakeAutopilot {
+        FakeAutopilot {
+            booted: boot,
+            alive: true,
+            armed: false,
+            in_air: false,
+            streams: StreamAnswer::Accept,
+            land_answer: Some(MavResult::MAV_RESULT_ACCEPTED),
+            land_commands: 0,
+            gimbal_commands: Vec::new(),
+            streaming: false,
+            next_heartbeat: boot,
+            next_telemetry: boot,
+        }
+    }
+
+    pub fn reboot(&mut self, now: Mono) {
+        // PX4 streams its default set again after a reboot, before anyone asks.
+        *self = FakeAutopilot { streams: self.streams, streaming: self.streaming, ..FakeAutopilot::new(now) };
+    }
+
+    fn boot_ms(&self, now: Mono) -> u32 {
+        ((now.0 - self.booted.0) / 1000) as u32
+    }
+
+    pub fn next_event(&self) -> Option<Mono> {
+        self.alive.then(|| {
+            if self.streaming {
+                self.next_heartbeat.min(self.next_telemetry)
+            } else {
+                self.next_heartbeat
+            }
+        })
+    }
+
+    /// What it sends on its own at `now`.
+    fn poll(&mut self, now: Mono) -> Vec<MavMessage> {
+        let mut out = Vec::new();
+        if !self.alive {
+            return out;
+        }
+        if self.next_heartbeat <= now {
+            self.next_heartbeat = now + Duration::from_secs(1);
+            let mut base_mode = MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED;
+            if self.armed {
+                base_mode |= MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED;
+            }
+            out.push(MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_QUADROTOR,
+                autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+                base_mode,
+                system_status: MavState::MAV_STATE_STANDBY,
+                mavlink_version: 3,
+            }));
+            out.push(MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
+                vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
+                landed_state: if self.in_air {
+                    MavLandedState::MAV_LANDED_STATE_IN_AIR
+                } else {
+                    MavLandedState::MAV_LANDED_STATE_ON_GROUND
+                },
+            }));
+        }
+        if self.streaming && self.next_telemetry <= now {
+            self.next_telemetry = now + Duration::from_millis(100);
+            let ms = self.boot_ms(now);
+            out.push(MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: ms, ..Default::default() }));
+            out.push(MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+                time_boot_ms: ms,
+                z: -10.0,
+                ..Default::default()
+            }));
+        }
+        out
+    }
+
+    /// Its answers to what mavloc sent.
+    fn receive(&mut self, now: Mono, m: &MavMessage) -> Vec<MavMessage> {
+        if !self.alive {
+            return Vec::new();
+        }
+        let ack = |command, result| {
+            MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                command,
+                result,
+                target_system: 1,
+                target_component: 191,
+                ..Default::default()
+            })
+        };
+        match m {
+            MavMessage::COMMAND_LONG(c) if c.target_system == 1 => match c.command {
+                MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => match self.streams {
+                    StreamAnswer::Accept => {
+                        self.streaming = true;
+                        vec![ack(c.command, MavResult::MAV_RESULT_ACCEPTED)]
+                    }
+                    StreamAnswer::Refuse => vec![ack(c.command, MavResult::MAV_RESULT_DENIED)],
+                    StreamAnswer::Ignore => vec![],
+                },
+                MavCmd::MAV_CMD_NAV_LAND => {
+                    self.land_commands += 1;
+                    self.land_answer.map(|r| vec![ack(c.command, r)]).unwrap_or_default()
+                }
+                MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
+                    self.gimbal_commands.push((now, c.clone()));
+                    vec![ack(c.command, MavResult::MAV_RESULT_ACCEPTED)]
+                }
+                _ => vec![],
+            },
+            MavMessage::TIMESYNC(t) if t.tc1 == 0 => vec![MavMessage::TIMESYNC(TIMESYNC_DATA {
+                tc1: self.boot_ms(now) as i64 * 1_000_000,
+                ts1: t.ts1,
+                target_system: 1,
+                target_component: 191,
+            })],
+            _ => vec![],
+        }
+    }
+}
+
+/// The simulated world. Every output is logged with its time.
+pub struct Sim {
+    pub core: Core,
+    pub now: Mono,
+    pub ap: FakeAutopilot,
+    pub latency: Duration,
+    /// Drops the n-th message from the core to the ground station when it returns true.
+    pub gcs_loss: fn(u64) -> bool,
+    gcs_sent: u64,
+    inbound: BTreeMap<(Mono, u64), Frame>,
+    seq: u64,
+    pub sent: Vec<(Mono, MavMessage)>,
+    pub to_gcs: Vec<(Mono, MavMessage)>,
+    pub actions: Vec<(Mono, Action)>,
+    /// How the shell answers start requests.
+    pub start_result: Result<(), String>,
+    pub steps: u64,
+}
+
+impl Sim {
+    pub fn new(settings: Settings) -> Sim {
+        Sim {
+            core: Core::new(settings, BTreeMap::new(), false, Some(Duration::from_secs(10))),
+            now: Mono::ZERO,
+            ap: FakeAutopilot { alive: false, ..FakeAutopilot::new(Mono::ZERO) },
+            latency: Duration::from_millis(2),
+            gcs_loss: |_| false,
+            gcs_sent: 0,
+            inbound: BTreeMap::new(),
+            seq: 0,
+            sent: Vec::new(),
+            to_gcs: Vec::new(),
+            actions: Vec::new(),
+            start_result: Ok(()),
+            steps: 0,
+        }
+    }
+
+    /// Queues a frame to arrive at the core after the link latency.
+    pub fn deliver(&mut self, f: Frame) {
+        self.seq += 1;
+        self.inbound.insert((self.now + self.latency, self.seq), f);
+    }
+
+    pub fn from_gcs(&mut self, m: MavMessage) {
+        self.deliver(frame(255, 190, m));
+    }
+
+    pub fn input(&mut self, i: Input) {
+        self.core.handle(i);
+        self.flush();
+    }
+
+    fn flush(&mut self) {
+        while let Some(a) = self.core.poll_action() {
+            self.actions.push((self.now, a.clone()));
+            let done = |token| Input::Done { now: self.now, token, result: Ok(()) };
+            match a {
+                Action::Worker(WorkerRequest::Start { token, .. }) => {
+                    let result = self.start_result.clone();
+                    self.core.handle(Input::Done { now: self.now, token, result });
+                }
+                Action::Snapshot { token } | Action::SaveParams { token, .. } => {
+                    self.core.handle(done(token))
+                }
+                Action::Report => {
+                    self.core.handle(Input::Stats { now: self.now, stats: ShellStats::default() });
+                }
+                _ => {}
+            }
+        }
+        while let Some(o) = self.core.poll_transmit(self.now) {
+            let m = o.message;
+            self.sent.push((self.now, m.clone()));
+            for r in self.ap.receive(self.now, &m) {
+                self.deliver(frame(1, 1, r));
+            }
+            self.gcs_sent += 1;
+            if !(self.gcs_loss)(self.gcs_sent) {
+                self.to_gcs.push((self.now + self.latency, m));
+            }
+        }
+    }
+
+    /// One step: deliver what has arrived, expire timers, drain outputs, let the
+    /// autopilot speak, then jump to the next event.
+    /// One step that does not jump past `horizon`.
+    fn step_until(&mut self, horizon: Mono) {
+        self.steps += 1;
+        while let Some(entry) = self.inbound.first_entry() {
+            if entry.key().0 > self.now {
+                break;
+            }
+            let ((rx, _), f) = entry.remove_entry();
+            self.core.handle(Input::Mav { rx, frame: f });
+        }
+        if self.core.poll_timeout().is_some_and(|t| t <= self.now) {
+            self.core.handle_timeout(self.now);
+        }
+        self.flush();
+        for m in self.ap.poll(self.now) {
+            self.deliver(frame(1, 1, m));
+        }
+        let next = time::earliest([
+            self.core.poll_timeout(),
+            self.inbound.keys().next().map(|k| k.0),
+            self.ap.next_event(),
+        ]);
+        if let Some(n) = next {
+            // A deadline at or before now has just been handled: move on by at least 1 µs.
+            self.now = n.max(Mono(self.now.0 + 1)).min(horizon.max(self.now));
+        }
+    }
+
+    pub fn run_until(&mut self, t: Mono) {
+        let limit = self.steps + 1_000_000;
+        while self.now < t {
+            self.step_until(t);
+            assert!(self.steps < limit, "no progress");
+        }
+    }
+
+    pub fn run_for(&mut self, d: Duration) {
+        let t = self.now + d;
+        self.run_until(t);
+    }
+
+    /// Messages the core sent within [from, to).
+    pub fn sent_between(&self, from: Mono, to: Mono) -> impl Iterator<Item = &MavMessage> {
+        self.sent.iter().filter(move |(t, _)| *t >= from && *t < to).map(|(_, m)| m)
+    }
+
+    pub fn statustexts(&self) -> Vec<String> {
+        self.sent
+            .iter()
+            .filter_map(|(_, m)| match m {
+                MavMessage::STATUSTEXT(s) => {
+                    Some(String::from_utf8_lossy(&s.text[..]).trim_end_matches('\0').to_string())
+                }
+                _ => None,
+            })
+            .collect()
+    }
+}
+
+pub fn is_command(m: &MavMessage, cmd: MavCmd) -> bool {
+    matches!(m, MavMessage::COMMAND_LONG(c) if c.command == cmd)
+}

@@ -1,0 +1,125 @@
+//! The autopilot's telemetry, taken in for time alignment: attitude and position
+//! (paired), the gimbal's attitude, home and the global position; the autopilot's boot
+//! clock, whose running backwards means it rebooted.
+
+use mavlink::dialects::common::*;
+
+use super::time::Mono;
+use crate::align::{AlignParams, Aligner, FixedMount, GimbalOffsets, GimbalSample, VehicleSample};
+use crate::geometry::{Geodetic, LocalFrame, Vec3};
+use crate::settings::Settings;
+use mavloc_geometry::GimbalAngles;
+
+pub fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
+    let g = &s.gimbal;
+    (
+        AlignParams { use_gimbal: g.use_telemetry, ..AlignParams::default() },
+        FixedMount {
+            chain: g.chain,
+            angles: GimbalAngles::from_degrees(g.mount_yaw_deg, g.mount_pitch_deg, g.mount_roll_deg),
+        },
+        GimbalOffsets {
+            chain: g.chain,
+            yaw: g.yaw_offset_deg.to_radians(),
+            pitch: g.pitch_offset_deg.to_radians(),
+            roll: g.roll_offset_deg.to_radians(),
+        },
+    )
+}
+
+pub struct Telemetry {
+    pub aligner: Aligner,
+    latest_attitude: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
+    pub home: Option<HOME_POSITION_DATA>,
+    pub global: Option<GLOBAL_POSITION_INT_DATA>,
+}
+
+/// The autopilot rebooted (its boot clock ran backwards).
+#[derive(Debug, PartialEq, Eq)]
+pub struct Rebooted;
+
+impl Telemetry {
+    pub fn new(s: &Settings) -> Telemetry {
+        let (ap, mount, offsets) = align_params(s);
+        Telemetry {
+            aligner: Aligner::new(ap, mount, offsets),
+            latest_attitude: None,
+            home: None,
+            global: None,
+        }
+    }
+
+    pub fn reconfigure(&mut self, s: &Settings) {
+        let (ap, mount, offsets) = align_params(s);
+        self.aligner.set_params(ap, mount, offsets);
+    }
+
+    /// The WGS84 origin of the autopilot's local frame: HOME_POSITION gives both its
+    /// geodetic and its local position, so origin = home moved back by its local offset.
+    pub fn origin(&self) -> Option<Geodetic> {
+        let h = self.home.as_ref()?;
+        let home =
+            Geodetic::new(h.latitude as f64 * 1e-7, h.longitude as f64 * 1e-7, h.altitude as f64 * 1e-3);
+        home.validate().ok()?;
+        Some(LocalFrame::new(home).to_geodetic(&-Vec3::new(h.x as f64, h.y as f64, h.z as f64)))
+    }
+
+    fn stamp(&mut self, stamp: f64, rx: Mono) -> Option<Rebooted> {
+        let now = rx.secs();
+        if self.aligner.clock.observe_stamp(stamp, now) {
+            self.aligner.reset();
+            // reset() cleared the clock; keep this stamp.
+            self.aligner.clock.observe_stamp(stamp, now);
+            return Some(Rebooted);
+        }
+        None
+    }
+
+    /// A message from the autopilot's system; `component` says whether it came from the
+    /// flight controller itself (component 1).
+    pub fn on_message(&mut self, rx: Mono, m: &MavMessage, flight_controller: bool) -> Option<Rebooted> {
+        match m {
+            MavMessage::ATTITUDE(a) if flight_controller => {
+                let stamp = a.time_boot_ms as f64 * 1e-3;
+                let r = self.stamp(stamp, rx);
+                let q =
+                    nalgebra::UnitQuaternion::from_euler_angles(a.roll as f64, a.pitch as f64, a.yaw as f64);
+                self.latest_attitude = Some((stamp, q));
+                r
+            }
+            MavMessage::LOCAL_POSITION_NED(p) if flight_controller => {
+                let stamp = p.time_boot_ms as f64 * 1e-3;
+                let r = self.stamp(stamp, rx);
+                // Position and attitude come at the same rate from the same estimator;
+                // pair the position with the latest attitude.
+                if let Some((_, q)) = self.latest_attitude {
+                    self.aligner.push_vehicle(
+                        stamp,
+                        VehicleSample {
+                            position: nalgebra::Vector3::new(p.x as f64, p.y as f64, p.z as f64),
+                            velocity: nalgebra::Vector3::new(p.vx as f64, p.vy as f64, p.vz as f64),
+                            attitude: q,
+                        },
+                    );
+                }
+                r
+            }
+            MavMessage::GLOBAL_POSITION_INT(g) if flight_controller => {
+                let r = self.stamp(g.time_boot_ms as f64 * 1e-3, rx);
+                self.global = Some(g.clone());
+                r
+            }
+            MavMessage::HOME_POSITION(h) if flight_controller => {
+                self.home = Some(h.clone());
+                None
+            }
+            MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g) => {
+                if let Some(s) = GimbalSample::from_status(g.q, g.flags.bits()) {
+                    self.aligner.push_gimbal(g.time_boot_ms as f64 * 1e-3, s, rx.secs());
+                }
+                None
+            }
+            _ => None,
+        }
+    }
+}

@@ -1,0 +1,126 @@
+//! TIMESYNC with the autopilot: mavloc asks once a second (at most 8 requests
+//! remembered) to learn the offset between its clock and the autopilot's, and answers the
+//! autopilot's own requests so PX4 can map mavloc's timestamps onto its clock (without
+//! that, PX4 stamps vision estimates on arrival).
+
+use std::time::Duration;
+
+use mavlink::dialects::common::{MavMessage, TIMESYNC_DATA};
+
+use super::time::Mono;
+
+const PERIOD: Duration = Duration::from_secs(1);
+const IN_FLIGHT: usize = 8;
+
+/// A round trip: when the request left, when the answer arrived (both mavloc's clock,
+/// seconds), and the autopilot's clock in between (seconds).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sample {
+    pub sent: f64,
+    pub received: f64,
+    pub remote: f64,
+}
+
+#[derive(Debug, Default)]
+pub struct TimeSync {
+    active: bool,
+    next: Mono,
+    /// ts1 (ns) of our requests in flight, and when each left.
+    sent: Vec<(i64, Mono)>,
+}
+
+impl TimeSync {
+    pub fn start(&mut self, now: Mono) {
+        *self = TimeSync { active: true, next: now, sent: Vec::new() };
+    }
+
+    pub fn stop(&mut self) {
+        self.active = false;
+        self.sent.clear();
+    }
+
+    pub fn in_flight(&self) -> usize {
+        self.sent.len()
+    }
+
+    pub fn deadline(&self) -> Option<Mono> {
+        self.active.then_some(self.next)
+    }
+
+    pub fn poll_transmit(&mut self, now: Mono, target: u8) -> Option<MavMessage> {
+        if !self.active || now < self.next {
+            return None;
+        }
+        self.next = now + PERIOD;
+        let ts1 = now.0 as i64 * 1000;
+        if self.sent.len() >= IN_FLIGHT {
+            self.sent.remove(0);
+        }
+        self.sent.push((ts1, now));
+        Some(MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1, target_system: target, target_component: 1 }))
+    }
+
+    /// A TIMESYNC from the autopilot received at `rx`: either its request (answered with
+    /// our time) or its answer to one of ours (a clock sample).
+    pub fn on_timesync(
+        &mut self,
+        rx: Mono,
+        t: &TIMESYNC_DATA,
+        from: (u8, u8),
+    ) -> (Option<MavMessage>, Option<Sample>) {
+        if t.tc1 == 0 {
+            let reply = MavMessage::TIMESYNC(TIMESYNC_DATA {
+                tc1: rx.0 as i64 * 1000,
+                ts1: t.ts1,
+                target_system: from.0,
+                target_component: from.1,
+            });
+            return (Some(reply), None);
+        }
+        match self.sent.iter().position(|&(ts1, _)| ts1 == t.ts1) {
+            Some(i) => {
+                let (_, sent) = self.sent.remove(i);
+                (None, Some(Sample { sent: sent.secs(), received: rx.secs(), remote: t.tc1 as f64 * 1e-9 }))
+            }
+            None => (None, None),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn once_a_second_and_the_answer_gives_a_sample_taken_at_arrival() {
+        let mut t = TimeSync::default();
+        assert!(t.poll_transmit(Mono::ZERO, 1).is_none());
+        t.start(Mono::from_millis(100));
+        let Some(MavMessage::TIMESYNC(req)) = t.poll_transmit(Mono::from_millis(100), 1) else { panic!() };
+        assert!(t.poll_transmit(Mono::from_millis(600), 1).is_none());
+        assert_eq!(t.deadline(), Some(Mono::from_millis(1100)));
+        let answer = TIMESYNC_DATA { tc1: 5_000_000_000, ts1: req.ts1, ..Default::default() };
+        let (reply, sample) = t.on_timesync(Mono::from_millis(140), &answer, (1, 1));
+        assert!(reply.is_none());
+        assert_eq!(sample, Some(Sample { sent: 0.1, received: 0.14, remote: 5.0 }));
+        assert_eq!(t.in_flight(), 0);
+        // The autopilot's own request is answered with the arrival time.
+        let (reply, _) = t.on_timesync(
+            Mono::from_millis(2000),
+            &TIMESYNC_DATA { tc1: 0, ts1: 42, ..Default::default() },
+            (1, 1),
+        );
+        let Some(MavMessage::TIMESYNC(r)) = reply else { panic!() };
+        assert_eq!((r.tc1, r.ts1), (2_000_000_000, 42));
+    }
+
+    #[test]
+    fn unanswered_requests_are_bounded() {
+        let mut t = TimeSync::default();
+        t.start(Mono::ZERO);
+        for s in 0..100 {
+            t.poll_transmit(Mono::from_millis(s * 1000), 1);
+        }
+        assert_eq!(t.in_flight(), IN_FLIGHT);
+    }
+}
