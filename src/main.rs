@@ -75,7 +75,18 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
                 .enable_all()
                 .thread_name("mavloc-io")
                 .build()?;
-            runtime.block_on(mavloc::daemon::run(loaded.settings))?;
+            runtime.block_on(async {
+                use tokio::signal::unix::{signal, SignalKind};
+                let mut term = signal(SignalKind::terminate())?;
+                let mut int = signal(SignalKind::interrupt())?;
+                let shutdown = async move {
+                    tokio::select! {
+                        _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
+                        _ = int.recv() => tracing::info!("SIGINT: shutting down"),
+                    }
+                };
+                mavloc::daemon::run(loaded.settings, shutdown).await
+            })?;
             // The link task may still hold a socket read; do not wait for it.
             runtime.shutdown_timeout(std::time::Duration::from_millis(200));
             Ok(ExitCode::SUCCESS)

@@ -49,7 +49,7 @@ impl SimCamera {
         Ok(SimCamera {
             renderer: Renderer::new(world),
             noise: s.camera.sim_noise.then(|| scenario.noise.clone()),
-            rng: rand::rngs::StdRng::seed_from_u64(scenario.seed ^ 0x00ca_3e7a),
+            rng: rand::rngs::StdRng::seed_from_u64(noise_seed(scenario.seed)),
             scenario,
             k,
             period: 1.0 / s.camera.fps,
@@ -62,19 +62,36 @@ impl SimCamera {
 
     /// The pose the picture is taken from: the received one minus the scenario's noise.
     fn perturb(&mut self, pose: &CameraPose) -> CameraPose {
-        let Some(n) = &self.noise else { return *pose };
-        let unit = Normal::new(0.0, 1.0).expect("unit normal");
-        let mut draw = |sd: f64| if sd > 0.0 { sd * unit.sample(&mut self.rng) } else { 0.0 };
-        let dp = Vec3::new(draw(n.position_sd_m[0]), draw(n.position_sd_m[1]), draw(n.position_sd_m[2]));
-        let dyaw = (n.gimbal_offset_deg[0] + draw(n.gimbal_yaw_sd_deg)).to_radians();
-        let dpitch = (n.gimbal_offset_deg[1] + draw(n.gimbal_pitch_sd_deg)).to_radians();
-        let droll = n.gimbal_offset_deg[2].to_radians();
-        let chain = self.scenario.camera.chain;
-        let a = chain.angles(&pose.attitude);
-        let attitude =
-            chain.rotation(GimbalAngles { yaw: a.yaw - dyaw, pitch: a.pitch - dpitch, roll: a.roll - droll });
-        CameraPose { position: pose.position - dp, attitude }
+        match &self.noise {
+            Some(n) => perturb(n, self.scenario.camera.chain, &mut self.rng, pose),
+            None => *pose,
+        }
     }
+}
+
+/// `pose` minus one draw of the scenario's noise (position, gimbal yaw and pitch) and
+/// its static gimbal offsets: what a camera sees when the telemetry says `pose`.
+pub fn perturb(
+    n: &NoiseSpec,
+    chain: crate::geometry::GimbalChain,
+    rng: &mut impl rand::Rng,
+    pose: &CameraPose,
+) -> CameraPose {
+    let unit = Normal::new(0.0, 1.0).expect("unit normal");
+    let mut draw = |sd: f64| if sd > 0.0 { sd * unit.sample(rng) } else { 0.0 };
+    let dp = Vec3::new(draw(n.position_sd_m[0]), draw(n.position_sd_m[1]), draw(n.position_sd_m[2]));
+    let dyaw = (n.gimbal_offset_deg[0] + draw(n.gimbal_yaw_sd_deg)).to_radians();
+    let dpitch = (n.gimbal_offset_deg[1] + draw(n.gimbal_pitch_sd_deg)).to_radians();
+    let droll = n.gimbal_offset_deg[2].to_radians();
+    let a = chain.angles(&pose.attitude);
+    let attitude =
+        chain.rotation(GimbalAngles { yaw: a.yaw - dyaw, pitch: a.pitch - dpitch, roll: a.roll - droll });
+    CameraPose { position: pose.position - dp, attitude }
+}
+
+/// The seed of the sim camera's noise for a scenario (the live test replays it).
+pub fn noise_seed(scenario_seed: u64) -> u64 {
+    scenario_seed ^ 0x00ca_3e7a
 }
 
 impl FrameSource for SimCamera {

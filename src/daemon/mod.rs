@@ -69,6 +69,31 @@ struct Live {
 }
 
 impl Live {
+    fn new(
+        results: PathBuf,
+        ctx: SourceContext,
+        camera_rx: tokio::sync::mpsc::Receiver<CameraEvent>,
+        camera_thread: Option<std::thread::JoinHandle<()>>,
+    ) -> Live {
+        // Bounded: the worker sends without blocking and at most one frame is in flight.
+        let (worker_tx, worker_rx) = tokio::sync::mpsc::channel(1024);
+        Live {
+            results,
+            ctx,
+            camera_rx,
+            camera_thread,
+            pending: VecDeque::new(),
+            worker: None,
+            worker_tx,
+            worker_rx,
+            dropped_before: 0,
+            last_align_error: None,
+            fed_pose_t: f64::NEG_INFINITY,
+            next_drop_log: Mono::ZERO + Duration::from_secs(10),
+            dropped_logged: 0,
+        }
+    }
+
     fn give_credit(&self) {
         if let Some(c) = &self.ctx.credits {
             c.give();
@@ -322,8 +347,12 @@ impl Shell {
     }
 }
 
-/// Runs the daemon until SIGTERM/SIGINT. Returns after a clean shutdown.
-pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
+/// Runs the daemon until `shutdown` completes (SIGTERM or SIGINT in `mavloc run`).
+/// Returns after a clean shutdown.
+pub async fn run(
+    mut settings: Settings,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> anyhow::Result<()> {
     let started = tokio::time::Instant::now();
 
     // 1. State directory.
@@ -392,87 +421,14 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
     let (camera_tx, camera_rx) = tokio::sync::mpsc::channel(4);
     let camera_thread = (settings.camera.source != CameraSource::None)
         .then(|| camera::spawn(settings.clone(), ctx.clone(), camera_tx));
-    let (worker_tx, worker_rx) = tokio::sync::mpsc::channel(1024);
-    let live = Live {
-        results: dir.join("results"),
-        ctx,
-        camera_rx,
-        camera_thread,
-        pending: VecDeque::new(),
-        worker: None,
-        worker_tx,
-        worker_rx,
-        dropped_before: 0,
-        last_align_error: None,
-        fed_pose_t: f64::NEG_INFINITY,
-        next_drop_log: Mono::ZERO + Duration::from_secs(10),
-        dropped_logged: 0,
-    };
+    let live = Live::new(dir.join("results"), ctx, camera_rx, camera_thread);
 
     let mut watchdog_usec = 0u64;
     let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec)
         .then(|| Duration::from_micros(watchdog_usec / 3));
     let mut core = Core::new(settings, store.into_tuned(), signing, watchdog);
     let mut shell = Shell { started, dir, link, link_state: String::from("opening"), live, link_full: false };
-    let mut sigterm = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
-    let mut sigint = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())?;
-    let mut ready = false;
-    shell.flush(&mut core);
-
-    loop {
-        let wake = tokio::time::sleep_until(shell.wake_at(&core));
-        tokio::select! {
-            ev = shell.link.events.recv() => match ev {
-                Some(LinkEvent::Frame { rx, frame }) => {
-                    let rx = shell.mono(rx);
-                    core.handle(Input::Mav { rx, frame: *frame });
-                    let now = shell.now();
-                    feed_pose(&core, &mut shell.live, now);
-                    offer_pending(&core, &mut shell.live, now);
-                }
-                Some(LinkEvent::Up(what)) => {
-                    shell.link_state = format!("up: {what}");
-                    if !ready {
-                        ready = true;
-                        notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status(&shell.link_state)]);
-                    }
-                }
-                Some(LinkEvent::Down(why)) => shell.link_state = format!("down: {why}"),
-                None => anyhow::bail!("the link task ended unexpectedly"),
-            },
-            ev = shell.live.camera_rx.recv(), if shell.live.camera_thread.is_some() => {
-                let now = shell.now();
-                let event = match ev {
-                    Some(CameraEvent::Frame(c)) => {
-                        shell.live.pending.push_back(*c);
-                        offer_pending(&core, &mut shell.live, now);
-                        None
-                    }
-                    Some(CameraEvent::Up(what)) => Some(CoreCamera::Up(what)),
-                    Some(CameraEvent::Down { why, fatal }) => Some(CoreCamera::Down { why, fatal }),
-                    Some(CameraEvent::Ended(what)) => Some(CoreCamera::Ended(what)),
-                    None => {
-                        shell.live.camera_thread = None;
-                        None
-                    }
-                };
-                if let Some(event) = event {
-                    core.handle(Input::Camera { now, event });
-                }
-            },
-            ev = shell.live.worker_rx.recv() => if let Some(ev) = ev {
-                shell.on_worker(&mut core, ev);
-            },
-            _ = wake => {
-                // Frames waiting for late telemetry give up on time, not only on input.
-                let now = shell.now();
-                offer_pending(&core, &mut shell.live, now);
-            },
-            _ = sigterm.recv() => { tracing::info!("SIGTERM: shutting down"); break; }
-            _ = sigint.recv() => { tracing::info!("SIGINT: shutting down"); break; }
-        }
-        shell.flush(&mut core);
-    }
+    serve(&mut core, &mut shell, shutdown).await?;
 
     // Shutdown: stop frames, flush results, tell the link (which saves the signing
     // timestamp), all within systemd's patience and our 2 s promise.
@@ -490,6 +446,74 @@ pub async fn run(mut settings: Settings) -> anyhow::Result<()> {
         tracing::warn!("link task did not stop within 1.5 s; leaving it");
     }
     tracing::info!("stopped");
+    Ok(())
+}
+
+/// The main loop: each input goes to the core, then one flush; the loop sleeps until
+/// the core's next deadline. Returns when `shutdown` completes.
+async fn serve(
+    core: &mut Core,
+    shell: &mut Shell,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> anyhow::Result<()> {
+    let mut ready = false;
+    shell.flush(core);
+    tokio::pin!(shutdown);
+
+    loop {
+        let wake = tokio::time::sleep_until(shell.wake_at(core));
+        tokio::select! {
+            ev = shell.link.events.recv() => match ev {
+                Some(LinkEvent::Frame { rx, frame }) => {
+                    let rx = shell.mono(rx);
+                    core.handle(Input::Mav { rx, frame: *frame });
+                    let now = shell.now();
+                    feed_pose(core, &mut shell.live, now);
+                    offer_pending(core, &mut shell.live, now);
+                }
+                Some(LinkEvent::Up(what)) => {
+                    shell.link_state = format!("up: {what}");
+                    if !ready {
+                        ready = true;
+                        notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status(&shell.link_state)]);
+                    }
+                }
+                Some(LinkEvent::Down(why)) => shell.link_state = format!("down: {why}"),
+                None => anyhow::bail!("the link task ended unexpectedly"),
+            },
+            ev = shell.live.camera_rx.recv(), if shell.live.camera_thread.is_some() => {
+                let now = shell.now();
+                let event = match ev {
+                    Some(CameraEvent::Frame(c)) => {
+                        shell.live.pending.push_back(*c);
+                        offer_pending(core, &mut shell.live, now);
+                        None
+                    }
+                    Some(CameraEvent::Up(what)) => Some(CoreCamera::Up(what)),
+                    Some(CameraEvent::Down { why, fatal }) => Some(CoreCamera::Down { why, fatal }),
+                    Some(CameraEvent::Ended(what)) => Some(CoreCamera::Ended(what)),
+                    None => {
+                        shell.live.camera_thread = None;
+                        None
+                    }
+                };
+                if let Some(event) = event {
+                    core.handle(Input::Camera { now, event });
+                }
+            },
+            ev = shell.live.worker_rx.recv() => if let Some(ev) = ev {
+                shell.on_worker(core, ev);
+            },
+            _ = wake => {
+                // Frames waiting for late telemetry give up on time, not only on input.
+                let now = shell.now();
+                offer_pending(core, &mut shell.live, now);
+            },
+            _ = &mut shutdown => break,
+        }
+        shell.flush(core);
+    }
+
     Ok(())
 }
 
@@ -630,4 +654,131 @@ fn write_status(
     let json = serde_json::to_string_pretty(&status).expect("status serialises");
     crate::output::write_atomic(&dir.join("status.json"), json.as_bytes())
         .inspect_err(|e| tracing::warn!("cannot write {}/status.json: {e}", dir.display()))
+}
+
+#[cfg(test)]
+mod shell_tests {
+    //! The shell on tokio's paused clock, over in-memory channels instead of sockets:
+    //! time-driven behaviour (heartbeats, pacing) checked in virtual seconds.
+    use super::*;
+    use crate::link::codec::{Auth, Frame};
+    use crate::link::transport::{LinkHandle, LinkStats, Outgoing};
+    use mavlink::dialects::common::*;
+    use mavlink::{MavHeader, MavlinkVersion};
+    use tokio::sync::mpsc;
+
+    struct Harness {
+        events: mpsc::Sender<LinkEvent>,
+        outgoing: mpsc::Receiver<Outgoing>,
+        stop: Option<tokio::sync::oneshot::Sender<()>>,
+        task: tokio::task::JoinHandle<anyhow::Result<()>>,
+        _dir: tempfile::TempDir,
+    }
+
+    fn start() -> Harness {
+        let dir = tempfile::tempdir().unwrap();
+        let (out_tx, out_rx) = mpsc::channel(256);
+        let (ev_tx, ev_rx) = mpsc::channel(1024);
+        let link = LinkHandle {
+            outgoing: out_tx,
+            events: ev_rx,
+            stats: Arc::new(LinkStats::default()),
+            task: tokio::spawn(async {}),
+        };
+        let (_camera_tx, camera_rx) = mpsc::channel(1);
+        let ctx = SourceContext {
+            started: std::time::Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: None,
+        };
+        let mut settings = Settings::default();
+        settings.daemon.pipeline = PipelineKind::None;
+        let live = Live::new(dir.path().join("results"), ctx, camera_rx, None);
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let path = dir.path().to_path_buf();
+        let task = tokio::spawn(async move {
+            let mut core = Core::new(settings, Default::default(), false, None);
+            let mut shell = Shell {
+                started: tokio::time::Instant::now(),
+                dir: path,
+                link,
+                link_state: "test".into(),
+                live,
+                link_full: false,
+            };
+            serve(&mut core, &mut shell, async {
+                let _ = stop_rx.await;
+            })
+            .await
+        });
+        Harness { events: ev_tx, outgoing: out_rx, stop: Some(stop_tx), task, _dir: dir }
+    }
+
+    impl Harness {
+        /// Everything sent within the next `d` of virtual time, with its virtual time.
+        async fn collect(&mut self, d: Duration) -> Vec<(tokio::time::Instant, MavMessage)> {
+            let end = tokio::time::Instant::now() + d;
+            let mut got = Vec::new();
+            while let Ok(Some(o)) = tokio::time::timeout_at(end, self.outgoing.recv()).await {
+                got.push((tokio::time::Instant::now(), o.message));
+            }
+            got
+        }
+
+        async fn send(&self, sys: u8, comp: u8, message: MavMessage) {
+            let frame = Frame {
+                version: MavlinkVersion::V2,
+                header: MavHeader { system_id: sys as u32, component_id: comp, sequence: 0 },
+                message,
+                auth: Auth::Unsigned,
+            };
+            let ev = LinkEvent::Frame { rx: tokio::time::Instant::now(), frame: Box::new(frame) };
+            self.events.send(ev).await.unwrap();
+        }
+
+        async fn stop(mut self) {
+            self.stop.take().unwrap().send(()).unwrap();
+            self.task.await.unwrap().unwrap();
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn heartbeats_keep_their_period_in_virtual_time() {
+        let mut h = start();
+        let real = std::time::Instant::now();
+        let got = h.collect(Duration::from_secs(30)).await;
+        let beats: Vec<_> =
+            got.iter().filter(|(_, m)| matches!(m, MavMessage::HEARTBEAT(_))).map(|(t, _)| *t).collect();
+        assert!((30..=31).contains(&beats.len()), "{} heartbeats in 30 s", beats.len());
+        for w in beats.windows(2) {
+            let gap = (w[1] - w[0]).as_secs_f64();
+            assert!((0.999..=1.001).contains(&gap), "gap {gap}");
+        }
+        assert!(real.elapsed() < Duration::from_secs(5), "30 virtual seconds took {:?}", real.elapsed());
+        h.stop().await;
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_parameter_list_is_paced_by_the_shell() {
+        let mut h = start();
+        h.collect(Duration::from_millis(100)).await;
+        h.send(
+            255,
+            190,
+            MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA {
+                target_system: 1,
+                target_component: 191,
+            }),
+        )
+        .await;
+        let got = h.collect(Duration::from_secs(2)).await;
+        let values: Vec<_> =
+            got.iter().filter(|(_, m)| matches!(m, MavMessage::PARAM_VALUE(_))).map(|(t, _)| *t).collect();
+        assert_eq!(values.len(), crate::link::params::PARAMS.len());
+        for w in values.windows(2) {
+            assert!(w[1] - w[0] >= core::params::PARAM_INTERVAL, "{:?}", w[1] - w[0]);
+        }
+        h.stop().await;
+    }
 }

@@ -439,3 +439,39 @@ proptest! {
         prop_assert_eq!(format!("{log:?}"), format!("{again:?}"));
     }
 }
+
+/// The core stays sans-I/O: no clock, runtime, file system, socket or thread in its
+/// code (comments may name them). Fails naming the file and line that breaks it.
+#[test]
+fn the_core_reads_no_clock_and_does_no_io() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/daemon/core");
+    let forbidden = [
+        "Instant::now",
+        "SystemTime",
+        "tokio",
+        "std::fs",
+        "std::net",
+        "std::thread",
+        "std::process",
+        "std::env",
+        "sleep(",
+    ];
+    let mut violations = Vec::new();
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let text = std::fs::read_to_string(&path).unwrap();
+        for (i, line) in text.lines().enumerate() {
+            let code = line.split("//").next().unwrap_or("");
+            // This test's own list of names is data, not a use.
+            if path.ends_with("tests.rs") && code.trim_start().starts_with('[') {
+                continue;
+            }
+            for f in forbidden {
+                if code.contains(f) {
+                    violations.push(format!("{}:{}: {f}", path.display(), i + 1));
+                }
+            }
+        }
+    }
+    assert!(violations.is_empty(), "the core must not do I/O or read clocks:\n{}", violations.join("\n"));
+}
