@@ -459,13 +459,13 @@ fn the_core_reads_no_clock_and_does_no_io() {
     let mut violations = Vec::new();
     for entry in std::fs::read_dir(&dir).unwrap() {
         let path = entry.unwrap().path();
+        // This file reads the sources (and names what it forbids); it is not the core.
+        if path.ends_with("tests.rs") {
+            continue;
+        }
         let text = std::fs::read_to_string(&path).unwrap();
         for (i, line) in text.lines().enumerate() {
             let code = line.split("//").next().unwrap_or("");
-            // This test's own list of names is data, not a use.
-            if path.ends_with("tests.rs") && code.trim_start().starts_with('[') {
-                continue;
-            }
             for f in forbidden {
                 if code.contains(f) {
                     violations.push(format!("{}:{}: {f}", path.display(), i + 1));
