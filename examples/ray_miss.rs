@@ -10,7 +10,7 @@
 use mavloc::area::offline::measured_pose;
 use mavloc::geometry::{Pixel, Vec3};
 use mavloc::settings::Settings;
-use mavloc_sim::dataset::Dataset;
+use mavloc_data::Dataset;
 use opencv::core::{self, DMatch, KeyPoint, Mat, Size, Vector};
 use opencv::features2d::{BFMatcher, SIFT};
 use opencv::prelude::*;

@@ -17,10 +17,11 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use crate::area::eval::{evaluate, AreaEvaluation};
-use crate::area::offline::parse_border_csv;
 use crate::indoor::eval::{measure, IndoorEval};
-use crate::indoor::offline::read_trajectory;
 use crate::output::{parse_landmarks_csv, plot};
+use mavloc_data::results::{parse_border_csv, read_trajectory};
+use mavloc_data::table::parse_lenient;
+use mavloc_data::truth::TruthRow;
 
 /// What to run.
 #[derive(Clone, Debug)]
@@ -344,20 +345,14 @@ fn indoor(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Result
     let daemon_ok = flight.finish(Duration::from_secs_f64(opts.indoor_s + 60.0))?;
 
     // The true track (vehicle time) and the estimates (stamped with the same clock).
-    let truth: Vec<(f64, f64, f64, String)> = std::fs::read_to_string(dir.join("truth.csv"))?
-        .lines()
-        .skip(1)
-        .filter_map(|l| {
-            let c: Vec<&str> = l.split(',').collect();
-            Some((c[0].parse().ok()?, c[1].parse().ok()?, c[2].parse().ok()?, c.get(7)?.to_string()))
-        })
-        .collect();
-    let landing_t = truth.iter().find(|r| r.3 != "Mission").map(|r| r.0).unwrap_or(f64::INFINITY);
+    // Lenient, as before: a line the vehicle was stopped in the middle of is skipped.
+    let truth: Vec<TruthRow> = parse_lenient(&std::fs::read_to_string(dir.join("truth.csv"))?);
+    let landing_t = truth.iter().find(|r| r.phase != "Mission").map(|r| r.t).unwrap_or(f64::INFINITY);
     let touchdown_m = truth
         .iter()
         .rev()
-        .find(|r| r.3 == "Landed")
-        .map(|r| ((r.1 - zone.x).powi(2) + (r.2 - zone.y).powi(2)).sqrt());
+        .find(|r| r.phase == "Landed")
+        .map(|r| ((r.north - zone.x).powi(2) + (r.east - zone.y).powi(2)).sqrt());
     let results = dir.join("state/results/indoor");
     let rows = read_trajectory(&results.join("trajectory.csv")).map_err(anyhow::Error::msg)?;
     let flying: Vec<_> = rows.into_iter().filter(|r| r.t < landing_t).collect();

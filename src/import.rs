@@ -39,8 +39,7 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use crate::geometry::{Geodetic, LocalFrame};
-use mavloc_sim::dataset::{CameraFile, PoseRecord, TelemetryRecord};
-use mavloc_sim::mission::GimbalFrame;
+use mavloc_data::dataset::{self, CameraFile, GimbalFrame, PoseRecord, TelemetryRecord};
 
 /// `config/photo-survey.toml`, written into every imported dataset as its own settings.
 pub const PHOTO_SURVEY_SETTINGS: &str = include_str!("../config/photo-survey.toml");
@@ -380,12 +379,10 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
         origin,
     };
     camera.intrinsics().validate().map_err(|e| format!("intrinsics: {e}"))?;
-    std::fs::create_dir_all(out.join("frames")).map_err(|e| format!("{}: {e}", out.display()))?;
-    std::fs::create_dir_all(out.join("masks")).map_err(|e| format!("{}: {e}", out.display()))?;
-    let _ = std::fs::remove_file(out.join("telemetry.jsonl"));
+    dataset::prepare(out)?;
     let frame = LocalFrame::new(origin);
     let t0 = photos[0].0;
-    let mut lines = String::new();
+    let mut records = Vec::with_capacity(photos.len());
     for (i, (s, path, t)) in photos.iter().enumerate() {
         let dest = out.join("frames").join(format!("{i:06}.jpg"));
         match &undistort {
@@ -402,24 +399,24 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
             gimbal_deg: t.gimbal_deg,
             velocity: [0.0; 3],
         };
-        let record =
-            TelemetryRecord { frame: i as u64, t: s - t0, truth: pose, measured: pose, appearance: None };
-        lines.push_str(&serde_json::to_string(&record).map_err(|e| e.to_string())?);
-        lines.push('\n');
+        records.push(TelemetryRecord {
+            frame: i as u64,
+            t: s - t0,
+            truth: pose,
+            measured: pose,
+            appearance: None,
+        });
         report.imported.push(t.name.clone());
     }
-    let write = |name: &str, bytes: &[u8]| {
-        crate::output::write_atomic(&out.join(name), bytes)
-            .map_err(|e| format!("{}: {e}", out.join(name).display()))
-    };
-    write("camera.toml", toml::to_string(&camera).map_err(|e| e.to_string())?.as_bytes())?;
+    let write = |name: &str, bytes: &[u8]| dataset::write_file(out, name, bytes);
+    dataset::write_camera(out, &camera)?;
     // The settings photos need (segment water, the photo-survey tuning), so `mavloc area
     // --dataset D` runs right without a --config; edit the file to change them.
-    write(mavloc_sim::dataset::SETTINGS_FILE, PHOTO_SURVEY_SETTINGS.as_bytes())?;
+    write(dataset::SETTINGS_FILE, PHOTO_SURVEY_SETTINGS.as_bytes())?;
     let tags: Vec<&PhotoTags> = photos.iter().map(|(_, _, t)| t).collect();
     write("photos.json", serde_json::to_string_pretty(&tags).map_err(|e| e.to_string())?.as_bytes())?;
     // Last: its presence marks a complete dataset.
-    write("telemetry.jsonl", lines.as_bytes())?;
+    dataset::write_telemetry(out, &records)?;
     report.fx_px = fx;
     report.intrinsics_from = from;
     report.origin = Some(origin);

@@ -8,11 +8,14 @@
 //!   local NED, body, gimbal, camera), gimbal kinematic chains, pinhole camera, pixel <->
 //!   bearing, the ground-plane projection (the area seed's previous method), geodesy.
 //!   It is its own crate so the simulator (`sim/`) shares it without a dependency cycle.
+//! * [`data`] (crate `mavloc-data`, sources in `data/`): the files: dataset format, result
+//!   files, CSV tables and the one atomic writer. The simulator writes datasets through it,
+//!   the pipelines and the importer read them through it.
 //! * [`area`]: the area pipeline (seed 1): band, SIFT, landmark library with one UKF each,
 //!   the ground-plane baseline, border-line fit, evaluation, dataset runner.
 //! * [`indoor`]: the indoor pipeline (seed 2): textons, k-NN, particle filter, landing
 //!   trigger, training and offline runs.
-//! * [`output`]: result files (CSV, PLY, GeoJSON, KML), written atomically.
+//! * [`output`]: result files (formats in [`data`]) and plots.
 //! * [`filter`]: a generic unscented Kalman filter (const-generic dimensions, models as
 //!   traits, numerically guarded), the static-landmark bearing model, and the 2D particle
 //!   filter of the indoor pipeline.
@@ -23,12 +26,18 @@
 //! * [`daemon`]: `mavloc run`, wiring link -> alignment -> pipeline worker -> outputs.
 //! * [`import`]: geotagged drone photos (EXIF, DJI XMP) to a dataset.
 //! * [`demo`]: the end-to-end demonstration `make demo` runs (vehicle + daemon, live).
+//! * [`simulated`]: pipelines run against the simulator (landing approaches, map
+//!   evaluation from rendered views).
 //! * [`logging`]: tracing set-up (plain lines for journald, colour on a terminal).
 //! * [`cli`]: command-line definitions; `main.rs` only dispatches.
 //!
 //! Data flows one way: sources (link, camera) -> time alignment -> pipeline -> outputs.
-//! Pipelines are plain synchronous libraries with no tokio or MAVLink inside.
+//! Pipelines are plain synchronous libraries with no tokio or MAVLink inside, and they do
+//! not depend on the simulator: only `demo`, `simulated`, the sim camera
+//! (`camera::sim`), the daemon's use of it and the `sim` commands do (`tests/layers.rs`
+//! checks this).
 
+pub use mavloc_data as data;
 pub use mavloc_geometry as geometry;
 
 pub mod align;
@@ -44,3 +53,4 @@ pub mod link;
 pub mod logging;
 pub mod output;
 pub mod settings;
+pub mod simulated;

@@ -130,7 +130,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Area(args) => {
             // A dataset may carry the settings it needs (an imported photo survey does).
-            let own = args.dataset.join(mavloc_sim::dataset::SETTINGS_FILE);
+            let own = args.dataset.join(mavloc::data::SETTINGS_FILE);
             let mut layers = Layers::from_process(config_file(cli.config), cli.overrides);
             layers.dataset = own.exists().then(|| own.clone());
             let loaded = settings::load(&layers)?;
@@ -203,7 +203,7 @@ fn sim_render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
     }
     let appearance =
         (args.brightness.is_some() || args.contrast.is_some() || args.blur_px.is_some()).then(|| {
-            mavloc_sim::views::Appearance {
+            mavloc::data::dataset::Appearance {
                 brightness: args.brightness.unwrap_or(0.0),
                 contrast: args.contrast.unwrap_or(1.0),
                 blur_px: args.blur_px.unwrap_or(1),
@@ -324,7 +324,7 @@ fn progress_bar(what: &str) -> indicatif::ProgressBar {
 /// `mavloc eval area`: the seed's table for a result folder.
 fn eval_area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
     use anyhow::Context;
-    let ds = mavloc_sim::Dataset::open(dataset).map_err(|e| anyhow::anyhow!(e))?;
+    let ds = mavloc::data::Dataset::open(dataset).map_err(|e| anyhow::anyhow!(e))?;
     if ds.ground_truth.is_empty() {
         anyhow::bail!("{} has no ground truth (ground_truth.csv)", dataset.display());
     }
@@ -333,7 +333,7 @@ fn eval_area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCo
     let landmarks = mavloc::output::parse_landmarks_csv(&text, &lpath.display().to_string())
         .map_err(|e| anyhow::anyhow!(e))?;
     let border = std::fs::read_to_string(result.join("border.csv"))
-        .map(|t| mavloc::area::offline::parse_border_csv(&t))
+        .map(|t| mavloc::data::results::parse_border_csv(&t))
         .unwrap_or_default();
     let fps = std::fs::read_to_string(result.join("summary.json"))
         .ok()
@@ -432,7 +432,7 @@ fn indoor(command: IndoorCommand, settings: &mavloc::settings::Settings) -> anyh
             Ok(ExitCode::SUCCESS)
         }
         IndoorCommand::Landings(a) => {
-            use mavloc::indoor::approach::{run, ApproachOptions};
+            use mavloc::simulated::approach::{run, ApproachOptions};
             let model = mavloc::indoor::model::Model::load(&a.model).map_err(|e| anyhow!(e))?;
             let opts =
                 ApproachOptions { trials: a.trials, seed: a.seed, max_s: a.max_s, ..Default::default() };
@@ -445,7 +445,7 @@ fn indoor(command: IndoorCommand, settings: &mavloc::settings::Settings) -> anyh
             bar.finish_and_clear();
             std::fs::create_dir_all(&a.out)?;
             let path = a.out.join("landings.csv");
-            mavloc::output::write_atomic(&path, mavloc::indoor::eval::landings_csv(&rows).as_bytes())?;
+            mavloc::output::write_atomic(&path, mavloc::data::results::landings_csv(&rows).as_bytes())?;
             let inside = rows.iter().filter(|r| r.fired && r.inside).count();
             let outside = rows.iter().filter(|r| r.fired && !r.inside).count();
             println!(
@@ -458,7 +458,7 @@ fn indoor(command: IndoorCommand, settings: &mavloc::settings::Settings) -> anyh
             Ok(ExitCode::SUCCESS)
         }
         IndoorCommand::MapEval(a) => {
-            let e = mavloc::indoor::mapeval::evaluate(
+            let e = mavloc::simulated::mapeval::evaluate(
                 &a.map,
                 a.metres_per_px,
                 a.views,

@@ -4,10 +4,12 @@
 //! 13 px) keep it quick; the full-size figures are in the README.
 
 use mavloc::area::eval::{evaluate, AreaEvaluation};
-use mavloc::area::offline::{parse_border_csv, run, RunOptions};
+use mavloc::area::offline::{run, RunOptions};
 use mavloc::output::parse_landmarks_csv;
 use mavloc::settings::{AreaMethod, Settings};
-use mavloc_sim::{render_dataset, Dataset, RenderOptions, Scenario};
+use mavloc_data::results::parse_border_csv;
+use mavloc_data::Dataset;
+use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 fn render(dir: &std::path::Path, name: &str, frames: usize) -> std::path::PathBuf {
     let out = dir.join(name);

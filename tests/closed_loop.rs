@@ -179,8 +179,7 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     let lag_median = lag_errors[lag_errors.len() / 2];
     assert!(lag_median < 1.0, "estimates far from the vehicle: median {lag_median} m");
     // Accuracy: each estimate against the pose its frame was rendered from.
-    let rows =
-        mavloc::indoor::offline::read_trajectory(&state.join("results/indoor/trajectory.csv")).unwrap();
+    let rows = mavloc_data::results::read_trajectory(&state.join("results/indoor/trajectory.csv")).unwrap();
     let mut errors: Vec<f64> = rows
         .iter()
         .skip(30)
@@ -200,10 +199,9 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     assert!(seen["land_commands"].as_u64().unwrap() >= 1, "{text}");
     assert!(seen["land_acks"].as_array().unwrap().iter().any(|r| r == 0), "{seen}");
     assert_eq!(seen["on_ground"], true);
-    let truth = std::fs::read_to_string(state.join("truth.csv")).unwrap();
-    let last: Vec<f64> =
-        truth.lines().last().unwrap().split(',').take(3).map(|c| c.parse().unwrap()).collect();
-    let miss = ((last[1] - zone.x).powi(2) + (last[2] - zone.y).powi(2)).sqrt();
+    let truth = mavloc_data::truth::read_truth(&state.join("truth.csv")).unwrap();
+    let last = truth.last().unwrap();
+    let miss = ((last.north - zone.x).powi(2) + (last.east - zone.y).powi(2)).sqrt();
     println!("landed {miss:.2} m from the zone centre");
     assert!(miss < radius, "landed {miss} m from the centre of a {radius} m zone");
     assert!(seen["statustext"].to_string().contains("landing zone reached"));

@@ -51,7 +51,7 @@ fn photos_without_the_needed_tags_are_named_and_skipped_and_order_is_capture_tim
     assert_eq!(skipped.len(), 2, "{skipped:?}");
     assert!(skipped[0].starts_with("b.jpg") && skipped[0].contains("GimbalYawDegree"), "{skipped:?}");
     assert!(skipped[1].starts_with("d.jpg") && skipped[1].contains("EXIF"), "{skipped:?}");
-    let ds = mavloc_sim::Dataset::open(&out).unwrap();
+    let ds = mavloc_data::Dataset::open(&out).unwrap();
     assert_eq!(ds.records.len(), 2);
     assert_eq!(ds.records[1].t, 14.0, "16:33:27 to 16:33:41");
     // Local NED around the first photo; its down is minus the height above take-off.
@@ -72,7 +72,7 @@ fn a_calibration_file_overrides_the_focal_length_estimate() {
     std::fs::write(&cal, "fx = 2340.0\nfy = 2341.0\ncx = 2001.0\ncy = 1120.0\n").unwrap();
     let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal)).unwrap();
     assert_eq!(r.fx_px, 2340.0);
-    let ds = mavloc_sim::Dataset::open(&dir.path().join("ds")).unwrap();
+    let ds = mavloc_data::Dataset::open(&dir.path().join("ds")).unwrap();
     assert_eq!((ds.camera.fy, ds.camera.cx, ds.camera.cy), (2341.0, 2001.0, 1120.0));
 }
 
@@ -95,7 +95,7 @@ fn a_calibration_with_distortion_undistorts_the_frames() {
     .unwrap();
     let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal)).unwrap();
     assert!(r.intrinsics_from.contains("undistorted"), "{}", r.intrinsics_from);
-    let ds = mavloc_sim::Dataset::open(&dir.path().join("ds")).unwrap();
+    let ds = mavloc_data::Dataset::open(&dir.path().join("ds")).unwrap();
     let grey = |p: &Path| opencv::imgcodecs::imread(p, opencv::imgcodecs::IMREAD_GRAYSCALE).unwrap();
     let imported = grey(&ds.frame_path(&ds.records[0]));
     let original = grey(&sample().join("DJI_0030.JPG"));

@@ -3,7 +3,8 @@
 //! rejected rather than labelled wrongly.
 
 use mavloc::indoor::labelling::OrthoMap;
-use mavloc_sim::{render_dataset, Dataset, RenderOptions, Scenario, World};
+use mavloc_data::Dataset;
+use mavloc_sim::{render_dataset, RenderOptions, Scenario, World};
 
 #[test]
 fn homography_labels_match_the_true_positions() {

@@ -6,9 +6,10 @@
 
 use mavloc::indoor::eval::evaluate;
 use mavloc::indoor::model::Model;
-use mavloc::indoor::offline::{read_trajectory, run, train, Labelling, RunOptions, TrainOptions};
+use mavloc::indoor::offline::{run, train, Labelling, RunOptions, TrainOptions};
 use mavloc::settings::{Indoor, MotionModel};
-use mavloc_sim::views::Appearance;
+use mavloc_data::dataset::Appearance;
+use mavloc_data::results::read_trajectory;
 use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 fn median(mut v: Vec<f64>) -> f64 {

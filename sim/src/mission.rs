@@ -9,32 +9,13 @@
 
 use std::f64::consts::{PI, TAU};
 
+use mavloc_data::dataset::GimbalFrame;
 use mavloc_geometry::{Bearing, GimbalAngles, LocalFrame, Vec3};
 use serde::{Deserialize, Serialize};
 
 use crate::scenario::WorldKind;
+use crate::state::State;
 use crate::world::World;
-
-/// Where the gimbal's angles are measured from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum GimbalFrame {
-    /// Yaw from north, pitch and roll from the horizon (stabilised gimbal).
-    Earth,
-    /// Angles relative to the vehicle body (camera fixed to the frame).
-    Body,
-}
-
-/// The true state at one instant.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct State {
-    pub t: f64,
-    pub position: Vec3,
-    pub velocity: Vec3,
-    /// Vehicle roll, pitch, yaw (radians).
-    pub attitude: [f64; 3],
-    pub gimbal: GimbalAngles,
-}
 
 /// A flight: waypoints and a way to sample the state at any time.
 #[derive(Clone, Debug)]

@@ -35,7 +35,7 @@ pub struct Scenario {
     pub noise: NoiseSpec,
     /// Ranges of random views (`mavloc sim render --views N`), indoor scenarios.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub views: Option<crate::views::ViewSpec>,
+    pub views: Option<ViewSpec>,
     /// Folder relative paths in the file are resolved against (not serialised).
     #[serde(skip)]
     pub base_dir: Option<PathBuf>,
@@ -130,6 +130,37 @@ impl NoiseSpec {
             gimbal_offset_deg: [0.0; 3],
             gimbal_lag_s: 0.0,
             drop_rate: 0.0,
+        }
+    }
+}
+
+/// Ranges of the random views (uniform within each range).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ViewSpec {
+    /// Largest |roll| and |pitch| of the vehicle, degrees.
+    pub max_tilt_deg: f64,
+    /// Height range above the floor, metres.
+    pub height_m: [f64; 2],
+    /// Half side of the square the view centres are drawn from, metres.
+    pub half_extent_m: f64,
+    /// Brightness offset range, grey levels.
+    pub brightness: [f64; 2],
+    /// Contrast factor range.
+    pub contrast: [f64; 2],
+    /// Largest box-blur kernel (odd sizes from 1 up to this).
+    pub max_blur_px: u32,
+}
+
+impl Default for ViewSpec {
+    fn default() -> Self {
+        ViewSpec {
+            max_tilt_deg: 8.0,
+            height_m: [0.8, 1.2],
+            half_extent_m: 3.6,
+            brightness: [-25.0, 25.0],
+            contrast: [0.8, 1.2],
+            max_blur_px: 5,
         }
     }
 }

@@ -29,7 +29,6 @@
 //!   report would carry the same noise and cancel it.
 //! - The true state is logged to a CSV (`truth_log`) for evaluation.
 
-use std::io::Write;
 use std::net::{SocketAddr, UdpSocket};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -39,8 +38,12 @@ use mavlink::{MavHeader, MavlinkVersion};
 use mavloc_geometry::{LocalFrame, Vec3};
 use nalgebra::UnitQuaternion;
 
-use crate::mission::{GimbalFrame, Mission, State};
+use mavloc_data::dataset::GimbalFrame;
+use mavloc_data::truth::{self, TruthRow};
+
+use crate::mission::Mission;
 use crate::scenario::Scenario;
+use crate::state::State;
 use crate::world::World;
 
 pub const GIMBAL_COMPONENT: u8 = 154;
@@ -483,11 +486,7 @@ pub fn run(scenario: &Scenario, opts: &VehicleOptions) -> Result<Option<Vec3>, S
     };
     socket.set_read_timeout(Some(Duration::from_millis(2))).map_err(|e| e.to_string())?;
     let mut truth = match &opts.truth_log {
-        Some(p) => {
-            let mut f = std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()))?;
-            writeln!(f, "t,north,east,down,roll,pitch,yaw,phase").map_err(|e| e.to_string())?;
-            Some(f)
-        }
+        Some(p) => Some(truth::create(p).map_err(|e| format!("{}: {e}", p.display()))?),
         None => None,
     };
     let started = Instant::now();
@@ -521,18 +520,16 @@ pub fn run(scenario: &Scenario, opts: &VehicleOptions) -> Result<Option<Vec3>, S
             if t >= next_truth {
                 next_truth = t + 0.1;
                 let s = v.state;
-                let _ = writeln!(
-                    f,
-                    "{t:.3},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{:?}",
-                    s.position.x,
-                    s.position.y,
-                    s.position.z,
-                    s.attitude[0],
-                    s.attitude[1],
-                    s.attitude[2],
-                    v.phase
-                )
-                .and_then(|_| f.flush());
+                let _ = f.push(&TruthRow {
+                    t,
+                    north: s.position.x,
+                    east: s.position.y,
+                    down: s.position.z,
+                    roll: s.attitude[0],
+                    pitch: s.attitude[1],
+                    yaw: s.attitude[2],
+                    phase: format!("{:?}", v.phase),
+                });
             }
         }
         for (component, m) in std::mem::take(&mut v.out) {

@@ -5,73 +5,23 @@
 
 use std::f64::consts::PI;
 
+use mavloc_data::dataset::Appearance;
 use mavloc_geometry::{GimbalAngles, Vec3};
 use rand::{Rng, SeedableRng};
-use serde::{Deserialize, Serialize};
 
-use crate::mission::State;
+use crate::scenario::ViewSpec;
+use crate::state::State;
 
-/// Ranges of the random views (uniform within each range).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ViewSpec {
-    /// Largest |roll| and |pitch| of the vehicle, degrees.
-    pub max_tilt_deg: f64,
-    /// Height range above the floor, metres.
-    pub height_m: [f64; 2],
-    /// Half side of the square the view centres are drawn from, metres.
-    pub half_extent_m: f64,
-    /// Brightness offset range, grey levels.
-    pub brightness: [f64; 2],
-    /// Contrast factor range.
-    pub contrast: [f64; 2],
-    /// Largest box-blur kernel (odd sizes from 1 up to this).
-    pub max_blur_px: u32,
-}
-
-impl Default for ViewSpec {
-    fn default() -> Self {
-        ViewSpec {
-            max_tilt_deg: 8.0,
-            height_m: [0.8, 1.2],
-            half_extent_m: 3.6,
-            brightness: [-25.0, 25.0],
-            contrast: [0.8, 1.2],
-            max_blur_px: 5,
-        }
+/// Applies a photometric change to an RGB frame in place: blur, then contrast about
+/// mid-grey, then brightness.
+pub fn apply(a: &Appearance, width: usize, height: usize, rgb: &mut [u8]) {
+    if a.blur_px > 1 {
+        box_blur(width, height, rgb, a.blur_px as usize);
     }
-}
-
-/// Photometric change applied to a rendered RGB frame.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Appearance {
-    pub brightness: f64,
-    pub contrast: f64,
-    /// Box-blur kernel size in pixels (1 = none).
-    pub blur_px: u32,
-}
-
-impl Default for Appearance {
-    fn default() -> Self {
-        Appearance { brightness: 0.0, contrast: 1.0, blur_px: 1 }
-    }
-}
-
-impl Appearance {
-    pub fn is_identity(&self) -> bool {
-        *self == Appearance::default()
-    }
-
-    /// Applies blur, then contrast about mid-grey, then brightness, in place.
-    pub fn apply(&self, width: usize, height: usize, rgb: &mut [u8]) {
-        if self.blur_px > 1 {
-            box_blur(width, height, rgb, self.blur_px as usize);
-        }
-        if self.contrast != 1.0 || self.brightness != 0.0 {
-            for v in rgb.iter_mut() {
-                let x = (*v as f64 - 128.0) * self.contrast + 128.0 + self.brightness;
-                *v = x.round().clamp(0.0, 255.0) as u8;
-            }
+    if a.contrast != 1.0 || a.brightness != 0.0 {
+        for v in rgb.iter_mut() {
+            let x = (*v as f64 - 128.0) * a.contrast + 128.0 + a.brightness;
+            *v = x.round().clamp(0.0, 255.0) as u8;
         }
     }
 }
@@ -141,7 +91,7 @@ mod tests {
     #[test]
     fn appearance_changes_pixels_as_specified() {
         let mut px = vec![100u8, 150, 200];
-        Appearance { brightness: 10.0, contrast: 2.0, blur_px: 1 }.apply(1, 1, &mut px);
+        apply(&Appearance { brightness: 10.0, contrast: 2.0, blur_px: 1 }, 1, 1, &mut px);
         assert_eq!(px, vec![82, 182, 255]);
     }
 

@@ -1,7 +1,8 @@
 //! `render_dataset` writes every file of the format for each scenario, and they parse back.
 
+use mavloc_data::Dataset;
 use mavloc_sim::scenario::NoiseSpec;
-use mavloc_sim::{render_dataset, Dataset, RenderOptions, Scenario};
+use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 fn render(name: &str, frames: usize, noise: Option<NoiseSpec>) -> (tempfile::TempDir, Dataset) {
     let dir = tempfile::tempdir().unwrap();

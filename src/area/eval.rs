@@ -6,7 +6,7 @@
 use serde::Serialize;
 
 use crate::geometry::Vec3;
-use crate::output::LandmarkRecord;
+use mavloc_data::results::LandmarkRecord;
 
 /// The seed's table, and more.
 #[derive(Clone, Debug, Serialize)]

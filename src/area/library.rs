@@ -10,7 +10,7 @@ use opencv::prelude::*;
 use super::features::Features;
 use crate::filter::{BearingModel, MeasurementModel, Ukf, UkfParams};
 use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
-use crate::output::LandmarkRecord;
+use mavloc_data::results::LandmarkRecord;
 
 const DESCRIPTOR_LEN: usize = 128;
 

@@ -27,10 +27,10 @@ use opencv::core::Mat;
 use opencv::prelude::*;
 
 use crate::geometry::{CameraPose, Intrinsics, Pixel};
-use crate::output::LandmarkRecord;
 use crate::settings::Area as AreaSettings;
 use features::FeatureExtractor;
 use library::{Library, LibraryParams, MatchStats, TraceEntry};
+use mavloc_data::results::LandmarkRecord;
 
 /// Why a frame could not be processed.
 #[derive(Debug, thiserror::Error)]

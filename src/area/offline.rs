@@ -7,7 +7,6 @@
 //! every frame.
 
 use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -21,7 +20,9 @@ use super::{baseline, AreaPipeline, FrameInput, StageTiming};
 use crate::geometry::{CameraPose, LocalFrame};
 use crate::output::{self, LandmarkRecord};
 use crate::settings::{AreaMethod, Settings};
-use mavloc_sim::dataset::{Dataset, PoseRecord};
+use mavloc_data::dataset::{Dataset, PoseRecord};
+use mavloc_data::results::border_csv;
+use mavloc_data::table::{fixed, Appender, Row};
 
 const CHECKPOINT_FRAMES: u64 = 100;
 /// Datasets this short (photo surveys) get the residual report without `--trace`.
@@ -118,30 +119,80 @@ pub fn write_results(
     Ok(borders)
 }
 
-fn border_csv(lines: &[Vec<crate::geometry::Vec3>]) -> String {
-    let mut s = String::from("line,index,north,east,down\n");
-    for (li, l) in lines.iter().enumerate() {
-        for (i, p) in l.iter().enumerate() {
-            s.push_str(&format!("{li},{i},{:.4},{:.4},{:.4}\n", p.x, p.y, p.z));
-        }
-    }
-    s
+/// One row of `trace.csv`: a landmark update (seed fig. 6.2): the sighting, measured and
+/// predicted bearing, gate distance and verdict, and the estimate after the update.
+#[derive(Serialize, Deserialize)]
+struct TraceRow {
+    frame: u64,
+    landmark: u64,
+    #[serde(serialize_with = "fixed::dp3")]
+    u: f64,
+    #[serde(serialize_with = "fixed::dp3")]
+    v: f64,
+    #[serde(serialize_with = "fixed::dp6")]
+    meas_yaw: f64,
+    #[serde(serialize_with = "fixed::dp6")]
+    meas_pitch: f64,
+    #[serde(serialize_with = "fixed::dp6")]
+    pred_yaw: f64,
+    #[serde(serialize_with = "fixed::dp6")]
+    pred_pitch: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    mahalanobis: f64,
+    #[serde(serialize_with = "fixed::bool01", deserialize_with = "fixed::de_bool01")]
+    accepted: bool,
+    #[serde(serialize_with = "fixed::dp4")]
+    north: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    east: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    down: f64,
+    /// Upper triangle of the covariance: nn, ne, nd, ee, ed, dd.
+    #[serde(serialize_with = "fixed::dp5")]
+    p_nn: f64,
+    #[serde(serialize_with = "fixed::dp5")]
+    p_ne: f64,
+    #[serde(serialize_with = "fixed::dp5")]
+    p_nd: f64,
+    #[serde(serialize_with = "fixed::dp5")]
+    p_ee: f64,
+    #[serde(serialize_with = "fixed::dp5")]
+    p_ed: f64,
+    #[serde(serialize_with = "fixed::dp5")]
+    p_dd: f64,
 }
 
-/// Reads `border.csv` back.
-pub fn parse_border_csv(text: &str) -> Vec<Vec<crate::geometry::Vec3>> {
-    let mut lines: Vec<Vec<crate::geometry::Vec3>> = Vec::new();
-    for row in text.lines().skip(1) {
-        let c: Vec<f64> = row.split(',').filter_map(|v| v.trim().parse().ok()).collect();
-        if c.len() == 5 {
-            let li = c[0] as usize;
-            while lines.len() <= li {
-                lines.push(Vec::new());
-            }
-            lines[li].push(crate::geometry::Vec3::new(c[2], c[3], c[4]));
+impl Row for TraceRow {
+    const COLUMNS: &'static str =
+        "frame,landmark,u,v,meas_yaw,meas_pitch,pred_yaw,pred_pitch,mahalanobis,accepted,\
+                                   north,east,down,p_nn,p_ne,p_nd,p_ee,p_ed,p_dd";
+}
+
+impl From<&super::library::TraceEntry> for TraceRow {
+    fn from(t: &super::library::TraceEntry) -> TraceRow {
+        let c = t.covariance;
+        TraceRow {
+            frame: t.frame,
+            landmark: t.landmark,
+            u: t.pixel.u,
+            v: t.pixel.v,
+            meas_yaw: t.measurement[0],
+            meas_pitch: t.measurement[1],
+            pred_yaw: t.prediction[0],
+            pred_pitch: t.prediction[1],
+            mahalanobis: t.mahalanobis,
+            accepted: t.accepted,
+            north: t.mean[0],
+            east: t.mean[1],
+            down: t.mean[2],
+            p_nn: c[0],
+            p_ne: c[1],
+            p_nd: c[2],
+            p_ee: c[3],
+            p_ed: c[4],
+            p_dd: c[5],
         }
     }
-    lines
 }
 
 /// Runs the configured method over a dataset. `progress(done, total)` after each frame.
@@ -168,17 +219,9 @@ pub fn run(
         AreaMethod::Ukf => Some(AreaPipeline::new(&s.area, k)?.with_trace(residuals)),
         AreaMethod::GroundPlane => None,
     };
-    let mut trace_file = if opts.trace {
-        let mut f = std::io::BufWriter::new(fs::File::create(opts.out.join("trace.csv"))?);
-        writeln!(
-            f,
-            "frame,landmark,u,v,meas_yaw,meas_pitch,pred_yaw,pred_pitch,mahalanobis,accepted,\
-             north,east,down,p_nn,p_ne,p_nd,p_ee,p_ed,p_dd"
-        )?;
-        Some(f)
-    } else {
-        None
-    };
+    // Appended and flushed every frame, so a crash keeps the trace up to the last frame.
+    let mut trace_file =
+        if opts.trace { Some(Appender::<TraceRow>::create(&opts.out.join("trace.csv"))?) } else { None };
 
     let total = opts.max_frames.unwrap_or(usize::MAX).min(ds.records.len()) as u64;
     let mut results: Vec<LandmarkRecord> = Vec::new();
@@ -226,17 +269,7 @@ pub fn run(
                     seen.extend(report.sightings.iter().map(|&(id, px)| (record.frame, id, px)));
                 }
                 if let Some(f) = trace_file.as_mut() {
-                    for t in &report.trace {
-                        writeln!(
-                            f,
-                            "{},{},{:.3},{:.3},{:.6},{:.6},{:.6},{:.6},{:.4},{},{:.4},{:.4},{:.4},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5}",
-                            t.frame, t.landmark, t.pixel.u, t.pixel.v, t.measurement[0], t.measurement[1],
-                            t.prediction[0], t.prediction[1], t.mahalanobis, t.accepted as u8,
-                            t.mean[0], t.mean[1], t.mean[2], t.covariance[0], t.covariance[1], t.covariance[2],
-                            t.covariance[3], t.covariance[4], t.covariance[5]
-                        )?;
-                    }
-                    f.flush()?;
+                    f.extend(&report.trace.iter().map(TraceRow::from).collect::<Vec<_>>())?;
                 }
             }
             None => {

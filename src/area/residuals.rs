@@ -11,10 +11,11 @@
 
 use std::collections::{BTreeMap, HashMap};
 
-use serde::Serialize;
+use mavloc_data::table::{self, fixed, Row};
+use serde::{Deserialize, Serialize};
 
 use crate::geometry::{CameraPose, Intrinsics, Pixel, Rot3, Vec3};
-use crate::output::LandmarkRecord;
+use mavloc_data::results::LandmarkRecord;
 
 /// Residuals above this (pixels at full resolution) are worth a yaw check.
 const SUSPECT_PX: f64 = 20.0;
@@ -117,21 +118,39 @@ pub fn marks(
         .collect()
 }
 
+/// A row of `residuals.csv`.
+#[derive(Serialize, Deserialize)]
+struct ResidualRow {
+    frame: u64,
+    landmarks: usize,
+    #[serde(serialize_with = "fixed::dp2")]
+    median_px: f64,
+    #[serde(serialize_with = "fixed::dp2")]
+    p90_px: f64,
+    #[serde(serialize_with = "fixed::opt_dp2")]
+    median_yaw180_px: Option<f64>,
+    #[serde(serialize_with = "fixed::bool01", deserialize_with = "fixed::de_bool01")]
+    yaw_off_180: bool,
+}
+
+impl Row for ResidualRow {
+    const COLUMNS: &'static str = "frame,landmarks,median_px,p90_px,median_yaw180_px,yaw_off_180";
+}
+
 /// `residuals.csv`.
 pub fn csv(rows: &[FrameResiduals]) -> String {
-    let mut s = String::from("frame,landmarks,median_px,p90_px,median_yaw180_px,yaw_off_180\n");
-    for r in rows {
-        s.push_str(&format!(
-            "{},{},{:.2},{:.2},{},{}\n",
-            r.frame,
-            r.landmarks,
-            r.median_px,
-            r.p90_px,
-            r.median_yaw180_px.map(|m| format!("{m:.2}")).unwrap_or_default(),
-            r.yaw_off_180 as u8
-        ));
-    }
-    s
+    let rows: Vec<ResidualRow> = rows
+        .iter()
+        .map(|r| ResidualRow {
+            frame: r.frame,
+            landmarks: r.landmarks,
+            median_px: r.median_px,
+            p90_px: r.p90_px,
+            median_yaw180_px: r.median_yaw180_px,
+            yaw_off_180: r.yaw_off_180,
+        })
+        .collect();
+    table::to_string(&rows)
 }
 
 #[cfg(test)]

@@ -237,12 +237,13 @@ pub fn contact_sheet(
     }
     let mut sheet = Mat::default();
     core::vconcat(&Vector::<Mat>::from_iter(tiles), &mut sheet)?;
-    // OpenCV picks the format from the extension: the temporary name keeps ".png".
-    let tmp = path.with_extension("partial.png");
-    if !imgcodecs::imwrite_def(&tmp, &sheet)? {
-        return Err(opencv::Error::new(core::StsError, format!("cannot write {}", tmp.display())));
-    }
-    std::fs::rename(&tmp, path).map_err(|e| opencv::Error::new(core::StsError, e.to_string()))
+    // OpenCV picks the format from the extension, which the atomic writer's temporary keeps.
+    mavloc_data::atomic::write_atomic_path(path, |tmp| match imgcodecs::imwrite_def(tmp, &sheet) {
+        Ok(true) => Ok(()),
+        Ok(false) => Err(std::io::Error::other(format!("cannot write {}", tmp.display()))),
+        Err(e) => Err(std::io::Error::other(e.to_string())),
+    })
+    .map_err(|e| opencv::Error::new(core::StsError, format!("{}: {e}", path.display())))
 }
 
 #[cfg(test)]

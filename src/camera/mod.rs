@@ -138,13 +138,10 @@ pub fn intrinsics(s: &Settings) -> Result<Intrinsics, String> {
     let c = &s.camera;
     match c.source {
         CameraSource::Dataset => {
-            let ds = mavloc_sim::Dataset::open(std::path::Path::new(&c.path))?;
+            let ds = mavloc_data::Dataset::open(std::path::Path::new(&c.path))?;
             Ok(ds.camera.intrinsics())
         }
-        CameraSource::Sim if c.fx <= 0.0 => {
-            let scenario = mavloc_sim::Scenario::load(&c.scenario)?;
-            Ok(Intrinsics::from_hfov(c.width, c.height, scenario.camera.hfov_deg.to_radians()))
-        }
+        CameraSource::Sim if c.fx <= 0.0 => sim::intrinsics(s),
         _ => Ok(c.intrinsics()),
     }
 }
@@ -153,7 +150,7 @@ pub fn intrinsics(s: &Settings) -> Result<Intrinsics, String> {
 pub fn origin(s: &Settings) -> Option<Geodetic> {
     match s.camera.source {
         CameraSource::Dataset => {
-            mavloc_sim::Dataset::open(std::path::Path::new(&s.camera.path)).ok().map(|d| d.camera.origin)
+            mavloc_data::Dataset::open(std::path::Path::new(&s.camera.path)).ok().map(|d| d.camera.origin)
         }
         _ => None,
     }

@@ -11,8 +11,8 @@ use super::{Captured, FrameSource, SourceContext, SourceError};
 use crate::align::{AlignedPose, VehicleSample};
 use crate::area::offline::measured_pose;
 use crate::settings::Settings;
-use mavloc_sim::mission::GimbalFrame;
-use mavloc_sim::Dataset;
+use mavloc_data::dataset::GimbalFrame;
+use mavloc_data::Dataset;
 
 pub struct Replay {
     ds: Dataset,

@@ -21,6 +21,13 @@ use crate::settings::Settings;
 use mavloc_sim::scenario::NoiseSpec;
 use mavloc_sim::{Renderer, Scenario, World};
 
+/// The configured size with the scenario's field of view (no focal length configured).
+pub fn intrinsics(s: &Settings) -> Result<Intrinsics, String> {
+    let c = &s.camera;
+    let scenario = Scenario::load(&c.scenario)?;
+    Ok(Intrinsics::from_hfov(c.width, c.height, scenario.camera.hfov_deg.to_radians()))
+}
+
 /// Poses older than this are not rendered: the vehicle is not reporting.
 const MAX_POSE_AGE_S: f64 = 0.5;
 

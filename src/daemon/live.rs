@@ -9,7 +9,6 @@
 //! - indoor: `trajectory.csv`, appended and flushed every frame (a crash loses at most
 //!   the line being written), and `summary.json`.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector2;
@@ -23,9 +22,11 @@ use crate::indoor::derotate::Preprocessor;
 use crate::indoor::landing::{Hold, LandingTrigger, LandingZone};
 use crate::indoor::localizer::{Localizer, LocalizerParams};
 use crate::indoor::model::Model;
-use crate::indoor::offline::{model_settings, TRAJECTORY_HEADER};
+use crate::indoor::offline::model_settings;
 use crate::output::LandmarkRecord;
 use crate::settings::Settings;
+use mavloc_data::results::TrajectoryRow;
+use mavloc_data::table::Appender;
 
 /// Area results are rewritten every this many frames.
 pub const AREA_CHECKPOINT_FRAMES: u64 = 25;
@@ -238,7 +239,7 @@ pub struct IndoorLive {
     pre: Preprocessor,
     localizer: Localizer,
     trigger: LandingTrigger,
-    trajectory: std::io::BufWriter<std::fs::File>,
+    trajectory: Appender<TrajectoryRow>,
     dir: PathBuf,
     frames: u64,
     last_hold: Option<Hold>,
@@ -273,17 +274,8 @@ impl IndoorLive {
         let localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
         std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
         let path = dir.join("trajectory.csv");
-        let fresh = !path.exists() || std::fs::metadata(&path).map(|m| m.len() == 0).unwrap_or(true);
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(&path)
-            .map_err(|e| format!("cannot open {}: {e}", path.display()))?;
-        let mut trajectory = std::io::BufWriter::new(file);
-        if fresh {
-            writeln!(trajectory, "{TRAJECTORY_HEADER}").map_err(|e| e.to_string())?;
-            trajectory.flush().map_err(|e| e.to_string())?;
-        }
+        let trajectory =
+            Appender::append(&path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
         Ok(IndoorLive {
             trigger: LandingTrigger::new(zone(&settings)),
             model,
@@ -315,11 +307,17 @@ impl LivePipeline for IndoorLive {
         self.frames += 1;
         let truth = frame.truth.unwrap_or([f64::NAN; 3]);
         // Append-only and flushed per frame: a crash loses at most the line being written.
-        let line = format!(
-            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}",
-            frame.index, t, e.position.x, e.position.y, e.spread.0, e.spread.1, truth[0], truth[1]
-        );
-        if let Err(err) = writeln!(self.trajectory, "{line}").and_then(|_| self.trajectory.flush()) {
+        let row = TrajectoryRow {
+            frame: frame.index,
+            t,
+            x: e.position.x,
+            y: e.position.y,
+            sigma_x: e.spread.0,
+            sigma_y: e.spread.1,
+            true_x: truth[0],
+            true_y: truth[1],
+        };
+        if let Err(err) = self.trajectory.push(&row) {
             report.events.push(format!("indoor: cannot append to trajectory.csv: {err}"));
         }
         report.position = Some(PositionEstimate {

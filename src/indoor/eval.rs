@@ -7,8 +7,9 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::offline::{read_trajectory, RunSummary, TrajectoryRow};
-use mavloc_sim::dataset::Dataset;
+use super::offline::RunSummary;
+use mavloc_data::dataset::{Dataset, TelemetryRecord};
+use mavloc_data::results::{read_landings, read_trajectory, TrajectoryRow};
 
 /// Largest lag searched, frames.
 const MAX_LAG: i64 = 30;
@@ -31,75 +32,6 @@ pub struct IndoorEval {
     pub frames_per_s: f64,
     pub landings_in_zone: usize,
     pub landing_tries: usize,
-}
-
-/// One row of `landings.csv` (written by `mavloc indoor landings`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct LandingRow {
-    pub trial: usize,
-    pub zone_x: f64,
-    pub zone_y: f64,
-    pub fired: bool,
-    pub t_fire: f64,
-    pub true_x: f64,
-    pub true_y: f64,
-    pub est_x: f64,
-    pub est_y: f64,
-    pub inside: bool,
-}
-
-pub const LANDINGS_HEADER: &str = "trial,zone_x,zone_y,fired,t_fire,true_x,true_y,est_x,est_y,inside";
-
-pub fn landings_csv(rows: &[LandingRow]) -> String {
-    let mut s = format!("{LANDINGS_HEADER}\n");
-    for r in rows {
-        s.push_str(&format!(
-            "{},{:.4},{:.4},{},{:.3},{:.4},{:.4},{:.4},{:.4},{}\n",
-            r.trial,
-            r.zone_x,
-            r.zone_y,
-            r.fired as u8,
-            r.t_fire,
-            r.true_x,
-            r.true_y,
-            r.est_x,
-            r.est_y,
-            r.inside as u8
-        ));
-    }
-    s
-}
-
-pub fn read_landings(path: &Path) -> Result<Vec<LandingRow>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let mut lines = text.lines();
-    if lines.next().map(str::trim) != Some(LANDINGS_HEADER) {
-        return Err(format!("{}: the first line must be `{LANDINGS_HEADER}`", path.display()));
-    }
-    lines
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty())
-        .map(|(i, l)| {
-            let bad = || format!("{} line {}: expected 10 numbers, got `{l}`", path.display(), i + 2);
-            let v: Vec<f64> =
-                l.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad())?;
-            if v.len() != 10 {
-                return Err(bad());
-            }
-            Ok(LandingRow {
-                trial: v[0] as usize,
-                zone_x: v[1],
-                zone_y: v[2],
-                fired: v[3] != 0.0,
-                t_fire: v[4],
-                true_x: v[5],
-                true_y: v[6],
-                est_x: v[7],
-                est_y: v[8],
-                inside: v[9] != 0.0,
-            })
-        })
-        .collect()
 }
 
 fn rms(v: impl Iterator<Item = f64>) -> f64 {
@@ -147,7 +79,7 @@ pub fn measure(est: &[(f64, f64, f64)], truth: &[(f64, f64)]) -> IndoorEval {
 pub fn evaluate(dataset: &Path, result: &Path) -> Result<(IndoorEval, Vec<TrajectoryRow>), String> {
     let ds = Dataset::open(dataset)?;
     let rows = read_trajectory(&result.join("trajectory.csv"))?;
-    let by_frame: std::collections::HashMap<u64, &mavloc_sim::dataset::TelemetryRecord> =
+    let by_frame: std::collections::HashMap<u64, &TelemetryRecord> =
         ds.records.iter().map(|r| (r.frame, r)).collect();
     let mut est = Vec::with_capacity(rows.len());
     let mut truth = Vec::with_capacity(rows.len());
@@ -281,27 +213,5 @@ mod tests {
         assert!((e.mean_err_y_m - 0.1).abs() < 1e-9);
         let same = measure(&truth.iter().map(|p| (0.0, p.0, p.1)).collect::<Vec<_>>(), &truth);
         assert_eq!((same.lag_frames, same.rmse_m), (0, 0.0));
-    }
-
-    #[test]
-    fn landings_round_trip_and_name_bad_lines() {
-        let rows = vec![LandingRow {
-            trial: 0,
-            zone_x: 1.0,
-            zone_y: -1.0,
-            fired: true,
-            t_fire: 3.5,
-            true_x: 1.1,
-            true_y: -0.9,
-            est_x: 1.0,
-            est_y: -1.0,
-            inside: true,
-        }];
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("landings.csv");
-        std::fs::write(&p, landings_csv(&rows)).unwrap();
-        assert_eq!(read_landings(&p).unwrap(), rows);
-        std::fs::write(&p, format!("{LANDINGS_HEADER}\n1,2,3\n")).unwrap();
-        assert!(read_landings(&p).unwrap_err().contains("line 2"));
     }
 }

@@ -16,7 +16,7 @@ use opencv::imgcodecs;
 use opencv::imgproc;
 use opencv::prelude::*;
 
-use mavloc_sim::dataset::{Dataset, TelemetryRecord};
+use mavloc_data::dataset::{Dataset, TelemetryRecord};
 
 /// Lowe's ratio (his paper's 0.8 is loose for a map with repeated texture).
 const RATIO: f32 = 0.75;

@@ -2,8 +2,9 @@
 //! localisation, before it is printed.
 //!
 //! Synthetic views of the image are rendered from random poses (roll, pitch, yaw, height,
-//! brightness, contrast, blur; sec. 3.4.2) by the simulator with the image as the floor.
-//! Their histograms give the global loss
+//! brightness, contrast, blur; sec. 3.4.2) by the simulator with the image as the floor
+//! (`crate::simulated::mapeval`, as the pipeline does not depend on the simulator); their
+//! histograms give the global loss
 //! `L(D) = 1/N^2 sum_i sum_j [CS(h_i, h_j) - f(x_i; x_j, s_x) f(y_i; y_j, s_y)]`
 //! with `CS` the cosine similarity and `f` an unnormalised Gaussian: the actual similarity
 //! minus the ideal one, which falls with distance. Each view's row mean is its own loss;
@@ -12,14 +13,12 @@
 
 use std::path::Path;
 
-use opencv::prelude::*;
 use rand::SeedableRng;
 use rayon::prelude::*;
 
-use super::derotate::{bgr_from_rgb, Canvas, Preprocessor};
+use super::derotate::Canvas;
 use super::textons::{cosine, Dictionary};
 use crate::settings::Indoor;
-use mavloc_sim::{views, Mission, Renderer, Scenario, World};
 
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct MapEvaluation {
@@ -56,56 +55,16 @@ pub fn global_loss(histograms: &[Vec<f32>], positions: &[[f64; 2]], sigma: [f64;
     (rows.iter().sum::<f64>() / n as f64, rows)
 }
 
-/// Evaluates a floor image of `metres_per_px` from `count` synthetic views.
-pub fn evaluate(
-    map: &Path,
-    metres_per_px: f64,
-    count: usize,
+/// Evaluates prepared views of a floor image (each with its x, y): a dictionary learnt
+/// from them, their histograms and the global loss. `half_extent_m` is the map's, for the
+/// heat map. The views come from the simulator (`crate::simulated::mapeval`).
+pub fn evaluate_views(
+    canvases: &[(Canvas, [f64; 2])],
+    half_extent_m: [f64; 2],
     sigma_m: f64,
     s: &Indoor,
     seed: u64,
 ) -> Result<MapEvaluation, String> {
-    let img = opencv::imgcodecs::imread(map, opencv::imgcodecs::IMREAD_COLOR)
-        .map_err(|e| format!("cannot read map {}: {e}", map.display()))?;
-    if img.empty() {
-        return Err(format!("cannot read map {} as an image", map.display()));
-    }
-    let (w, h) = (img.cols() as u32, img.rows() as u32);
-    let mut scenario = Scenario::load("indoor-floor")?;
-    scenario.ground.texture = map.display().to_string();
-    scenario.ground.metres_per_texel = metres_per_px;
-    // Views stay half a footprint inside the image.
-    let half = [h as f64 * metres_per_px / 2.0 - 0.6, w as f64 * metres_per_px / 2.0 - 0.6];
-    if half[0] <= 0.1 || half[1] <= 0.1 {
-        return Err(format!(
-            "map {} is {:.1} x {:.1} m at {metres_per_px} m per pixel; it must be over 1.4 m on each side",
-            map.display(),
-            h as f64 * metres_per_px,
-            w as f64 * metres_per_px
-        ));
-    }
-    let mut spec = scenario.views.clone().unwrap_or_default();
-    spec.half_extent_m = half[0].min(half[1]);
-    scenario.camera.width = 320;
-    scenario.camera.height = 240;
-    let world = World::build(&scenario)?;
-    let mission = Mission::plan(&world)?;
-    let renderer = Renderer::new(&world);
-    let k = scenario.intrinsics();
-    let mut pre = Preprocessor::new(k, s.work_width, s.derotate, (s.patch_w as usize, s.patch_h as usize));
-    pre.normalise = s.normalise;
-    let shots = views::random_views(&spec, count, seed);
-    let canvases: Vec<(Canvas, [f64; 2])> = shots
-        .par_iter()
-        .map(|(state, appearance)| {
-            let pose = mission.camera_pose(state);
-            let mut frame = renderer.render(&pose, &k);
-            appearance.apply(frame.width as usize, frame.height as usize, &mut frame.rgb);
-            let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
-            let c = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
-            Ok((c, [state.position.x, state.position.y]))
-        })
-        .collect::<Result<_, String>>()?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let patch = (s.patch_w as usize, s.patch_h as usize);
     let samples: Vec<Vec<f32>> = canvases
@@ -121,7 +80,7 @@ pub fn evaluate(
         views: histograms.len(),
         global_loss: loss,
         samples: positions.iter().zip(&rows).map(|(p, l)| (p[0], p[1], *l)).collect(),
-        half_extent_m: half,
+        half_extent_m,
     })
 }
 

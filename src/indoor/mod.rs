@@ -7,13 +7,13 @@
 //! - [`model`]: the trained model file.
 //! - [`localizer`]: the per-frame loop around the particle filter
 //!   ([`crate::filter::particle`], sec. 3.3.4, Algorithm 2) with a velocity motion model.
-//! - [`landing`]: the landing trigger (sec. 4.7); [`approach`]: simulated landing
-//!   approaches that close the loop through it.
+//! - [`landing`]: the landing trigger (sec. 4.7); simulated landing approaches that close
+//!   the loop through it are [`crate::simulated::approach`].
 //! - [`offline`]: `mavloc indoor train` and `mavloc indoor run` over datasets.
 //! - [`eval`]: `mavloc eval indoor` (ch. 4's measures).
-//! - [`mapeval`]: `mavloc indoor map-eval`, the global loss of a floor image (sec. 3.4).
+//! - [`mapeval`]: the global loss of a floor image's views (sec. 3.4); the views are
+//!   rendered by [`crate::simulated::mapeval`] (`mavloc indoor map-eval`).
 
-pub mod approach;
 pub mod derotate;
 pub mod eval;
 pub mod knn;

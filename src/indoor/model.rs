@@ -135,7 +135,7 @@ impl Model {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
         }
-        crate::output::write_atomic(path, &json).map_err(|e| format!("cannot write {}: {e}", path.display()))
+        mavloc_data::write_atomic(path, &json).map_err(|e| format!("cannot write {}: {e}", path.display()))
     }
 
     /// Reads a model, refusing other formats and versions with a clear message.

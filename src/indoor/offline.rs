@@ -27,7 +27,8 @@ use super::localizer::{Localizer, LocalizerParams};
 use super::model::{from_matrix, FrameParams, Model, TrainingInfo, MODEL_FORMAT, MODEL_VERSION};
 use super::textons::{Dictionary, Learning};
 use crate::settings::{DictionaryMethod, Indoor};
-use mavloc_sim::dataset::{Dataset, TelemetryRecord};
+use mavloc_data::dataset::{Dataset, TelemetryRecord};
+use mavloc_data::results::{trajectory_csv, TrajectoryRow};
 
 const CHECKPOINT_FRAMES: usize = 100;
 /// Frames prepared at once (bounds memory for large training sets).
@@ -365,67 +366,14 @@ pub struct RunSummary {
     pub complete: bool,
 }
 
-/// One row of `trajectory.csv`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct TrajectoryRow {
-    pub frame: u64,
-    pub t: f64,
-    pub x: f64,
-    pub y: f64,
-    pub sigma_x: f64,
-    pub sigma_y: f64,
-    pub true_x: f64,
-    pub true_y: f64,
-}
-
-pub const TRAJECTORY_HEADER: &str = "frame,t,x,y,sigma_x,sigma_y,true_x,true_y";
-
 fn write_trajectory(out: &Path, rows: &[TrajectoryRow], summary: &RunSummary) -> Result<(), String> {
-    let mut csv = String::from(TRAJECTORY_HEADER);
-    csv.push('\n');
-    for r in rows {
-        csv.push_str(&format!(
-            "{},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}\n",
-            r.frame, r.t, r.x, r.y, r.sigma_x, r.sigma_y, r.true_x, r.true_y
-        ));
-    }
+    let csv = trajectory_csv(rows);
     let write = |path: PathBuf, bytes: &[u8]| {
-        crate::output::write_atomic(&path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
+        mavloc_data::write_atomic(&path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
     };
     write(out.join("trajectory.csv"), csv.as_bytes())?;
     let json = serde_json::to_string_pretty(summary).map_err(|e| e.to_string())?;
     write(out.join("summary.json"), json.as_bytes())
-}
-
-/// Reads `trajectory.csv`, naming the line of any malformed row.
-pub fn read_trajectory(path: &Path) -> Result<Vec<TrajectoryRow>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let mut lines = text.lines();
-    if lines.next().map(str::trim) != Some(TRAJECTORY_HEADER) {
-        return Err(format!("{}: the first line must be `{TRAJECTORY_HEADER}`", path.display()));
-    }
-    lines
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty())
-        .map(|(i, l)| {
-            let bad = || format!("{} line {}: expected 8 numbers, got `{l}`", path.display(), i + 2);
-            let v: Vec<f64> =
-                l.split(',').map(|c| c.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad())?;
-            if v.len() != 8 || v[0] < 0.0 {
-                return Err(bad());
-            }
-            Ok(TrajectoryRow {
-                frame: v[0] as u64,
-                t: v[1],
-                x: v[2],
-                y: v[3],
-                sigma_x: v[4],
-                sigma_y: v[5],
-                true_x: v[6],
-                true_y: v[7],
-            })
-        })
-        .collect()
 }
 
 /// The settings a model fixes (how its frames were prepared) over the configured ones.

@@ -14,16 +14,16 @@ use nalgebra::Vector2;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
-use super::derotate::{bgr_from_rgb, Preprocessor};
-use super::eval::LandingRow;
-use super::landing::{LandingTrigger, LandingZone};
-use super::localizer::{Localizer, LocalizerParams};
-use super::model::Model;
+use crate::indoor::derotate::{bgr_from_rgb, Preprocessor};
+use crate::indoor::landing::{LandingTrigger, LandingZone};
+use crate::indoor::localizer::{Localizer, LocalizerParams};
+use crate::indoor::model::Model;
 use crate::settings::Indoor;
+use mavloc_data::dataset::Appearance;
+use mavloc_data::results::LandingRow;
 use mavloc_geometry::{GimbalAngles, Vec3};
-use mavloc_sim::mission::State;
-use mavloc_sim::views::Appearance;
-use mavloc_sim::{Mission, Renderer, Scenario, World};
+use mavloc_sim::state::State;
+use mavloc_sim::{views, Mission, Renderer, Scenario, World};
 
 /// Approach parameters.
 #[derive(Clone, Debug)]
@@ -156,7 +156,7 @@ pub fn run(
             };
             let pose = mission.camera_pose(&state);
             let mut frame = renderer.render(&pose, &k);
-            opts.appearance.apply(frame.width as usize, frame.height as usize, &mut frame.rgb);
+            views::apply(&opts.appearance, frame.width as usize, frame.height as usize, &mut frame.rgb);
             let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
             let canvas = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
             let measured_v =

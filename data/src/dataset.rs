@@ -1,0 +1,394 @@
+//! Datasets on disk: the one format the simulator and the photo importer write, and the
+//! pipelines, `mavloc eval` and the daemon's replay camera read.
+//!
+//! ```text
+//! DIR/
+//!   frames/NNNNNN.png      RGB frames (.jpg for imported photos)
+//!   masks/NNNNNN.png       target masks (255 inside the target area, 0 outside)
+//!   telemetry.jsonl        one JSON object per frame: time, true and measured pose, gimbal
+//!   camera.toml            intrinsics, resolution, gimbal kinematic chain
+//!   ground_truth.csv       border polylines: line, index, north, east, down, lat, lon, alt
+//!   ground_truth.geojson   the same in WGS84 (RFC 7946: lon, lat, alt)
+//!   scenario.toml          everything needed to re-render the dataset
+//!   mission.plan           the flight as a QGroundControl plan
+//!   mavloc.toml            optional: settings the data needs, layered over the
+//!                          configuration file by `mavloc area` (imported photos have one)
+//! ```
+//!
+//! Files are written atomically ([`crate::write_atomic`]); `telemetry.jsonl` is written
+//! last, so a dataset whose writing was interrupted is recognisably incomplete. The ground
+//! truth travels with the data: evaluation reads it from here and never rebuilds the world.
+
+use std::fs;
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+
+use mavloc_geometry::{GimbalAngles, GimbalChain, Intrinsics, LocalFrame, Vec3};
+use serde::{Deserialize, Serialize};
+
+use crate::table::{self, fixed, Columns, Header, Row};
+
+/// Settings a dataset carries for the commands that run on it (see the module doc).
+pub const SETTINGS_FILE: &str = "mavloc.toml";
+pub const CAMERA_FILE: &str = "camera.toml";
+pub const TELEMETRY_FILE: &str = "telemetry.jsonl";
+pub const GROUND_TRUTH_CSV: &str = "ground_truth.csv";
+pub const GROUND_TRUTH_GEOJSON: &str = "ground_truth.geojson";
+
+/// Where the gimbal's angles are measured from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GimbalFrame {
+    /// Yaw from north, pitch and roll from the horizon (stabilised gimbal).
+    Earth,
+    /// Angles relative to the vehicle body (camera fixed to the frame).
+    Body,
+}
+
+/// Photometric change applied to a frame (indoor seed sec. 3.4.2), recorded with it; the
+/// simulator applies it (`mavloc_sim::views::apply`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Appearance {
+    pub brightness: f64,
+    pub contrast: f64,
+    /// Box-blur kernel size in pixels (1 = none).
+    pub blur_px: u32,
+}
+
+impl Default for Appearance {
+    fn default() -> Self {
+        Appearance { brightness: 0.0, contrast: 1.0, blur_px: 1 }
+    }
+}
+
+impl Appearance {
+    pub fn is_identity(&self) -> bool {
+        *self == Appearance::default()
+    }
+}
+
+/// A pose as the dataset records it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PoseRecord {
+    /// Local NED position, metres.
+    pub position: [f64; 3],
+    /// Vehicle roll, pitch, yaw, degrees.
+    pub attitude_deg: [f64; 3],
+    /// Gimbal yaw, pitch, roll in the camera's kinematic chain, degrees.
+    pub gimbal_deg: [f64; 3],
+    /// Local NED velocity, m/s.
+    pub velocity: [f64; 3],
+}
+
+impl PoseRecord {
+    pub fn position(&self) -> Vec3 {
+        Vec3::from(self.position)
+    }
+
+    pub fn gimbal(&self) -> GimbalAngles {
+        GimbalAngles::from_degrees(self.gimbal_deg[0], self.gimbal_deg[1], self.gimbal_deg[2])
+    }
+
+    /// Camera pose with the given chain and gimbal frame.
+    pub fn camera_pose(&self, chain: GimbalChain, frame: GimbalFrame) -> mavloc_geometry::CameraPose {
+        use mavloc_geometry::{body_rotation, CameraPose, Mount};
+        let a = self.attitude_deg.map(f64::to_radians);
+        let mount = match frame {
+            GimbalFrame::Earth => Mount::Earth,
+            GimbalFrame::Body => Mount::Body { attitude: body_rotation(a[0], a[1], a[2]) },
+        };
+        CameraPose::from_gimbal(self.position(), chain, self.gimbal(), mount)
+    }
+}
+
+/// One line of `telemetry.jsonl`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TelemetryRecord {
+    /// Frame index; the files are `frames/{frame:06}.png` and `masks/{frame:06}.png`.
+    pub frame: u64,
+    /// Capture time, seconds from the start of the flight.
+    pub t: f64,
+    /// The true pose (ground truth).
+    #[serde(rename = "true")]
+    pub truth: PoseRecord,
+    /// The pose as the vehicle reported it: noise, offsets and gimbal lag applied.
+    pub measured: PoseRecord,
+    /// Photometric change applied to the frame, when there was one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance: Option<Appearance>,
+}
+
+/// `camera.toml`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraFile {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub chain: GimbalChain,
+    pub gimbal_frame: GimbalFrame,
+    /// WGS84 origin of the local NED frame.
+    pub origin: mavloc_geometry::Geodetic,
+}
+
+impl CameraFile {
+    pub fn intrinsics(&self) -> Intrinsics {
+        Intrinsics {
+            width: self.width,
+            height: self.height,
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+        }
+    }
+}
+
+/// One point of `ground_truth.csv`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GroundTruthRow {
+    pub line: usize,
+    pub index: usize,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub north: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub east: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub down: f64,
+    #[serde(serialize_with = "fixed::dp9")]
+    pub lat: f64,
+    #[serde(serialize_with = "fixed::dp9")]
+    pub lon: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub alt: f64,
+}
+
+impl Row for GroundTruthRow {
+    const COLUMNS: &'static str = "line,index,north,east,down,lat,lon,alt";
+}
+
+/// What a reader needs of a ground-truth point: the local columns (WGS84 ones may be
+/// missing in hand-made files).
+#[derive(Deserialize, Serialize)]
+struct GroundTruthPoint {
+    line: usize,
+    _index: usize,
+    north: f64,
+    east: f64,
+    down: f64,
+}
+
+impl Row for GroundTruthPoint {
+    const COLUMNS: &'static str = "line,index,north,east,down";
+}
+
+/// Polylines (local NED) grouped by their `line` column.
+fn group_lines(points: impl IntoIterator<Item = (usize, Vec3)>) -> Vec<Vec<Vec3>> {
+    let mut lines: Vec<Vec<Vec3>> = Vec::new();
+    for (li, p) in points {
+        while lines.len() <= li {
+            lines.push(Vec::new());
+        }
+        lines[li].push(p);
+    }
+    lines
+}
+
+/// Parses `ground_truth.csv` into polylines, local NED.
+pub fn parse_ground_truth(text: &str, origin: &str) -> Result<Vec<Vec<Vec3>>, String> {
+    let rows: Vec<GroundTruthPoint> =
+        table::parse_with(text, origin, Header::StartsWith(GroundTruthPoint::COLUMNS), Columns::AtLeast(5))?;
+    Ok(group_lines(rows.into_iter().map(|r| (r.line, Vec3::new(r.north, r.east, r.down)))))
+}
+
+/// Writes `ground_truth.csv` and `ground_truth.geojson` for border polylines in `frame`.
+pub fn write_ground_truth(dir: &Path, frame: &LocalFrame, lines: &[Vec<Vec3>]) -> Result<(), String> {
+    let mut rows = Vec::new();
+    let mut features = Vec::new();
+    for (li, line) in lines.iter().enumerate() {
+        let mut coords = Vec::new();
+        for (pi, p) in line.iter().enumerate() {
+            let g = frame.to_geodetic(p);
+            rows.push(GroundTruthRow {
+                line: li,
+                index: pi,
+                north: p.x,
+                east: p.y,
+                down: p.z,
+                lat: g.lat_deg,
+                lon: g.lon_deg,
+                alt: g.alt_m,
+            });
+            coords.push(vec![g.lon_deg, g.lat_deg, g.alt_m]);
+        }
+        let mut props = geojson::JsonObject::new();
+        props.insert("name".into(), format!("ground truth border {li}").into());
+        features.push(geojson::Feature {
+            bbox: None,
+            geometry: Some(geojson::Geometry::new_line_string(coords)),
+            id: None,
+            properties: Some(props),
+            foreign_members: None,
+        });
+    }
+    let fc = geojson::FeatureCollection { bbox: None, features, foreign_members: None };
+    write_file(dir, GROUND_TRUTH_CSV, table::to_string(&rows).as_bytes())?;
+    write_file(dir, GROUND_TRUTH_GEOJSON, geojson::GeoJson::from(fc).to_string().as_bytes())
+}
+
+/// Writes one file of a dataset atomically; the error names it.
+pub fn write_file(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), String> {
+    let path = dir.join(name);
+    crate::write_atomic(&path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
+}
+
+/// Makes `dir` ready for a dataset: `frames/` and `masks/` exist, and any old
+/// `telemetry.jsonl` is gone so the dataset reads as incomplete until it is written again.
+pub fn prepare(dir: &Path) -> Result<(), String> {
+    for sub in ["frames", "masks"] {
+        fs::create_dir_all(dir.join(sub))
+            .map_err(|e| format!("cannot create {}: {e}", dir.join(sub).display()))?;
+    }
+    let _ = fs::remove_file(dir.join(TELEMETRY_FILE));
+    Ok(())
+}
+
+/// Writes `camera.toml`.
+pub fn write_camera(dir: &Path, camera: &CameraFile) -> Result<(), String> {
+    write_file(dir, CAMERA_FILE, toml::to_string(camera).map_err(|e| e.to_string())?.as_bytes())
+}
+
+/// Writes `telemetry.jsonl`: last, as it marks the dataset complete.
+pub fn write_telemetry(dir: &Path, records: &[TelemetryRecord]) -> Result<(), String> {
+    let mut lines = String::new();
+    for r in records {
+        lines.push_str(&serde_json::to_string(r).map_err(|e| e.to_string())?);
+        lines.push('\n');
+    }
+    write_file(dir, TELEMETRY_FILE, lines.as_bytes())
+}
+
+/// A dataset opened for reading.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    pub dir: PathBuf,
+    pub camera: CameraFile,
+    pub records: Vec<TelemetryRecord>,
+    /// Ground-truth polylines, local NED (empty when the dataset has none).
+    pub ground_truth: Vec<Vec<Vec3>>,
+}
+
+impl Dataset {
+    /// Opens a dataset folder; every error names the file (and line) that is wrong.
+    pub fn open(dir: &Path) -> Result<Dataset, String> {
+        let read = |name: &str| {
+            let p = dir.join(name);
+            fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))
+        };
+        let camera: CameraFile = toml::from_str(&read(CAMERA_FILE)?)
+            .map_err(|e| format!("{}: {e}", dir.join(CAMERA_FILE).display()))?;
+        camera.intrinsics().validate().map_err(|e| format!("{}: {e}", dir.join(CAMERA_FILE).display()))?;
+
+        let tpath = dir.join(TELEMETRY_FILE);
+        let f = fs::File::open(&tpath)
+            .map_err(|e| format!("{}: {e} (an interrupted render leaves no telemetry)", tpath.display()))?;
+        let mut records = Vec::new();
+        for (n, line) in std::io::BufReader::new(f).lines().enumerate() {
+            let line = line.map_err(|e| format!("{}: {e}", tpath.display()))?;
+            if line.trim().is_empty() {
+                continue;
+            }
+            let r: TelemetryRecord = serde_json::from_str(&line)
+                .map_err(|e| format!("{} line {}: {e}", tpath.display(), n + 1))?;
+            records.push(r);
+        }
+
+        let gpath = dir.join(GROUND_TRUTH_CSV);
+        let ground_truth = if gpath.exists() {
+            parse_ground_truth(&read(GROUND_TRUTH_CSV)?, &gpath.display().to_string())?
+        } else {
+            Vec::new()
+        };
+        Ok(Dataset { dir: dir.to_path_buf(), camera, records, ground_truth })
+    }
+
+    /// `frames/NNNNNN.png`, or `.jpg` where the dataset holds photos (`mavloc import`).
+    pub fn frame_path(&self, r: &TelemetryRecord) -> PathBuf {
+        let png = self.dir.join("frames").join(format!("{:06}.png", r.frame));
+        if png.exists() {
+            return png;
+        }
+        let jpg = png.with_extension("jpg");
+        if jpg.exists() {
+            jpg
+        } else {
+            png
+        }
+    }
+
+    pub fn mask_path(&self, r: &TelemetryRecord) -> PathBuf {
+        self.dir.join("masks").join(format!("{:06}.png", r.frame))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavloc_geometry::Geodetic;
+
+    fn camera() -> CameraFile {
+        CameraFile {
+            width: 64,
+            height: 48,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 31.5,
+            cy: 23.5,
+            chain: GimbalChain::YawPitchRoll,
+            gimbal_frame: GimbalFrame::Earth,
+            origin: Geodetic::new(57.0, 10.0, 20.0),
+        }
+    }
+
+    #[test]
+    fn a_written_dataset_opens_with_its_ground_truth() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        prepare(d).unwrap();
+        write_camera(d, &camera()).unwrap();
+        let lines = vec![vec![Vec3::new(1.0, 2.0, 0.5), Vec3::new(3.25, -4.0, 0.0)], vec![Vec3::zeros()]];
+        write_ground_truth(d, &LocalFrame::new(camera().origin), &lines).unwrap();
+        assert!(Dataset::open(d).unwrap_err().contains("interrupted render"), "no telemetry yet");
+        let pose = PoseRecord {
+            position: [1.0, 2.0, -30.0],
+            attitude_deg: [0.0; 3],
+            gimbal_deg: [0.0; 3],
+            velocity: [0.0; 3],
+        };
+        let a = Some(Appearance { brightness: 3.0, ..Appearance::default() });
+        let recs = vec![TelemetryRecord { frame: 0, t: 0.5, truth: pose, measured: pose, appearance: a }];
+        write_telemetry(d, &recs).unwrap();
+        let ds = Dataset::open(d).unwrap();
+        assert_eq!(ds.camera, camera());
+        assert_eq!(ds.records, recs);
+        assert_eq!(ds.ground_truth, lines);
+        let csv = fs::read_to_string(d.join(GROUND_TRUTH_CSV)).unwrap();
+        assert!(
+            csv.starts_with("line,index,north,east,down,lat,lon,alt\n0,0,1.0000,2.0000,0.5000,57.0000"),
+            "{csv}"
+        );
+        assert_eq!(ds.frame_path(&recs[0]), d.join("frames/000000.png"));
+    }
+
+    #[test]
+    fn bad_ground_truth_names_the_line() {
+        let e =
+            parse_ground_truth("line,index,north,east,down\n0,0,1,2,3\n0,1,1,x,3\n", "g.csv").unwrap_err();
+        assert!(e.starts_with("g.csv line 3"), "{e}");
+        let short = parse_ground_truth("line,index,north,east,down\n1,0,1,2,3\n", "g.csv").unwrap();
+        assert_eq!(short, vec![vec![], vec![Vec3::new(1.0, 2.0, 3.0)]]);
+    }
+}

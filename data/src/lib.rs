@@ -1,0 +1,25 @@
+//! mavloc's files, as plain data: what the simulator and the importer write and the
+//! pipelines, `mavloc eval` and the daemon read. No simulator, OpenCV, tokio or MAVLink
+//! here, so every layer may depend on this crate (the layering test in `tests/layers.rs`
+//! of the `mavloc` package checks it).
+//!
+//! # Module map
+//!
+//! * [`atomic`]: the one atomic file writer (temporary in the same folder, fsync, rename,
+//!   fsync of the folder; the temporary removed on failure).
+//! * [`table`]: CSV tables through the `csv` crate with serde: header checks, errors that
+//!   name file and line, fixed-decimal number formats, append-and-flush tables.
+//! * [`dataset`]: the dataset format (frames, masks, `telemetry.jsonl`, `camera.toml`,
+//!   ground truth): its records, [`Dataset::open`] and the writers.
+//! * [`results`]: result files of the pipelines: landmarks (CSV, PLY, GeoJSON, KML),
+//!   border lines, indoor trajectories and landing trials.
+//! * [`truth`]: the simulated vehicle's true track (`truth.csv`).
+
+pub mod atomic;
+pub mod dataset;
+pub mod results;
+pub mod table;
+pub mod truth;
+
+pub use atomic::write_atomic;
+pub use dataset::{Dataset, SETTINGS_FILE};

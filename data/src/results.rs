@@ -1,0 +1,411 @@
+//! Result files of the pipelines, as plain data: area landmarks (CSV, PLY, GeoJSON, KML),
+//! border lines (CSV), indoor trajectories and landing trials (CSV). Writing them to disk is
+//! [`crate::write_atomic`]'s job (or a [`crate::table::Appender`] for live, growing
+//! tables); plots stay with the pipelines.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use mavloc_geometry::{LocalFrame, Vec3};
+use serde::{Deserialize, Serialize};
+
+use crate::table::{self, fixed, Columns, Header, Row};
+
+/// A converged landmark as the area pipeline reports it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LandmarkRecord {
+    pub id: u64,
+    /// Local NED, metres.
+    pub position: Vec3,
+    /// Largest standard deviation of the estimate (area seed eq. 5.21), metres.
+    pub sigma_max_m: f64,
+    pub observations: u32,
+    pub first_frame: u64,
+    pub last_frame: u64,
+}
+
+/// A row of `landmarks.csv`.
+#[derive(Serialize, Deserialize)]
+struct LandmarkRow {
+    id: u64,
+    #[serde(serialize_with = "fixed::dp4")]
+    north: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    east: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    down: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    sigma_max_m: f64,
+    observations: u32,
+    first_frame: u64,
+    last_frame: u64,
+}
+
+impl Row for LandmarkRow {
+    const COLUMNS: &'static str = "id,north,east,down,sigma_max_m,observations,first_frame,last_frame";
+}
+
+/// `landmarks.csv`: id, north, east, down, sigma_max_m, observations, first_frame, last_frame.
+pub fn landmarks_csv(landmarks: &[LandmarkRecord]) -> String {
+    let rows: Vec<LandmarkRow> = landmarks
+        .iter()
+        .map(|l| LandmarkRow {
+            id: l.id,
+            north: l.position.x,
+            east: l.position.y,
+            down: l.position.z,
+            sigma_max_m: l.sigma_max_m,
+            observations: l.observations,
+            first_frame: l.first_frame,
+            last_frame: l.last_frame,
+        })
+        .collect();
+    table::to_string(&rows)
+}
+
+/// Parses `landmarks.csv`; errors name the line.
+pub fn parse_landmarks_csv(text: &str, origin: &str) -> Result<Vec<LandmarkRecord>, String> {
+    let rows: Vec<LandmarkRow> =
+        table::parse_with(text, origin, Header::StartsWith("id,north,east,down"), Columns::Exact)?;
+    Ok(rows
+        .into_iter()
+        .map(|r| LandmarkRecord {
+            id: r.id,
+            position: Vec3::new(r.north, r.east, r.down),
+            sigma_max_m: r.sigma_max_m,
+            observations: r.observations,
+            first_frame: r.first_frame,
+            last_frame: r.last_frame,
+        })
+        .collect())
+}
+
+/// A point of `border.csv`.
+#[derive(Serialize, Deserialize)]
+struct BorderRow {
+    line: usize,
+    index: usize,
+    #[serde(serialize_with = "fixed::dp4")]
+    north: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    east: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    down: f64,
+}
+
+impl Row for BorderRow {
+    const COLUMNS: &'static str = "line,index,north,east,down";
+}
+
+/// `border.csv`: the fitted border polylines, local NED.
+pub fn border_csv(lines: &[Vec<Vec3>]) -> String {
+    let rows: Vec<BorderRow> = lines
+        .iter()
+        .enumerate()
+        .flat_map(|(li, l)| {
+            l.iter().enumerate().map(move |(i, p)| BorderRow {
+                line: li,
+                index: i,
+                north: p.x,
+                east: p.y,
+                down: p.z,
+            })
+        })
+        .collect();
+    table::to_string(&rows)
+}
+
+/// Reads `border.csv` back. Lenient, as the border is an optional extra of a result: rows
+/// that do not parse are skipped, and text that is no border table gives no lines.
+pub fn parse_border_csv(text: &str) -> Vec<Vec<Vec3>> {
+    let rows: Vec<BorderRow> = table::parse_lenient(text);
+    let mut lines: Vec<Vec<Vec3>> = Vec::new();
+    for r in rows {
+        while lines.len() <= r.line {
+            lines.push(Vec::new());
+        }
+        lines[r.line].push(Vec3::new(r.north, r.east, r.down));
+    }
+    lines
+}
+
+/// One row of `trajectory.csv` (`mavloc indoor run`, and the daemon's indoor pipeline).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryRow {
+    pub frame: u64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub t: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub x: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub y: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub sigma_x: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub sigma_y: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub true_x: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub true_y: f64,
+}
+
+pub const TRAJECTORY_HEADER: &str = "frame,t,x,y,sigma_x,sigma_y,true_x,true_y";
+
+impl Row for TrajectoryRow {
+    const COLUMNS: &'static str = TRAJECTORY_HEADER;
+}
+
+/// `trajectory.csv` as text.
+pub fn trajectory_csv(rows: &[TrajectoryRow]) -> String {
+    table::to_string(rows)
+}
+
+/// Reads `trajectory.csv`, naming the line of any malformed row.
+pub fn read_trajectory(path: &Path) -> Result<Vec<TrajectoryRow>, String> {
+    Ok(table::read(path)?)
+}
+
+/// One simulated landing trial, a row of `landings.csv` (`mavloc indoor landings`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LandingRow {
+    pub trial: usize,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub zone_x: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub zone_y: f64,
+    #[serde(serialize_with = "fixed::bool01", deserialize_with = "fixed::de_bool01")]
+    pub fired: bool,
+    #[serde(serialize_with = "fixed::dp3")]
+    pub t_fire: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub true_x: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub true_y: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub est_x: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub est_y: f64,
+    #[serde(serialize_with = "fixed::bool01", deserialize_with = "fixed::de_bool01")]
+    pub inside: bool,
+}
+
+pub const LANDINGS_HEADER: &str = "trial,zone_x,zone_y,fired,t_fire,true_x,true_y,est_x,est_y,inside";
+
+impl Row for LandingRow {
+    const COLUMNS: &'static str = LANDINGS_HEADER;
+}
+
+/// `landings.csv` as text.
+pub fn landings_csv(rows: &[LandingRow]) -> String {
+    table::to_string(rows)
+}
+
+/// Reads `landings.csv`, naming the line of any malformed row.
+pub fn read_landings(path: &Path) -> Result<Vec<LandingRow>, String> {
+    Ok(table::read(path)?)
+}
+
+/// `landmarks.ply`: ASCII PLY point cloud in local NED (x north, y east, z down).
+pub fn landmarks_ply(landmarks: &[LandmarkRecord]) -> String {
+    let mut s = format!(
+        "ply\nformat ascii 1.0\ncomment mavloc area landmarks, local NED metres (x north, y east, z down)\n\
+         element vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float sigma\nend_header\n",
+        landmarks.len()
+    );
+    for l in landmarks {
+        let _ =
+            writeln!(s, "{:.4} {:.4} {:.4} {:.4}", l.position.x, l.position.y, l.position.z, l.sigma_max_m);
+    }
+    s
+}
+
+/// `area.geojson`: landmarks as points and border lines as line strings, in WGS84.
+pub fn area_geojson(frame: &LocalFrame, landmarks: &[LandmarkRecord], borders: &[Vec<Vec3>]) -> String {
+    use geojson::{Feature, FeatureCollection, Geometry, JsonObject};
+    let mut features = Vec::new();
+    for l in landmarks {
+        let g = frame.to_geodetic(&l.position);
+        let mut props = JsonObject::new();
+        props.insert("kind".into(), "landmark".into());
+        props.insert("id".into(), l.id.into());
+        props.insert("sigma_max_m".into(), l.sigma_max_m.into());
+        props.insert("observations".into(), l.observations.into());
+        features.push(Feature {
+            bbox: None,
+            geometry: Some(Geometry::new_point([g.lon_deg, g.lat_deg, g.alt_m])),
+            id: None,
+            properties: Some(props),
+            foreign_members: None,
+        });
+    }
+    for (i, line) in borders.iter().enumerate() {
+        let coords: Vec<[f64; 3]> = line
+            .iter()
+            .map(|p| {
+                let g = frame.to_geodetic(p);
+                [g.lon_deg, g.lat_deg, g.alt_m]
+            })
+            .collect();
+        let mut props = JsonObject::new();
+        props.insert("kind".into(), "border".into());
+        props.insert("index".into(), i.into());
+        features.push(Feature {
+            bbox: None,
+            geometry: Some(Geometry::new_line_string(coords)),
+            id: None,
+            properties: Some(props),
+            foreign_members: None,
+        });
+    }
+    geojson::GeoJson::from(FeatureCollection { bbox: None, features, foreign_members: None }).to_string()
+}
+
+/// `area.kml`: the same for QGroundControl (Plan view: File > Import KML) and Google Earth.
+/// Written by hand: KML is a few fixed elements, and a crate would add a dependency tree
+/// for nothing QGC needs. KML's absolute altitudes are above mean sea level, mavloc's are
+/// WGS84 ellipsoid heights (tens of metres apart, and no geoid model is at hand), so the
+/// geometry is clamped to the ground for display and each landmark's ellipsoid height is in
+/// its description; `area.geojson` carries the 3D coordinates (RFC 7946 uses the ellipsoid).
+pub fn area_kml(
+    frame: &LocalFrame,
+    name: &str,
+    landmarks: &[LandmarkRecord],
+    borders: &[Vec<Vec3>],
+) -> String {
+    let esc = |s: &str| s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
+    let mut s = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<kml xmlns=\"http://www.opengis.net/kml/2.2\">\n<Document>\n");
+    let _ = writeln!(s, "<name>{}</name>", esc(name));
+    s.push_str(
+        "<Style id=\"border\"><LineStyle><color>ff0000ff</color><width>3</width></LineStyle></Style>\n\
+         <Style id=\"landmark\"><IconStyle><scale>0.4</scale></IconStyle></Style>\n",
+    );
+    for (i, line) in borders.iter().enumerate() {
+        let _ = write!(
+            s,
+            "<Placemark><name>border {i}</name><styleUrl>#border</styleUrl><LineString><altitudeMode>clampToGround</altitudeMode><coordinates>"
+        );
+        for p in line {
+            let g = frame.to_geodetic(p);
+            let _ = write!(s, "{:.8},{:.8},{:.3} ", g.lon_deg, g.lat_deg, g.alt_m);
+        }
+        s.push_str("</coordinates></LineString></Placemark>\n");
+    }
+    s.push_str("<Folder><name>landmarks</name>\n");
+    for l in landmarks {
+        let g = frame.to_geodetic(&l.position);
+        let _ = writeln!(
+            s,
+            "<Placemark><name>{}</name><description>sigma {:.2} m, {} observations, ellipsoid height {:.2} m</description><styleUrl>#landmark</styleUrl>\
+             <Point><altitudeMode>clampToGround</altitudeMode><coordinates>{:.8},{:.8},{:.3}</coordinates></Point></Placemark>",
+            l.id, l.sigma_max_m, l.observations, g.alt_m, g.lon_deg, g.lat_deg, g.alt_m
+        );
+    }
+    s.push_str("</Folder>\n</Document>\n</kml>\n");
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavloc_geometry::Geodetic;
+
+    fn sample() -> Vec<LandmarkRecord> {
+        vec![
+            LandmarkRecord {
+                id: 3,
+                position: Vec3::new(10.5, -2.25, 0.75),
+                sigma_max_m: 0.31,
+                observations: 12,
+                first_frame: 4,
+                last_frame: 40,
+            },
+            LandmarkRecord {
+                id: 9,
+                position: Vec3::new(-1.0, 5.0, -3.0),
+                sigma_max_m: 0.2,
+                observations: 30,
+                first_frame: 7,
+                last_frame: 70,
+            },
+        ]
+    }
+
+    #[test]
+    fn csv_round_trips() {
+        let csv = landmarks_csv(&sample());
+        assert_eq!(parse_landmarks_csv(&csv, "x").unwrap(), sample());
+        let err = parse_landmarks_csv("id,north,east,down\n1,2,three,4,5,6,7,8\n", "f.csv").unwrap_err();
+        assert!(err.contains("f.csv line 2"), "{err}");
+    }
+
+    #[test]
+    fn files_keep_their_layout() {
+        // The layout older results and their readers have: fixed decimals, 0/1 booleans.
+        assert_eq!(
+            landmarks_csv(&sample()[..1]),
+            "id,north,east,down,sigma_max_m,observations,first_frame,last_frame\n\
+             3,10.5000,-2.2500,0.7500,0.3100,12,4,40\n"
+        );
+        let nan = LandmarkRecord { sigma_max_m: f64::NAN, ..sample()[0].clone() };
+        assert!(parse_landmarks_csv(&landmarks_csv(&[nan]), "x").unwrap()[0].sigma_max_m.is_nan());
+        let border = vec![vec![Vec3::new(1.0, 2.0, 3.0)], vec![Vec3::new(-1.5, 0.0, 0.25)]];
+        let text = border_csv(&border);
+        assert_eq!(text, "line,index,north,east,down\n0,0,1.0000,2.0000,3.0000\n1,0,-1.5000,0.0000,0.2500\n");
+        assert_eq!(parse_border_csv(&text), border);
+        assert_eq!(parse_border_csv(&format!("{text}garbage,1\n")), border, "bad rows are skipped");
+        assert!(parse_border_csv("").is_empty());
+        let row = TrajectoryRow {
+            frame: 7,
+            t: 0.5,
+            x: 1.0,
+            y: -2.0,
+            sigma_x: 0.1,
+            sigma_y: 0.2,
+            true_x: f64::NAN,
+            true_y: 1.0 / 3.0,
+        };
+        assert_eq!(
+            trajectory_csv(std::slice::from_ref(&row)),
+            format!("{TRAJECTORY_HEADER}\n7,0.5000,1.0000,-2.0000,0.1000,0.2000,NaN,0.3333\n")
+        );
+    }
+
+    #[test]
+    fn landings_round_trip_and_name_bad_lines() {
+        let rows = vec![LandingRow {
+            trial: 0,
+            zone_x: 1.0,
+            zone_y: -1.0,
+            fired: true,
+            t_fire: 3.5,
+            true_x: 1.1,
+            true_y: -0.9,
+            est_x: 1.0,
+            est_y: -1.0,
+            inside: true,
+        }];
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("landings.csv");
+        std::fs::write(&p, landings_csv(&rows)).unwrap();
+        assert!(std::fs::read_to_string(&p)
+            .unwrap()
+            .ends_with("\n0,1.0000,-1.0000,1,3.500,1.1000,-0.9000,1.0000,-1.0000,1\n"));
+        assert_eq!(read_landings(&p).unwrap(), rows);
+        std::fs::write(&p, format!("{LANDINGS_HEADER}\n1,2,3\n")).unwrap();
+        assert!(read_landings(&p).unwrap_err().contains("line 2"));
+    }
+
+    #[test]
+    fn geojson_and_kml_are_in_wgs84() {
+        let frame = LocalFrame::new(Geodetic::new(57.0, 10.0, 20.0));
+        let border = vec![vec![Vec3::new(0.0, 0.0, 0.0), Vec3::new(100.0, 0.0, 0.0)]];
+        let g: serde_json::Value = serde_json::from_str(&area_geojson(&frame, &sample(), &border)).unwrap();
+        assert_eq!(g["features"].as_array().unwrap().len(), 3);
+        let line = &g["features"][2]["geometry"]["coordinates"];
+        assert!((line[1][1].as_f64().unwrap() - 57.0009).abs() < 1e-4, "100 m north");
+        let kml = area_kml(&frame, "a <test>", &sample(), &border);
+        assert!(kml.contains("<name>a &lt;test&gt;</name>"));
+        assert!(kml.contains("<coordinates>10.00000000,57.00000000,20.000 "));
+        assert_eq!(kml.matches("<Placemark>").count(), 3);
+    }
+}
