@@ -6,9 +6,10 @@
 //! 50 px, Mahalanobis 3.75, downscale 2), table 6.2 and eq. 5.6 (bearing noise 0.5 deg),
 //! eq. 5.7 (UKF alpha 0.7, beta 2, kappa 0), sec. 5.4.1 (ratio test 0.5), sec. 5.2
 //! (`10 L_max` features after the first frame); indoor seed sec. 3.3.1-3.3.4 and 4.7-4.8
-//! (20 textons of 6x6 px, learning rate 0.02, 400 samples, 100 particles, landing radius
-//! and spread gate 0.6 m). Where a seed leaves a value open (`L_max`, `T`, `k`) the
-//! default is ours and says so in `config/mavloc.toml`.
+//! (20 textons of 6x6 px, learning rate 0.02, 400 samples, landing radius and spread gate
+//! 0.6 m). Where a seed leaves a value open (`L_max`, `T`, `k`), or where we measured
+//! better (500 particles instead of the seed's 100), the default is ours and
+//! `config/mavloc.toml` says so.
 
 use mavloc_geometry::GimbalChain;
 use serde::{Deserialize, Serialize};
@@ -339,7 +340,7 @@ impl Default for Indoor {
             samples: 400,
             work_width: 320,
             k: 5,
-            particles: 100,
+            particles: 500,
             motion_model: MotionModel::Velocity,
             process_sigma_m: 0.0,
             velocity_sigma_m_s: 0.1,

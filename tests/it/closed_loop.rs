@@ -11,7 +11,7 @@ use mavloc::area::eval::evaluate;
 use mavloc::output::parse_landmarks_csv;
 use mavloc_sim::{Mission, Scenario, World};
 
-const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
+use crate::fixtures::BIN;
 
 /// Runs the relay script and returns what it saw.
 fn closed_loop(mode: &str, seconds: f64, state: &Path, args: &[&str]) -> serde_json::Value {
@@ -96,42 +96,10 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
     assert!(state.join("results/area/area.kml").exists());
 }
 
-fn train_small_model(dir: &Path) -> PathBuf {
-    let views = dir.join("views");
-    let out = Command::new(BIN)
-        .args([
-            "sim",
-            "render",
-            "--scenario",
-            "indoor-floor",
-            "--views",
-            "400",
-            "--width",
-            "320",
-            "--height",
-            "240",
-        ])
-        .arg("--out")
-        .arg(&views)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let model = dir.join("floor.model");
-    let out = Command::new(BIN)
-        .args(["indoor", "train", "--dataset"])
-        .arg(&views)
-        .arg("--out")
-        .arg(&model)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    model
-}
-
 #[test]
 fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     let dir = tempfile::tempdir().unwrap();
-    let model = train_small_model(dir.path());
+    let model = crate::fixtures::small_indoor_model();
     // The zone: where the mission is 12 s in.
     let world = World::build(&Scenario::load("indoor-floor").unwrap()).unwrap();
     let zone = Mission::plan(&world).unwrap().state(12.0).position;

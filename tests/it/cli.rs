@@ -116,11 +116,12 @@ fn indoor_train_names_a_missing_dataset() {
 }
 
 #[test]
+#[ignore = "two live flights, minutes of wall-clock time: make check-long"]
 fn demo_runs_both_flights_and_prints_its_report() {
     let dir = tempfile::tempdir().unwrap();
     // A short version (25 s of coastline, a small indoor model) checks that the demo runs
-    // end to end and reports; whether such a short flight meets the demo's accuracy bar
-    // is not asserted here (exit 0 or 1): tests/closed_loop.rs asserts accuracy.
+    // to completion and reports: exit 0 (PASS) or 2 (ran, but missed its accuracy bar),
+    // never 1 (an error). Accuracy itself is asserted by closed_loop and indoor_live.
     let out = mavloc()
         .timeout(std::time::Duration::from_secs(300))
         .args(["demo", "--coast-s", "25", "--indoor-s", "45", "--views", "400", "--out"])
@@ -129,7 +130,7 @@ fn demo_runs_both_flights_and_prints_its_report() {
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
-        matches!(out.status.code(), Some(0) | Some(1)),
+        matches!(out.status.code(), Some(0) | Some(2)),
         "{stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
