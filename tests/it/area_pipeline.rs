@@ -9,13 +9,12 @@ use mavloc::output::parse_landmarks_csv;
 use mavloc::settings::{AreaMethod, Settings};
 use mavloc_data::results::parse_border_csv;
 use mavloc_data::Dataset;
-use mavloc_sim::{render_dataset, RenderOptions, Scenario};
+use mavloc_sim::RenderOptions;
 
-fn render(dir: &std::path::Path, name: &str, frames: usize) -> std::path::PathBuf {
-    let out = dir.join(name);
+/// The flight, rendered once per build of the tests (see `fixtures`).
+fn render(name: &str, frames: usize) -> std::path::PathBuf {
     let opts = RenderOptions { frames: Some(frames), size: Some((480, 270)), ..RenderOptions::default() };
-    render_dataset(&Scenario::load(name).unwrap(), &opts, &out, |_, _| {}).unwrap();
-    out
+    crate::fixtures::rendered(&format!("{name}-{frames}-480x270"), name, &opts)
 }
 
 fn settings() -> Settings {
@@ -52,7 +51,7 @@ fn run_and_eval(dataset: &std::path::Path, out: &std::path::Path, method: AreaMe
 #[test]
 fn coastline_short_flight_is_accurate() {
     let dir = tempfile::tempdir().unwrap();
-    let ds = render(dir.path(), "coastline", 240);
+    let ds = render("coastline", 240);
     let ukf = run_and_eval(&ds, &dir.path().join("ukf"), AreaMethod::Ukf);
     let plane = run_and_eval(&ds, &dir.path().join("plane"), AreaMethod::GroundPlane);
     println!("coastline ukf:\n{ukf}\ncoastline ground plane:\n{plane}");
@@ -65,7 +64,7 @@ fn coastline_short_flight_is_accurate() {
 #[test]
 fn cliff_short_flight_is_accurate_where_the_ground_plane_fails() {
     let dir = tempfile::tempdir().unwrap();
-    let ds = render(dir.path(), "cliff", 360);
+    let ds = render("cliff", 360);
     let ukf = run_and_eval(&ds, &dir.path().join("ukf"), AreaMethod::Ukf);
     let plane = run_and_eval(&ds, &dir.path().join("plane"), AreaMethod::GroundPlane);
     println!("cliff ukf:\n{ukf}\ncliff ground plane:\n{plane}");
@@ -78,7 +77,7 @@ fn cliff_short_flight_is_accurate_where_the_ground_plane_fails() {
 #[test]
 fn trace_records_every_update() {
     let dir = tempfile::tempdir().unwrap();
-    let ds = render(dir.path(), "coastline", 30);
+    let ds = render("coastline", 30);
     let out = dir.path().join("traced");
     let opts = RunOptions {
         dataset: ds,

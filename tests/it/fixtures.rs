@@ -1,52 +1,78 @@
-//! Fixtures several test modules share, built once per run of the test binary.
+//! Fixtures several test modules share: datasets the simulator renders and the small
+//! indoor model, built once per build of this test binary. They are cached in cargo's
+//! test scratch folder (`target/tmp`) under a stamp of this binary, which has the
+//! renderer and the trainer compiled in: a changed build renders and trains again, a
+//! rerun of the same build reads what is there. Rendering is deterministic for a
+//! scenario and options, so a cached dataset is the one the test would render.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
+
+use mavloc::indoor::offline::{train, Labelling, TrainOptions};
+use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
 
-/// The small indoor model the live indoor tests fly on: 400 rendered views of the
-/// indoor-floor scenario at 320x240, trained by the binary. Kept in cargo's test scratch
-/// folder and rebuilt whenever the binary is newer than it, so a rerun of an unchanged
-/// build does not train again.
+/// This test binary's identity: its size and modification time.
+fn build_stamp() -> String {
+    let exe = std::env::current_exe().unwrap();
+    let m = std::fs::metadata(&exe).unwrap();
+    format!("{} {:?}", m.len(), m.modified().unwrap())
+}
+
+/// Builds `key` with `make` (which writes into the folder it is given) unless this
+/// build already did. Serialised: fixtures are CPU-bound and used read-only.
+fn cached(key: &str, make: impl FnOnce(&Path)) -> PathBuf {
+    static LOCK: Mutex<()> = Mutex::new(());
+    let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("fixtures");
+    let dir = root.join(key);
+    let stamp_file = root.join(format!("{key}.stamp"));
+    let stamp = build_stamp();
+    if dir.is_dir() && std::fs::read_to_string(&stamp_file).ok().as_deref() == Some(stamp.as_str()) {
+        return dir;
+    }
+    // Built beside, then renamed: an interrupted run never leaves a half fixture.
+    let partial = root.join(format!("{key}.partial"));
+    let _ = std::fs::remove_dir_all(&partial);
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_file(&stamp_file);
+    std::fs::create_dir_all(&root).unwrap();
+    make(&partial);
+    std::fs::rename(&partial, &dir).unwrap();
+    std::fs::write(&stamp_file, stamp).unwrap();
+    dir
+}
+
+/// A dataset of `scenario` rendered with `opts`; `key` names the options.
+pub fn rendered(key: &str, scenario: &str, opts: &RenderOptions) -> PathBuf {
+    cached(key, |out| {
+        render_dataset(&Scenario::load(scenario).unwrap(), opts, out, |_, _| {}).unwrap();
+    })
+}
+
+/// 400 random views of the indoor floor at 320x240: the training set of the small model.
+pub fn indoor_views() -> PathBuf {
+    let opts = RenderOptions { views: Some(400), size: Some((320, 240)), ..Default::default() };
+    rendered("indoor-floor-views-400-320x240", "indoor-floor", &opts)
+}
+
+/// The small indoor model the live indoor flights use, trained on [`indoor_views`] with
+/// the default settings.
 pub fn small_indoor_model() -> &'static Path {
     static MODEL: OnceLock<PathBuf> = OnceLock::new();
     MODEL.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("indoor-floor-400");
-        let model = dir.join("floor.model");
-        let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
-        if modified(&model).is_some() && modified(&model) >= modified(Path::new(BIN)) {
-            return model;
-        }
-        let _ = std::fs::remove_dir_all(&dir);
-        let views = dir.join("views");
-        let out = Command::new(BIN)
-            .args([
-                "sim",
-                "render",
-                "--scenario",
-                "indoor-floor",
-                "--views",
-                "400",
-                "--width",
-                "320",
-                "--height",
-                "240",
-            ])
-            .arg("--out")
-            .arg(&views)
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        let out = Command::new(BIN)
-            .args(["indoor", "train", "--dataset"])
-            .arg(&views)
-            .arg("--out")
-            .arg(&model)
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        model
+        let views = indoor_views();
+        let dir = cached("indoor-floor-model-400", |out| {
+            std::fs::create_dir_all(out).unwrap();
+            let opts = TrainOptions {
+                dataset: views,
+                out: out.join("floor.model"),
+                labelling: Labelling::Telemetry,
+                seed: 1,
+            };
+            train(&opts, &mavloc::settings::Indoor::default(), |_, _| {}).unwrap();
+        });
+        dir.join("floor.model")
     })
 }

@@ -10,7 +10,7 @@ use mavloc::indoor::offline::{run, train, Labelling, RunOptions, TrainOptions};
 use mavloc::settings::{Indoor, MotionModel};
 use mavloc_data::dataset::Appearance;
 use mavloc_data::results::read_trajectory;
-use mavloc_sim::{render_dataset, RenderOptions, Scenario};
+use mavloc_sim::RenderOptions;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -20,20 +20,12 @@ fn median(mut v: Vec<f64>) -> f64 {
 #[test]
 fn trains_on_views_and_tracks_a_flight() {
     let dir = tempfile::tempdir().unwrap();
-    let scenario = Scenario::load("indoor-floor").unwrap();
     let size = Some((320, 240));
-    let views = dir.path().join("views");
-    render_dataset(
-        &scenario,
-        &RenderOptions { views: Some(400), size, ..Default::default() },
-        &views,
-        |_, _| {},
-    )
-    .unwrap();
-    let flight = dir.path().join("flight");
+    // Rendered once per build of the tests (see `fixtures`).
+    let views = crate::fixtures::indoor_views();
     let gap = Appearance { brightness: 15.0, contrast: 0.9, blur_px: 3 };
     let opts = RenderOptions { frames: Some(300), size, appearance: Some(gap), ..Default::default() };
-    render_dataset(&scenario, &opts, &flight, |_, _| {}).unwrap();
+    let flight = crate::fixtures::rendered("indoor-floor-flight-300-320x240-gap", "indoor-floor", &opts);
 
     let settings = Indoor::default();
     let model_path = dir.path().join("model.json");

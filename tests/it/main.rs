@@ -2,10 +2,11 @@
 //! the OpenCV-linked test code is compiled and linked once, not once per file.
 //!
 //! * Pipelines on datasets: `area_pipeline`, `bearing_only`, `indoor_pipeline`,
-//!   `indoor_labelling`, `indoor_live` (the live indoor pipeline in simulated time),
+//!   `indoor_labelling`,
 //!   `sim_sift`, `mission_plans`, `import_photos`, `opencv_link`.
 //! * The real binary: `cli` (commands, configuration errors), `daemon_e2e` (the daemon
 //!   over UDP from pymavlink), `closed_loop` (live flights against the simulated vehicle).
+//! * `twin`: the closed loop (vehicle, core, sim camera, live pipeline) in simulated time.
 //! * Architecture: `layers` (which module may import which).
 //!
 //! Full-size runs are `#[ignore]`d here and run by `make check-long`.
@@ -18,9 +19,9 @@ mod daemon_e2e;
 mod fixtures;
 mod import_photos;
 mod indoor_labelling;
-mod indoor_live;
 mod indoor_pipeline;
 mod layers;
 mod mission_plans;
 mod opencv_link;
 mod sim_sift;
+mod twin;

@@ -1,0 +1,236 @@
+//! The closed loop in simulated time: the simulated vehicle, the daemon's sans-I/O core,
+//! the sim camera's rendering and the live pipeline, all in one thread on one clock.
+//! `closed_loop.rs` flies the same flights over UDP against the real binary and checks
+//! what needs the wire; how accurate those flights come out depends on how busy the
+//! machine is (frames dropped under load). Here every frame is rendered and processed
+//! at its exact time, so the accuracy bounds hold, or fail, the same way every run.
+//!
+//! What each piece does is what the daemon does: the vehicle's messages go to
+//! `Core::handle`; the core's messages (stream requests, gimbal setpoints, the landing)
+//! go to `Vehicle::handle`; each frame is rendered from the pose the core's aligner gives
+//! for the newest telemetry (as the shell hands it to the sim camera), perturbed by the
+//! scenario's noise as the sim camera does, aligned again at its capture time and
+//! processed by the same `LivePipeline`; the report goes back to the core.
+
+use mavlink::dialects::common::MavMessage;
+use mavlink::{MavHeader, MavlinkVersion};
+use mavloc::daemon::core::{Action, Core, Input, Mono, PipelineEvent, ShellStats, WorkerRequest};
+use mavloc::daemon::worker::{LiveFrame, LivePipeline, Report};
+use mavloc::link::codec::{Auth, Frame};
+use mavloc::settings::Settings;
+use mavloc_sim::vehicle::Vehicle;
+use mavloc_sim::{Renderer, Scenario, World};
+use rand::SeedableRng;
+
+/// What a flight produced.
+pub struct Flight {
+    /// Per processed frame: capture time, the pipeline's report, the true camera position.
+    pub frames: Vec<(f64, Report, [f64; 3])>,
+    /// Everything the core sent, with the simulated time.
+    pub sent: Vec<(f64, MavMessage)>,
+    pub vehicle: Vehicle,
+    pub core: Core,
+}
+
+/// Flies `scenario` for `duration_s` with `settings` (camera source "sim"), the pipeline
+/// built by `pipeline` from the settings.
+pub fn fly(
+    settings: &Settings,
+    duration_s: f64,
+    pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
+) -> Flight {
+    let scenario = Scenario::load(&settings.camera.scenario).unwrap();
+    let world = World::build(&scenario).unwrap();
+    let renderer = Renderer::new(&world);
+    let k = mavloc::camera::intrinsics(settings).unwrap();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(mavloc::camera::sim::noise_seed(scenario.seed));
+    let mut vehicle = Vehicle::new(&scenario, 1, 0.0).unwrap();
+    let mut core = Core::new(settings.clone(), Default::default(), false, None);
+    let mut live = pipeline(settings);
+    let (mut frames, mut sent) = (Vec::new(), Vec::new());
+    let step = 0.005;
+    let period = 1.0 / settings.camera.fps;
+    let mut next_frame = 0.0;
+    let mut last_rendered = f64::NEG_INFINITY;
+    for i in 0..(duration_s / step) as u64 {
+        let t = i as f64 * step;
+        let now = Mono::from_secs_f64(t);
+        vehicle.step(t);
+        for (component, message) in vehicle.out.drain(..) {
+            let header = MavHeader { system_id: 1, component_id: component, sequence: 0 };
+            let frame = Frame { version: MavlinkVersion::V2, header, message, auth: Auth::Unsigned };
+            core.handle(Input::Mav { rx: now, frame });
+        }
+        if core.poll_timeout().is_some_and(|d| d <= now) {
+            core.handle_timeout(now);
+        }
+        while let Some(a) = core.poll_action() {
+            match a {
+                Action::Worker(WorkerRequest::Start { token, .. }) => {
+                    core.handle(Input::Done { now, token, result: Ok(()) })
+                }
+                Action::Snapshot { token } | Action::SaveParams { token, .. } => {
+                    core.handle(Input::Done { now, token, result: Ok(()) })
+                }
+                Action::Report => core.handle(Input::Stats { now, stats: ShellStats::default() }),
+                _ => {}
+            }
+        }
+        while let Some(o) = core.poll_transmit(now) {
+            vehicle.handle((o.system_id, o.component_id), &o.message, t);
+            sent.push((t, o.message));
+        }
+        if t + 1e-9 < next_frame {
+            continue;
+        }
+        next_frame += period;
+        // The sim camera: the newest telemetry's pose, never the same one twice.
+        let a = core.aligner();
+        let Some((stamp, _)) = a.vehicle.newest() else { continue };
+        let Some(capture) = a.clock.to_local(stamp) else { continue };
+        if capture <= last_rendered || core.on_ground() {
+            continue;
+        }
+        let Ok(pose) = a.align(capture, t) else { continue };
+        last_rendered = capture;
+        let seen_from = match settings.camera.sim_noise {
+            true => {
+                mavloc::camera::sim::perturb(&scenario.noise, scenario.camera.chain, &mut rng, &pose.camera)
+            }
+            false => pose.camera,
+        };
+        let rendered = renderer.render(&seen_from, &k);
+        let image = mavloc::indoor::derotate::bgr_from_rgb(&rendered.rgb, rendered.height).unwrap();
+        let mask = opencv::core::Mat::new_rows_cols_with_data(
+            rendered.height as i32,
+            rendered.width as i32,
+            &rendered.mask,
+        )
+        .unwrap()
+        .clone_pointee();
+        let frame = LiveFrame {
+            index: frames.len() as u64,
+            capture_s: capture,
+            pose,
+            image,
+            mask: Some(mask),
+            origin: core.origin(),
+            truth: Some(seen_from.position.into()),
+        };
+        let report = live.process(&frame);
+        let (roll, pitch, yaw) = pose.vehicle.attitude.euler_angles();
+        frames.push((capture, report.clone(), seen_from.position.into()));
+        core.handle(Input::Pipeline {
+            now,
+            event: PipelineEvent::Report { capture, attitude: (roll, pitch, yaw), report },
+        });
+    }
+    // As the daemon does when the pipeline stops.
+    live.write_results().unwrap();
+    Flight { frames, sent, vehicle, core }
+}
+
+fn sets(s: &mut Settings, pairs: &[(&str, &str)]) {
+    let overrides: Vec<String> = pairs.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    let layers = mavloc::settings::Layers { file: None, dataset: None, env: Default::default(), overrides };
+    *s = mavloc::settings::load(&layers).unwrap().settings;
+}
+
+#[test]
+fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut s = Settings::default();
+    // The live test's settings (closed_loop.rs).
+    sets(
+        &mut s,
+        &[
+            ("camera.width", "480"),
+            ("camera.height", "270"),
+            ("area.downscale", "1"),
+            ("area.band_px", "13"),
+            ("gimbal.aim", "border"),
+        ],
+    );
+    let results = dir.path().join("area");
+    let origin = Scenario::load(&s.camera.scenario).unwrap().origin;
+    let out = results.clone();
+    let flight = fly(&s, 35.0, move |s| {
+        let k = mavloc::camera::intrinsics(s).unwrap();
+        Box::new(mavloc::daemon::live::AreaLive::new(s, k, origin, out).unwrap())
+    });
+    // mavloc aimed the gimbal: control taken once, setpoints at most 5 Hz.
+    let commands = |cmd| {
+        flight
+            .sent
+            .iter()
+            .filter(|(_, m)| matches!(m, MavMessage::COMMAND_LONG(c) if c.command == cmd))
+            .count()
+    };
+    use mavlink::dialects::common::MavCmd;
+    assert_eq!(commands(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE), 1);
+    let setpoints = commands(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW);
+    assert!(setpoints > 20 && setpoints <= 5 * 35 + 1, "{setpoints} setpoints");
+    // Accuracy: the live test's bounds, on every frame of the flight.
+    let files = flight.frames.len();
+    let text = std::fs::read_to_string(results.join("landmarks.csv")).unwrap();
+    let landmarks = mavloc::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap();
+    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
+    let e = mavloc::area::eval::evaluate(&landmarks, &world.ground_truth, &[], 6.0);
+    println!(
+        "coastline, simulated time: {files} frames, {} landmarks, mean {:.2} m, max {:.2} m",
+        e.landmarks, e.mean_m, e.max_m
+    );
+    assert!(e.landmarks >= 30, "{e:?}");
+    assert_eq!(e.gt20, 0, "{e:?}");
+    assert!(e.mean_m < 3.0, "the seed's coastline reached 2.82 m: {e:?}");
+}
+
+#[test]
+fn indoor_flight_lands_in_the_zone_with_estimates_within_0_2_m_median_in_simulated_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = crate::fixtures::small_indoor_model();
+    let world = World::build(&Scenario::load("indoor-floor").unwrap()).unwrap();
+    let zone = mavloc_sim::Mission::plan(&world).unwrap().state(12.0).position;
+    let radius = 0.6;
+    let mut s = Settings::default();
+    // The live test's settings (closed_loop.rs).
+    let (x, y, r, m) =
+        (zone.x.to_string(), zone.y.to_string(), radius.to_string(), model.display().to_string());
+    sets(
+        &mut s,
+        &[
+            ("camera.scenario", "indoor-floor"),
+            ("daemon.pipeline", "indoor"),
+            ("indoor.model", &m),
+            ("camera.width", "320"),
+            ("camera.height", "240"),
+            ("camera.fps", "15"),
+            ("indoor.landing_enabled", "true"),
+            ("indoor.landing_x_m", &x),
+            ("indoor.landing_y_m", &y),
+            ("indoor.landing_radius_m", &r),
+        ],
+    );
+    let out = dir.path().join("indoor");
+    let flight = fly(&s, 35.0, move |s| {
+        let k = mavloc::camera::intrinsics(s).unwrap();
+        Box::new(mavloc::daemon::live::IndoorLive::new(s, k, out).unwrap())
+    });
+    // Each estimate against the pose its frame was rendered from, after the particle
+    // filter's first two seconds (as the live test).
+    let mut errors: Vec<f64> = flight
+        .frames
+        .iter()
+        .skip(30)
+        .filter_map(|(_, r, truth)| r.position.map(|p| (p.north - truth[0]).hypot(p.east - truth[1])))
+        .collect();
+    assert!(errors.len() > 100, "{} estimates", errors.len());
+    errors.sort_by(f64::total_cmp);
+    let median = errors[errors.len() / 2];
+    let landed = flight.vehicle.state.position;
+    let miss = (landed.x - zone.x).hypot(landed.y - zone.y);
+    println!("indoor, simulated time: {} estimates, median error {median:.3} m; landed {miss:.2} m from the zone centre", errors.len());
+    assert!(median < 0.2, "median error {median} m");
+    assert!(flight.core.on_ground(), "the vehicle landed");
+    assert!(miss < radius, "landed {miss} m from the centre of a {radius} m zone");
+}
