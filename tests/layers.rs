@@ -123,7 +123,7 @@ const SIM_FACING: &[&str] = &[
     "src/camera/sim.rs",
     // The daemon takes the sim camera's scenario origin; the `sim` subcommands.
     "src/daemon/mod.rs",
-    "src/main.rs",
+    "src/commands/sim.rs",
 ];
 
 #[test]
