@@ -13,8 +13,10 @@
 //!
 //! (The module is called `settings` so that it does not shadow the `config` crate.)
 
+pub mod address;
 mod schema;
 
+pub use address::LinkAddress;
 pub use schema::*;
 
 use std::collections::BTreeMap;
@@ -22,8 +24,6 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use ::config::{Config, Environment, File, FileFormat};
-
-use crate::link::LinkAddress;
 
 /// Environment variables with this prefix configure mavloc.
 pub const ENV_PREFIX: &str = "MAVLOC_";
