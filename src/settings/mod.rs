@@ -32,6 +32,13 @@ pub const ENV_CONFIG_FILE: &str = "MAVLOC_CONFIG";
 /// Where the systemd unit and the packaged install put the configuration.
 pub const SYSTEM_CONFIG: &str = "/etc/mavloc/mavloc.toml";
 
+impl Gimbal {
+    /// The static corrections `[yaw, pitch, roll]_offset_deg`, degrees, in that order.
+    pub fn offsets_deg(&self) -> [f64; 3] {
+        [self.yaw_offset_deg, self.pitch_offset_deg, self.roll_offset_deg]
+    }
+}
+
 /// One thing wrong with the configuration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Problem {
