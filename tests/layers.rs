@@ -1,7 +1,8 @@
 //! The layering rules, checked on the sources (issue 17): pipelines and the data crate
 //! import neither the simulator, tokio, MAVLink nor the daemon's link and core; only the
-//! sim-facing layer imports the simulator; the data crate depends on no heavy crate; and
-//! the simulator's modules form no circle.
+//! sim-facing layer imports the simulator; settings, camera and link do not import the
+//! layers above them; the data crate depends on no heavy crate; and the simulator's
+//! modules form no circle.
 //!
 //! The check reads `use` paths and qualified names in code (comments are skipped), so a
 //! new import that breaks a rule fails here with the file and line that has it.
@@ -139,6 +140,60 @@ fn only_the_sim_facing_layer_imports_the_simulator() {
     assert!(bad.is_empty(), "read datasets through mavloc_data, not the simulator:\n{}", bad.join("\n"));
 }
 
+/// Arrows that once ran the wrong way (issue 17), each with where the shared part went.
+const ONE_WAY: &[(&str, &[&str], &str)] = &[
+    (
+        "src/settings",
+        &["crate::link", "crate::daemon"],
+        "the link depends on the settings: addresses are parsed in settings::address",
+    ),
+    (
+        "src/camera",
+        &["crate::area", "crate::indoor", "crate::simulated", "crate::daemon"],
+        "frame sources feed the pipelines: shared helpers go in crate::imaging or mavloc-data",
+    ),
+    (
+        "src/link",
+        &["crate::output", "crate::daemon"],
+        "the link writes its state files with mavloc_data::write_atomic",
+    ),
+];
+
+/// The line with `super::` chains that climb from `file` (under `src/`) to the crate root
+/// spelt as `crate::`, so `super::link` in `src/settings/mod.rs` counts as `crate::link`.
+fn rooted(file: &Path, line: &str) -> String {
+    let rel = file.strip_prefix(root().join("src")).unwrap();
+    let mut depth = rel.components().count();
+    if rel.ends_with("mod.rs") {
+        depth -= 1;
+    }
+    line.replace(&"super::".repeat(depth), "crate::")
+}
+
+#[test]
+fn lower_layers_do_not_import_higher_ones() {
+    let mut bad = Vec::new();
+    for (dir, forbidden, why) in ONE_WAY {
+        let files = sources(&root().join(dir));
+        assert!(files.len() >= 3, "the sources of {dir} were found ({} files)", files.len());
+        for f in &files {
+            // An inline test module is one level deeper, so `super::` means less there
+            // (`#[cfg(test)] mod tests;` in another file is not inline).
+            let (mut cfg_test, mut in_tests) = (false, false);
+            for (n, line) in code_lines(f) {
+                in_tests |= cfg_test && line.contains("mod ") && line.contains('{');
+                cfg_test = line.contains("#[cfg(test)]");
+                let line = if in_tests { line } else { rooted(f, &line) };
+                for name in forbidden.iter().filter(|name| names(&line, name)) {
+                    let rel = f.strip_prefix(root()).unwrap_or(f);
+                    bad.push(format!("{}:{n}: imports {name}: {} ({why})", rel.display(), line.trim()));
+                }
+            }
+        }
+    }
+    assert!(bad.is_empty(), "dependencies must run one way:\n{}", bad.join("\n"));
+}
+
 #[test]
 fn the_data_crate_depends_on_no_heavy_crate() {
     let manifest = std::fs::read_to_string(root().join("data/Cargo.toml")).unwrap();
@@ -223,6 +278,11 @@ fn the_checks_see_violations() {
     assert!(!names("use crate::linking;", "crate::link") && !names("use mavloc_crate::link;", "crate::link"));
     assert_eq!(crate_modules("use crate::{a, b::c, self};"), ["a", "b"]);
     assert!(!names("let my_tokio = 1;", "tokio") && names("tokio::spawn(f);", "tokio"));
+    let settings = root().join("src/settings/mod.rs");
+    assert!(names(&rooted(&settings, "use super::link::LinkAddress;"), "crate::link"));
+    let address = root().join("src/settings/address.rs");
+    assert!(names(&rooted(&address, "use super::super::{daemon, link};"), "crate::link"));
+    assert!(!names(&rooted(&address, "use super::link::X;"), "crate::link"), "that is settings::link");
     let g = BTreeMap::from([
         ("a".to_string(), BTreeSet::from(["b".to_string()])),
         ("b".to_string(), BTreeSet::from(["c".to_string()])),
