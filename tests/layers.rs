@@ -1,8 +1,8 @@
 //! The layering rules, checked on the sources (issue 17): pipelines and the data crate
 //! import neither the simulator, tokio, MAVLink nor the daemon's link and core; only the
 //! sim-facing layer imports the simulator; settings, camera and link do not import the
-//! layers above them; the data crate depends on no heavy crate; and the simulator's
-//! modules form no circle.
+//! layers above them; the data crate depends on no heavy crate; and neither the
+//! simulator's modules nor the top-level modules of `mavloc` form a circle.
 //!
 //! The check reads `use` paths and qualified names in code (comments are skipped), so a
 //! new import that breaks a rule fails here with the file and line that has it.
@@ -267,6 +267,38 @@ fn the_simulator_modules_form_no_circle() {
     }
     let data = module_graph(&root().join("data/src"));
     assert_eq!(find_cycle(&data), None, "mavloc-data modules: {data:?}");
+}
+
+/// `crate::<module>` references between the top-level modules of `mavloc` (`src/`, less
+/// the geometry crate that lives there), test modules left out.
+fn crate_graph() -> BTreeMap<String, BTreeSet<String>> {
+    let src = root().join("src");
+    let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for f in sources(&src) {
+        let rel = f.strip_prefix(&src).unwrap();
+        let top = rel.components().next().unwrap().as_os_str().to_string_lossy();
+        let top = top.trim_end_matches(".rs").to_string();
+        if ["lib", "main", "geometry"].contains(&top.as_str()) {
+            continue;
+        }
+        let deps = graph.entry(top.clone()).or_default();
+        for (_, line) in code_lines(&f) {
+            if line.contains("#[cfg(test)]") {
+                break;
+            }
+            deps.extend(crate_modules(&rooted(&f, &line)).into_iter().filter(|m| *m != top));
+        }
+    }
+    graph
+}
+
+#[test]
+fn the_crate_modules_form_no_circle() {
+    let graph = crate_graph();
+    assert!(graph.len() >= 15 && graph["link"].contains("settings"), "the graph was read: {graph:?}");
+    if let Some(cycle) = find_cycle(&graph) {
+        panic!("modules of mavloc import each other in a circle: {}", cycle.join(" -> "));
+    }
 }
 
 #[test]
