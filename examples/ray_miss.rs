@@ -7,7 +7,6 @@
 //! `cargo run --release --example ray_miss -- DATASET [YAW_OFFSET_DEG]`: the optional
 //! offset turns every recorded gimbal yaw, to see how a wrong yaw shows.
 
-use mavloc::area::offline::measured_pose;
 use mavloc::geometry::{Pixel, Vec3};
 use mavloc::settings::Settings;
 use mavloc_data::Dataset;
@@ -42,7 +41,8 @@ fn main() -> anyhow::Result<()> {
         keypoints.push(kp);
         descriptors.push(d);
     }
-    let poses: Vec<_> = ds.records.iter().map(|r| measured_pose(&r.measured, &ds, &s)).collect();
+    let poses: Vec<_> =
+        ds.records.iter().map(|r| ds.camera_pose(&r.measured, s.gimbal.offsets_deg())).collect();
     let matcher = BFMatcher::create(core::NORM_L2, false)?;
     println!("pair  matches  miss median (m)  range median (m)  angle (deg)  height median (m)");
     for a in 0..ds.records.len() {

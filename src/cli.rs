@@ -29,6 +29,9 @@ pub enum Command {
     /// Run the daemon: MAVLink link, camera and the live pipeline (what systemd starts).
     Run(RunArgs),
     /// Run the end-to-end demonstration on simulated data and print a report.
+    ///
+    /// Exit status: 0 when the report says PASS, 2 when the demo ran to completion but the
+    /// report says FAIL (an accuracy bar missed), 1 when it could not run (an error).
     Demo(DemoArgs),
     /// The simulated world: render datasets, run a simulated MAVLink vehicle.
     Sim {

@@ -28,14 +28,17 @@
 //! * [`demo`]: the end-to-end demonstration `make demo` runs (vehicle + daemon, live).
 //! * [`simulated`]: pipelines run against the simulator (landing approaches, map
 //!   evaluation from rendered views).
+//! * [`imaging`]: OpenCV image helpers below the pipelines and the frame sources.
 //! * [`logging`]: tracing set-up (plain lines for journald, colour on a terminal).
-//! * [`cli`]: command-line definitions; `main.rs` only dispatches.
+//! * [`cli`]: command-line definitions.
+//! * [`commands`]: one module per subcommand, each a function from the parsed arguments
+//!   to an exit code; `main.rs` only parses and dispatches to them.
 //!
 //! Data flows one way: sources (link, camera) -> time alignment -> pipeline -> outputs.
 //! Pipelines are plain synchronous libraries with no tokio or MAVLink inside, and they do
 //! not depend on the simulator: only `demo`, `simulated`, the sim camera
-//! (`camera::sim`), the daemon's use of it and the `sim` commands do (`tests/layers.rs`
-//! checks this).
+//! (`camera::sim`), the daemon's use of it and the `sim` commands (`commands::sim`) do
+//! (`tests/layers.rs` checks this).
 
 pub use mavloc_data as data;
 pub use mavloc_geometry as geometry;
@@ -44,9 +47,11 @@ pub mod align;
 pub mod area;
 pub mod camera;
 pub mod cli;
+pub mod commands;
 pub mod daemon;
 pub mod demo;
 pub mod filter;
+pub mod imaging;
 pub mod import;
 pub mod indoor;
 pub mod link;

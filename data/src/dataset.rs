@@ -332,6 +332,16 @@ impl Dataset {
     pub fn mask_path(&self, r: &TelemetryRecord) -> PathBuf {
         self.dir.join("masks").join(format!("{:06}.png", r.frame))
     }
+
+    /// The camera pose of a record on this dataset's gimbal, with static offsets (yaw,
+    /// pitch, roll, degrees: the configured `gimbal.*_offset_deg`) added to its angles.
+    /// One definition, so the offline area run and the live dataset replay agree.
+    pub fn camera_pose(&self, r: &PoseRecord, gimbal_offsets_deg: [f64; 3]) -> mavloc_geometry::CameraPose {
+        let o = gimbal_offsets_deg;
+        let g = r.gimbal_deg;
+        let corrected = PoseRecord { gimbal_deg: [g[0] + o[0], g[1] + o[1], g[2] + o[2]], ..*r };
+        corrected.camera_pose(self.camera.chain, self.camera.gimbal_frame)
+    }
 }
 
 #[cfg(test)]
@@ -381,6 +391,23 @@ mod tests {
             "{csv}"
         );
         assert_eq!(ds.frame_path(&recs[0]), d.join("frames/000000.png"));
+    }
+
+    #[test]
+    fn camera_pose_adds_the_static_gimbal_offsets() {
+        let camera = CameraFile { gimbal_frame: GimbalFrame::Body, ..camera() };
+        let ds = Dataset { dir: PathBuf::new(), camera, records: vec![], ground_truth: vec![] };
+        let r = PoseRecord {
+            position: [1.0, 2.0, -30.0],
+            attitude_deg: [2.0, -3.0, 40.0],
+            gimbal_deg: [10.0, -80.0, 0.0],
+            velocity: [0.0; 3],
+        };
+        let shifted = PoseRecord { gimbal_deg: [11.5, -82.0, 0.5], ..r };
+        let body = |r: &PoseRecord| r.camera_pose(GimbalChain::YawPitchRoll, GimbalFrame::Body);
+        assert_eq!(ds.camera_pose(&r, [1.5, -2.0, 0.5]), body(&shifted));
+        assert_eq!(ds.camera_pose(&r, [0.0; 3]), body(&r));
+        assert_ne!(body(&shifted), body(&r));
     }
 
     #[test]

@@ -17,10 +17,10 @@ use serde::{Deserialize, Serialize};
 use super::border::{self, BorderParams};
 use super::features::prepare;
 use super::{baseline, AreaPipeline, FrameInput, StageTiming};
-use crate::geometry::{CameraPose, LocalFrame};
+use crate::geometry::LocalFrame;
 use crate::output::{self, LandmarkRecord};
 use crate::settings::{AreaMethod, Settings};
-use mavloc_data::dataset::{Dataset, PoseRecord};
+use mavloc_data::dataset::Dataset;
 use mavloc_data::results::border_csv;
 use mavloc_data::table::{fixed, Appender, Row};
 
@@ -74,20 +74,6 @@ pub struct RunOptions {
     pub max_frames: Option<usize>,
     /// Write `masks.png`, a contact sheet of frames and their target masks.
     pub debug_masks: bool,
-}
-
-/// The measured camera pose of a record, with the configured static gimbal corrections.
-pub fn measured_pose(r: &PoseRecord, ds: &Dataset, s: &Settings) -> CameraPose {
-    let g = &s.gimbal;
-    let corrected = PoseRecord {
-        gimbal_deg: [
-            r.gimbal_deg[0] + g.yaw_offset_deg,
-            r.gimbal_deg[1] + g.pitch_offset_deg,
-            r.gimbal_deg[2] + g.roll_offset_deg,
-        ],
-        ..*r
-    };
-    corrected.camera_pose(ds.camera.chain, ds.camera.gimbal_frame)
 }
 
 /// Writes the result files of a run (each atomically), `summary.json` last; returns the
@@ -254,7 +240,7 @@ pub fn run(
             continue;
         }
         let (grey, small_mask) = prepare(&img, &mask, downscale)?;
-        let pose = measured_pose(&record.measured, &ds, s);
+        let pose = ds.camera_pose(&record.measured, s.gimbal.offsets_deg());
         match pipeline.as_mut() {
             Some(p) => {
                 let t = Instant::now();

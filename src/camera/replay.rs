@@ -9,7 +9,6 @@ use opencv::prelude::*;
 
 use super::{Captured, FrameSource, SourceContext, SourceError};
 use crate::align::{AlignedPose, VehicleSample};
-use crate::area::offline::measured_pose;
 use crate::settings::Settings;
 use mavloc_data::dataset::GimbalFrame;
 use mavloc_data::Dataset;
@@ -69,7 +68,7 @@ impl FrameSource for Replay {
                     velocity: m.velocity.into(),
                     attitude: UnitQuaternion::from_euler_angles(a[0], a[1], a[2]),
                 },
-                camera: measured_pose(m, &self.ds, &self.settings),
+                camera: self.ds.camera_pose(m, self.settings.gimbal.offsets_deg()),
                 from_gimbal: self.ds.camera.gimbal_frame == GimbalFrame::Earth,
             };
             return Ok(Some(Captured {

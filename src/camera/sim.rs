@@ -122,7 +122,7 @@ impl FrameSource for SimCamera {
             }
             let seen_from = self.perturb(&pose);
             let frame = self.renderer.render(&seen_from, &self.k);
-            let image = crate::indoor::derotate::bgr_from_rgb(&frame.rgb, frame.height)?;
+            let image = crate::imaging::bgr_from_rgb(&frame.rgb, frame.height)?;
             let mask = opencv::core::Mat::new_rows_cols_with_data(
                 frame.height as i32,
                 frame.width as i32,

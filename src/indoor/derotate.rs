@@ -17,6 +17,9 @@ use opencv::prelude::*;
 
 use super::textons::{PatchMask, YuvImage};
 
+// Moved to `crate::imaging` (the sim camera uses it too); this path is kept for callers.
+pub use crate::imaging::bgr_from_rgb;
+
 /// A prepared frame: the image to take patches from and where patches may be taken.
 pub struct Canvas {
     pub img: YuvImage,
@@ -215,15 +218,6 @@ pub fn yuv_from_bgr(bgr: &Mat) -> opencv::Result<YuvImage> {
     }
     // A view into a larger image: copy it to one block first.
     Ok(YuvImage::from_bgr(w, h, bgr.try_clone()?.data_bytes()?))
-}
-
-/// An 8-bit RGB buffer (the simulator's frames) as an OpenCV BGR image.
-pub fn bgr_from_rgb(rgb: &[u8], height: u32) -> opencv::Result<Mat> {
-    let m = Mat::from_slice(rgb)?;
-    let m = m.reshape(3, height as i32)?;
-    let mut bgr = Mat::default();
-    imgproc::cvt_color(&m, &mut bgr, imgproc::COLOR_RGB2BGR, 0)?;
-    Ok(bgr)
 }
 
 /// The pixel (working resolution) where the camera's nadir appears, if in front of it.

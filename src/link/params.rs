@@ -274,7 +274,7 @@ impl ParamStore {
         match &self.path {
             Some(p) => {
                 let json = serde_json::to_string_pretty(&self.tuned).expect("map serialises");
-                crate::output::write_atomic(p, json.as_bytes())
+                mavloc_data::write_atomic(p, json.as_bytes())
             }
             None => Ok(()),
         }

@@ -107,7 +107,7 @@ impl Signer {
             return;
         }
         if let Some(p) = &self.state_file {
-            match crate::output::write_atomic(p, format!("{}\n", self.timestamp).as_bytes()) {
+            match mavloc_data::write_atomic(p, format!("{}\n", self.timestamp).as_bytes()) {
                 Ok(()) => self.saved = self.timestamp,
                 Err(e) => tracing::warn!("cannot save the signing timestamp to {}: {e}", p.display()),
             }

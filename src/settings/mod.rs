@@ -13,8 +13,10 @@
 //!
 //! (The module is called `settings` so that it does not shadow the `config` crate.)
 
+pub mod address;
 mod schema;
 
+pub use address::LinkAddress;
 pub use schema::*;
 
 use std::collections::BTreeMap;
@@ -23,14 +25,19 @@ use std::path::{Path, PathBuf};
 
 use ::config::{Config, Environment, File, FileFormat};
 
-use crate::link::LinkAddress;
-
 /// Environment variables with this prefix configure mavloc.
 pub const ENV_PREFIX: &str = "MAVLOC_";
 /// `MAVLOC_CONFIG` names the configuration file; it is not a configuration key.
 pub const ENV_CONFIG_FILE: &str = "MAVLOC_CONFIG";
 /// Where the systemd unit and the packaged install put the configuration.
 pub const SYSTEM_CONFIG: &str = "/etc/mavloc/mavloc.toml";
+
+impl Gimbal {
+    /// The static corrections `[yaw, pitch, roll]_offset_deg`, degrees, in that order.
+    pub fn offsets_deg(&self) -> [f64; 3] {
+        [self.yaw_offset_deg, self.pitch_offset_deg, self.roll_offset_deg]
+    }
+}
 
 /// One thing wrong with the configuration.
 #[derive(Clone, Debug, PartialEq)]

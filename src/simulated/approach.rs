@@ -14,7 +14,8 @@ use nalgebra::Vector2;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 
-use crate::indoor::derotate::{bgr_from_rgb, Preprocessor};
+use crate::imaging::bgr_from_rgb;
+use crate::indoor::derotate::Preprocessor;
 use crate::indoor::landing::{LandingTrigger, LandingZone};
 use crate::indoor::localizer::{Localizer, LocalizerParams};
 use crate::indoor::model::Model;

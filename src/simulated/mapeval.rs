@@ -7,7 +7,8 @@ use std::path::Path;
 use opencv::prelude::*;
 use rayon::prelude::*;
 
-use crate::indoor::derotate::{bgr_from_rgb, Canvas, Preprocessor};
+use crate::imaging::bgr_from_rgb;
+use crate::indoor::derotate::{Canvas, Preprocessor};
 use crate::indoor::mapeval::{self, MapEvaluation};
 use crate::settings::Indoor;
 use mavloc_sim::{views, Mission, Renderer, Scenario, World};

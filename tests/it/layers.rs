@@ -1,7 +1,8 @@
 //! The layering rules, checked on the sources (issue 17): pipelines and the data crate
 //! import neither the simulator, tokio, MAVLink nor the daemon's link and core; only the
-//! sim-facing layer imports the simulator; the data crate depends on no heavy crate; and
-//! the simulator's modules form no circle.
+//! sim-facing layer imports the simulator; settings, camera and link do not import the
+//! layers above them; the data crate depends on no heavy crate; and neither the
+//! simulator's modules nor the top-level modules of `mavloc` form a circle.
 //!
 //! The check reads `use` paths and qualified names in code (comments are skipped), so a
 //! new import that breaks a rule fails here with the file and line that has it.
@@ -123,7 +124,7 @@ const SIM_FACING: &[&str] = &[
     "src/camera/sim.rs",
     // The daemon takes the sim camera's scenario origin; the `sim` subcommands.
     "src/daemon/mod.rs",
-    "src/main.rs",
+    "src/commands/sim.rs",
 ];
 
 #[test]
@@ -137,6 +138,60 @@ fn only_the_sim_facing_layer_imports_the_simulator() {
         .collect();
     let bad = violations(&files, &["mavloc_sim"]);
     assert!(bad.is_empty(), "read datasets through mavloc_data, not the simulator:\n{}", bad.join("\n"));
+}
+
+/// Arrows that once ran the wrong way (issue 17), each with where the shared part went.
+const ONE_WAY: &[(&str, &[&str], &str)] = &[
+    (
+        "src/settings",
+        &["crate::link", "crate::daemon"],
+        "the link depends on the settings: addresses are parsed in settings::address",
+    ),
+    (
+        "src/camera",
+        &["crate::area", "crate::indoor", "crate::simulated", "crate::daemon"],
+        "frame sources feed the pipelines: shared helpers go in crate::imaging or mavloc-data",
+    ),
+    (
+        "src/link",
+        &["crate::output", "crate::daemon"],
+        "the link writes its state files with mavloc_data::write_atomic",
+    ),
+];
+
+/// The line with `super::` chains that climb from `file` (under `src/`) to the crate root
+/// spelt as `crate::`, so `super::link` in `src/settings/mod.rs` counts as `crate::link`.
+fn rooted(file: &Path, line: &str) -> String {
+    let rel = file.strip_prefix(root().join("src")).unwrap();
+    let mut depth = rel.components().count();
+    if rel.ends_with("mod.rs") {
+        depth -= 1;
+    }
+    line.replace(&"super::".repeat(depth), "crate::")
+}
+
+#[test]
+fn lower_layers_do_not_import_higher_ones() {
+    let mut bad = Vec::new();
+    for (dir, forbidden, why) in ONE_WAY {
+        let files = sources(&root().join(dir));
+        assert!(files.len() >= 3, "the sources of {dir} were found ({} files)", files.len());
+        for f in &files {
+            // An inline test module is one level deeper, so `super::` means less there
+            // (`#[cfg(test)] mod tests;` in another file is not inline).
+            let (mut cfg_test, mut in_tests) = (false, false);
+            for (n, line) in code_lines(f) {
+                in_tests |= cfg_test && line.contains("mod ") && line.contains('{');
+                cfg_test = line.contains("#[cfg(test)]");
+                let line = if in_tests { line } else { rooted(f, &line) };
+                for name in forbidden.iter().filter(|name| names(&line, name)) {
+                    let rel = f.strip_prefix(root()).unwrap_or(f);
+                    bad.push(format!("{}:{n}: imports {name}: {} ({why})", rel.display(), line.trim()));
+                }
+            }
+        }
+    }
+    assert!(bad.is_empty(), "dependencies must run one way:\n{}", bad.join("\n"));
 }
 
 #[test]
@@ -214,6 +269,38 @@ fn the_simulator_modules_form_no_circle() {
     assert_eq!(find_cycle(&data), None, "mavloc-data modules: {data:?}");
 }
 
+/// `crate::<module>` references between the top-level modules of `mavloc` (`src/`, less
+/// the geometry crate that lives there), test modules left out.
+fn crate_graph() -> BTreeMap<String, BTreeSet<String>> {
+    let src = root().join("src");
+    let mut graph: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for f in sources(&src) {
+        let rel = f.strip_prefix(&src).unwrap();
+        let top = rel.components().next().unwrap().as_os_str().to_string_lossy();
+        let top = top.trim_end_matches(".rs").to_string();
+        if ["lib", "main", "geometry"].contains(&top.as_str()) {
+            continue;
+        }
+        let deps = graph.entry(top.clone()).or_default();
+        for (_, line) in code_lines(&f) {
+            if line.contains("#[cfg(test)]") {
+                break;
+            }
+            deps.extend(crate_modules(&rooted(&f, &line)).into_iter().filter(|m| *m != top));
+        }
+    }
+    graph
+}
+
+#[test]
+fn the_crate_modules_form_no_circle() {
+    let graph = crate_graph();
+    assert!(graph.len() >= 15 && graph["link"].contains("settings"), "the graph was read: {graph:?}");
+    if let Some(cycle) = find_cycle(&graph) {
+        panic!("modules of mavloc import each other in a circle: {}", cycle.join(" -> "));
+    }
+}
+
 #[test]
 fn the_checks_see_violations() {
     assert!(names("use mavloc_sim::World;", "mavloc_sim"));
@@ -223,6 +310,11 @@ fn the_checks_see_violations() {
     assert!(!names("use crate::linking;", "crate::link") && !names("use mavloc_crate::link;", "crate::link"));
     assert_eq!(crate_modules("use crate::{a, b::c, self};"), ["a", "b"]);
     assert!(!names("let my_tokio = 1;", "tokio") && names("tokio::spawn(f);", "tokio"));
+    let settings = root().join("src/settings/mod.rs");
+    assert!(names(&rooted(&settings, "use super::link::LinkAddress;"), "crate::link"));
+    let address = root().join("src/settings/address.rs");
+    assert!(names(&rooted(&address, "use super::super::{daemon, link};"), "crate::link"));
+    assert!(!names(&rooted(&address, "use super::link::X;"), "crate::link"), "that is settings::link");
     let g = BTreeMap::from([
         ("a".to_string(), BTreeSet::from(["b".to_string()])),
         ("b".to_string(), BTreeSet::from(["c".to_string()])),

@@ -1,6 +1,21 @@
 //! MAVLink connection addresses as mavlink-router and MAVSDK users write them:
 //! `serial:/dev/ttyAMA0:921600`, `udpin:0.0.0.0:14540`, `udpout:127.0.0.1:14550`,
 //! `tcpout:host:port`, `tcpin:host:port`.
+//!
+//! It lives with the settings because validating `mavlink.connection` parses it; the link
+//! re-exports it. Why not `mavlink::ConnectionAddress::parse_address` (mavlink-core 0.21),
+//! which reads the same syntax:
+//! * its TCP, UDP and serial forms exist only with the crate's `transport-*` features,
+//!   which build its own transports (and `serialport`); `link::transport` does its own I/O
+//!   on tokio, so those features are left out;
+//! * it keeps `host:port` as an unchecked string, so `udpin:0.0.0.0`, `tcpout::5760` or
+//!   port 70000 would pass `mavloc config check` and fail only when the daemon connects;
+//!   it also takes baud 0;
+//! * it splits a serial address at the first colon, so a device path that has colons
+//!   (`/dev/serial/by-path/pci-0000:00:14.0-usb-0:1:1.0-port0`) does not parse;
+//! * its errors are `io::Error`s with fixed texts ("Protocol unsupported", "Invalid baud
+//!   rate") that name neither the address nor the accepted forms, which ours do;
+//! * it accepts `udpbcast:` and `file:`, which the transport does not implement.
 
 use std::fmt;
 
@@ -91,6 +106,13 @@ mod tests {
             LinkAddress::parse("serial:/dev/ttyAMA0:921600").unwrap(),
             LinkAddress::Serial { device: "/dev/ttyAMA0".into(), baud: 921600 }
         );
+    }
+
+    #[test]
+    fn serial_device_paths_may_contain_colons() {
+        let s = "serial:/dev/serial/by-path/pci-0000:00:14.0-usb-0:1:1.0-port0:57600";
+        let device = "/dev/serial/by-path/pci-0000:00:14.0-usb-0:1:1.0-port0".to_string();
+        assert_eq!(LinkAddress::parse(s).unwrap(), LinkAddress::Serial { device, baud: 57600 });
     }
 
     #[test]

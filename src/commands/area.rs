@@ -1,0 +1,74 @@
+//! `mavloc area`: the area pipeline over a dataset ([`crate::area::offline`]), with a
+//! progress bar and a summary.
+
+use std::process::ExitCode;
+
+use super::{progress_bar, Global};
+use crate::cli::AreaArgs;
+use crate::settings::{self, Layers};
+
+pub fn run(args: AreaArgs, global: Global) -> anyhow::Result<ExitCode> {
+    // A dataset may carry the settings it needs (an imported photo survey does).
+    let own = args.dataset.join(crate::data::SETTINGS_FILE);
+    let mut layers = Layers::from_process(global.config_file(), global.overrides);
+    layers.dataset = own.exists().then(|| own.clone());
+    let loaded = settings::load(&layers)?;
+    crate::logging::init(&loaded.settings.daemon.log);
+    let own_origin = own.display().to_string();
+    let from_dataset: Vec<&str> =
+        loaded.origins.iter().filter(|(_, o)| **o == own_origin).map(|(k, _)| k.as_str()).collect();
+    if !from_dataset.is_empty() {
+        println!("settings from the dataset's {}: {}", own.display(), from_dataset.join(", "));
+    }
+    run_on_dataset(args, &loaded.settings)
+}
+
+/// The pipeline run with the settings in force, then its summary.
+fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Result<ExitCode> {
+    use crate::area::offline::{run, RunOptions};
+    use crate::settings::AreaMethod;
+    let method = match args.method.as_deref() {
+        Some("ground-plane") => AreaMethod::GroundPlane,
+        Some(_) => AreaMethod::Ukf,
+        None => settings.area.method,
+    };
+    let opts = RunOptions {
+        dataset: args.dataset,
+        out: args.out,
+        method,
+        trace: args.trace,
+        max_frames: args.frames,
+        debug_masks: args.debug_masks,
+    };
+    let bar = progress_bar("area");
+    let summary = run(&opts, settings, |done, total| {
+        bar.set_length(total);
+        bar.set_position(done);
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "{}: {} frames ({} skipped) in {:.1} s, {:.1} frames/s; {} landmarks, {} border line{} ({})",
+        opts.out.display(),
+        summary.frames,
+        summary.skipped_frames,
+        summary.elapsed_s,
+        summary.frames_per_s,
+        summary.landmarks,
+        summary.border_lines,
+        if summary.border_lines == 1 { "" } else { "s" },
+        summary.method
+    );
+    if summary.method == "ukf" {
+        println!(
+            "per frame: band {:.1} ms, SIFT {:.1} ms, match+estimate {:.1} ms, purge+add {:.1} ms",
+            summary.band_ms, summary.sift_ms, summary.match_estimate_ms, summary.purge_add_ms
+        );
+    }
+    if let (Some(m), Some(p90)) = (summary.residual_median_px, summary.residual_p90_px) {
+        println!("reprojection residuals of converged landmarks: median {m:.1} px, 90th percentile {p90:.1} px (per frame: residuals.csv)");
+    }
+    for f in &summary.yaw_off_180_frames {
+        println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,85 @@
+//! `mavloc eval area|indoor`: results against a dataset's ground truth, as the seeds
+//! measure them, with plots.
+
+use std::path::Path;
+use std::process::ExitCode;
+
+use crate::cli::EvalCommand;
+
+pub fn run(command: EvalCommand) -> anyhow::Result<ExitCode> {
+    match command {
+        EvalCommand::Area { dataset, result, json } => area(&dataset, &result, json),
+        EvalCommand::Indoor { dataset, result, json } => indoor(&dataset, &result, json),
+    }
+}
+
+/// `mavloc eval area`: the seed's table for a result folder.
+fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    use anyhow::Context;
+    let ds = crate::data::Dataset::open(dataset).map_err(|e| anyhow::anyhow!(e))?;
+    if ds.ground_truth.is_empty() {
+        anyhow::bail!("{} has no ground truth (ground_truth.csv)", dataset.display());
+    }
+    let lpath = result.join("landmarks.csv");
+    let text = std::fs::read_to_string(&lpath).with_context(|| format!("cannot read {}", lpath.display()))?;
+    let landmarks = crate::output::parse_landmarks_csv(&text, &lpath.display().to_string())
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let border = std::fs::read_to_string(result.join("border.csv"))
+        .map(|t| crate::data::results::parse_border_csv(&t))
+        .unwrap_or_default();
+    let fps = std::fs::read_to_string(result.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<crate::area::offline::RunSummary>(&t).ok())
+        .map_or(f64::NAN, |s| s.frames_per_s);
+    let e = crate::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
+    let title = format!("{} vs {}", result.display(), dataset.display());
+    let plots = [result.join("histogram.png"), result.join("views.png")];
+    let points: Vec<_> = landmarks.iter().map(|l| l.position).collect();
+    let drawn = crate::output::plot::distance_histogram(&plots[0], &e.distances, &title).and_then(|_| {
+        crate::output::plot::landmark_views(&plots[1], &points, &ds.ground_truth, &border, &title)
+    });
+    if let Err(why) = &drawn {
+        eprintln!("mavloc eval area: plots not written: {why}");
+    }
+    if json {
+        println!("{}", serde_json::to_string(&e)?);
+    } else {
+        print!("{e}");
+        if drawn.is_ok() {
+            println!("plots: {}, {}", plots[0].display(), plots[1].display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `mavloc eval indoor`: errors against ground truth, and the plot.
+fn indoor(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    let (e, rows) = crate::indoor::eval::evaluate(dataset, result).map_err(|e| anyhow::anyhow!(e))?;
+    let plot = result.join("trajectory.png");
+    let title = format!("{} vs {}", result.display(), dataset.display());
+    let drawn = crate::indoor::eval::plot(&plot, &rows, &title);
+    if let Err(why) = &drawn {
+        eprintln!("mavloc eval indoor: plot not written: {why}");
+    }
+    if json {
+        println!("{}", serde_json::to_string(&e)?);
+    } else {
+        println!("frames                 {}", e.frames);
+        println!("mean |error| x, y      {:.3} m, {:.3} m", e.mean_err_x_m, e.mean_err_y_m);
+        println!("RMS error              {:.3} m (x {:.3} m, y {:.3} m)", e.rmse_m, e.rmse_x_m, e.rmse_y_m);
+        println!("RMS error after 2 s    {:.3} m", e.rmse_after_2s_m);
+        println!("largest error          {:.3} m", e.max_err_m);
+        println!(
+            "lag                    {} frames (RMS {:.3} m when shifted)",
+            e.lag_frames, e.rmse_at_lag_m
+        );
+        println!("localiser              {:.0} frames/s", e.frames_per_s);
+        if e.landing_tries > 0 {
+            println!("landings in zone       {} of {}", e.landings_in_zone, e.landing_tries);
+        }
+        if drawn.is_ok() {
+            println!("plot: {}", plot.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

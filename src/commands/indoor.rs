@@ -1,0 +1,138 @@
+//! `mavloc indoor train|run|landings|map-eval`: the indoor pipeline offline
+//! ([`crate::indoor::offline`]) and its simulated evaluations ([`crate::simulated`]).
+
+use std::process::ExitCode;
+
+use anyhow::anyhow;
+
+use super::{progress_bar, Global};
+use crate::cli::IndoorCommand;
+use crate::indoor::offline;
+
+pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
+    let loaded = global.load()?;
+    crate::logging::init(&loaded.settings.daemon.log);
+    let settings = &loaded.settings;
+    match command {
+        IndoorCommand::Train(a) => {
+            let labelling = match (&a.orthomap, a.map_metres_per_px) {
+                (Some(map), Some(scale)) => offline::Labelling::Homography(
+                    crate::indoor::labelling::OrthoMap::load(map, scale, a.map_origin, a.min_inliers)
+                        .map_err(|e| anyhow!(e))?,
+                ),
+                _ => offline::Labelling::Telemetry,
+            };
+            let opts = offline::TrainOptions { dataset: a.dataset, out: a.out, labelling, seed: a.seed };
+            let bar = progress_bar("histograms");
+            let r = offline::train(&opts, &settings.indoor, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })
+            .map_err(|e| anyhow!(e))?;
+            bar.finish_and_clear();
+            println!(
+                "{}: {} images ({} rejected) in {:.1} s ({:.1} s of full-sampling histograms, {:.0} images/s)",
+                opts.out.display(),
+                r.images,
+                r.rejected,
+                r.seconds,
+                r.histogram_seconds,
+                (r.images + r.rejected) as f64 / r.histogram_seconds.max(1e-9)
+            );
+            let ranks: Vec<String> = r.loo_rms_m.iter().map(|v| format!("{v:.2}")).collect();
+            println!("leave-one-out RMS error per neighbour rank, m: {}", ranks.join(", "));
+            let fit: Vec<String> = r
+                .inlier_sd_m
+                .iter()
+                .zip(&r.inlier_fraction)
+                .map(|(sd, p)| format!("{:.0} % within SD {sd:.2}", p * 100.0))
+                .collect();
+            println!("per rank, right neighbours: {}", fit.join(", "));
+            println!("process noise: {}", r.process_source);
+            Ok(ExitCode::SUCCESS)
+        }
+        IndoorCommand::Run(a) => {
+            let opts = offline::RunOptions {
+                dataset: a.dataset,
+                model: a.model,
+                out: a.out,
+                max_frames: a.frames,
+                no_velocity: a.no_velocity,
+                seed: a.seed,
+            };
+            let bar = progress_bar("indoor");
+            let s = offline::run(&opts, &settings.indoor, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })
+            .map_err(|e| anyhow!(e))?;
+            bar.finish_and_clear();
+            println!(
+                "{}: {} frames ({} skipped), localiser {:.0} frames/s ({:.2} ms), reading+preparing {:.1} ms per frame; motion model {}, derotation {}",
+                opts.out.display(),
+                s.frames,
+                s.skipped_frames,
+                s.frames_per_s,
+                s.localize_ms,
+                s.prepare_ms,
+                s.motion_model,
+                if s.derotate { "on" } else { "off" }
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        IndoorCommand::Landings(a) => {
+            use crate::simulated::approach::{run, ApproachOptions};
+            let model = crate::indoor::model::Model::load(&a.model).map_err(|e| anyhow!(e))?;
+            let opts =
+                ApproachOptions { trials: a.trials, seed: a.seed, max_s: a.max_s, ..Default::default() };
+            let bar = progress_bar("approaches");
+            let rows = run(&model, &settings.indoor, &opts, |done, total| {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+            })
+            .map_err(|e| anyhow!(e))?;
+            bar.finish_and_clear();
+            std::fs::create_dir_all(&a.out)?;
+            let path = a.out.join("landings.csv");
+            crate::output::write_atomic(&path, crate::data::results::landings_csv(&rows).as_bytes())?;
+            let inside = rows.iter().filter(|r| r.fired && r.inside).count();
+            let outside = rows.iter().filter(|r| r.fired && !r.inside).count();
+            println!(
+                "{}: {inside} of {} landings inside the zone, {outside} outside, {} not triggered within {} s",
+                path.display(),
+                rows.len(),
+                rows.len() - inside - outside,
+                a.max_s
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        IndoorCommand::MapEval(a) => {
+            let e = crate::simulated::mapeval::evaluate(
+                &a.map,
+                a.metres_per_px,
+                a.views,
+                a.sigma_m,
+                &settings.indoor,
+                a.seed,
+            )
+            .map_err(|e| anyhow!(e))?;
+            let title = format!("{}: L(D) = {:.4} over {} views", a.map.display(), e.global_loss, e.views);
+            let drawn = crate::indoor::mapeval::heatmap(&a.out, &e, 0.25, &title);
+            if let Err(why) = &drawn {
+                eprintln!("mavloc indoor map-eval: heat map not written: {why}");
+            }
+            if a.json {
+                println!(
+                    "{}",
+                    serde_json::json!({"global_loss": e.global_loss, "views": e.views, "heatmap": a.out})
+                );
+            } else {
+                println!("global loss L(D) = {:.4} over {} views (lower is better)", e.global_loss, e.views);
+                if drawn.is_ok() {
+                    println!("heat map: {}", a.out.display());
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}
