@@ -66,13 +66,16 @@ pub fn decide(c: &COMMAND_LONG_DATA, broadcast: bool, configured: PipelineKind, 
             }
         }
         CMD_SNAPSHOT => Decision::Snapshot,
-        _ if c.command == MavCmd::MAV_CMD_REQUEST_MESSAGE => match c.param1 {
-            x if x == 0.0 => Decision::SendHeartbeat,
-            x if x == 22.0 && c.param2 >= 0.0 && c.param2.fract() == 0.0 && (c.param2 as usize) < params => {
-                Decision::SendParam(c.param2 as usize)
+        _ if c.command == MavCmd::MAV_CMD_REQUEST_MESSAGE => {
+            let index = c.param2;
+            if c.param1 == 0.0 {
+                Decision::SendHeartbeat
+            } else if c.param1 == 22.0 && index >= 0.0 && index.fract() == 0.0 && (index as usize) < params {
+                Decision::SendParam(index as usize)
+            } else {
+                Decision::Ack(MavResult::MAV_RESULT_UNSUPPORTED)
             }
-            _ => Decision::Ack(MavResult::MAV_RESULT_UNSUPPORTED),
-        },
+        }
         _ => Decision::Ack(MavResult::MAV_RESULT_UNSUPPORTED),
     }
 }

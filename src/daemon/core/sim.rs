@@ -210,7 +210,7 @@ impl Sim {
         self.inbound.insert((self.now + self.latency, self.seq), f);
     }
 
-    pub fn from_gcs(&mut self, m: MavMessage) {
+    pub fn gcs_sends(&mut self, m: MavMessage) {
         self.deliver(frame(255, 190, m));
     }
 

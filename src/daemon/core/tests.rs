@@ -143,10 +143,10 @@ fn a_parameter_list_under_a_flood_is_paced_complete_and_leaves_the_heartbeat_alo
     let mut max_queue = 0;
     for ms in 0..1000u64 {
         if ms % 250 == 0 {
-            sim.from_gcs(param_request_list());
+            sim.gcs_sends(param_request_list());
         }
         if ms % 2 == 0 {
-            sim.from_gcs(param_read((ms / 2 % n as u64) as i16));
+            sim.gcs_sends(param_read((ms / 2 % n as u64) as i16));
         }
         sim.deliver(frame(
             1,
@@ -185,7 +185,7 @@ fn with_30_percent_loss_the_gcs_completes_the_list_by_read() {
     let mut sim = Sim::new(settings());
     // Deterministic 30 % loss: drop 3 of every 10 messages to the ground station.
     sim.gcs_loss = |n| n % 10 < 3;
-    sim.from_gcs(param_request_list());
+    sim.gcs_sends(param_request_list());
     sim.run_for(Duration::from_secs(2));
     let n = param_table::PARAMS.len() as u16;
     for _round in 0..10 {
@@ -196,7 +196,7 @@ fn with_30_percent_loss_the_gcs_completes_the_list_by_read() {
             return;
         }
         for i in missing {
-            sim.from_gcs(param_read(i as i16));
+            sim.gcs_sends(param_read(i as i16));
         }
         sim.run_for(Duration::from_secs(1));
     }
@@ -315,7 +315,7 @@ fn a_pipeline_that_cannot_start_is_denied_and_failed() {
     s.indoor.model = "/nonexistent.model".into();
     let mut sim = Sim::new(s);
     sim.start_result = Err("model /nonexistent.model does not exist".into());
-    sim.from_gcs(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+    sim.gcs_sends(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
         command: MavCmd::MAV_CMD_USER_1,
         param1: 2.0,
         param2: 1.0,
@@ -357,12 +357,12 @@ fn echoes_and_other_components_commands_are_ignored() {
             ..Default::default()
         }),
     ));
-    sim.from_gcs(cmd(1));
-    sim.from_gcs(cmd(0));
+    sim.gcs_sends(cmd(1));
+    sim.gcs_sends(cmd(0));
     sim.run_for(Duration::from_millis(100));
     assert!(!sim.core.autopilot_found());
     assert!(!sim.to_gcs.iter().any(|(_, m)| matches!(m, MavMessage::COMMAND_ACK(_))));
-    sim.from_gcs(cmd(191));
+    sim.gcs_sends(cmd(191));
     sim.run_for(Duration::from_millis(100));
     assert!(sim.to_gcs.iter().any(|(_, m)| matches!(m,
         MavMessage::COMMAND_ACK(a) if a.result == MavResult::MAV_RESULT_UNSUPPORTED && a.target_system == 255)));
@@ -410,7 +410,7 @@ fn run_commands(cmds: &[(u8, f32, f32, u16)]) -> (Vec<(Mono, MavMessage)>, Sim) 
     let mut sim = Sim::new(settings());
     sim.ap = FakeAutopilot::new(Mono::ZERO);
     for &(kind, p1, p2, gap_ms) in cmds {
-        sim.from_gcs(gcs_command(kind, p1, p2));
+        sim.gcs_sends(gcs_command(kind, p1, p2));
         sim.run_for(Duration::from_millis(gap_ms as u64));
     }
     sim.run_for(Duration::from_secs(2));
