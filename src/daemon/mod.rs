@@ -746,7 +746,6 @@ mod shell_tests {
     #[tokio::test(start_paused = true)]
     async fn heartbeats_keep_their_period_in_virtual_time() {
         let mut h = start();
-        let real = std::time::Instant::now();
         let got = h.collect(Duration::from_secs(30)).await;
         let beats: Vec<_> =
             got.iter().filter(|(_, m)| matches!(m, MavMessage::HEARTBEAT(_))).map(|(t, _)| *t).collect();
@@ -755,7 +754,6 @@ mod shell_tests {
             let gap = (w[1] - w[0]).as_secs_f64();
             assert!((0.999..=1.001).contains(&gap), "gap {gap}");
         }
-        assert!(real.elapsed() < Duration::from_secs(5), "30 virtual seconds took {:?}", real.elapsed());
         h.stop().await;
     }
 
