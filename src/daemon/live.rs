@@ -124,12 +124,21 @@ impl LivePipeline for AreaLive {
         if let Some(o) = frame.origin {
             self.origin = o;
         }
-        let Some(mask) = &frame.mask else {
+        // The configured segmenter (water, HSV) decides the target, as in `mavloc area`;
+        // with `masks` the camera's own mask does (the sim camera's, a dataset's).
+        let segmented = match crate::area::segment::segment(&frame.image, &self.settings) {
+            Ok(m) => m,
+            Err(e) => {
+                report.events.push(format!("area: frame {} not segmented: {e}", frame.index));
+                return report;
+            }
+        };
+        let Some(mask) = segmented.as_ref().or(frame.mask.as_ref()) else {
             if !self.no_mask_warned {
                 self.no_mask_warned = true;
-                report
-                    .events
-                    .push("area: this camera source gives no target mask; frames are skipped".into());
+                report.events.push(
+                    "area: this camera gives no target mask and area.segmenter = \"masks\"; frames are skipped (set area.segmenter to \"water\" or \"hsv\")".into(),
+                );
             }
             return report;
         };
@@ -153,6 +162,7 @@ impl LivePipeline for AreaLive {
             }
         };
         self.frames += 1;
+        report.processed = true;
         let before = self.results.len();
         report.new_landmarks = r.converged.iter().map(|l| l.position.into()).collect();
         let converged: Vec<_> = r.converged.into_iter().map(|l| self.shifted(l)).collect();
@@ -305,6 +315,7 @@ impl LivePipeline for IndoorLive {
         let t = frame.pose.autopilot_time;
         let e = self.localizer.step(t, &canvas, Some(Vector2::new(v.x, v.y)));
         self.frames += 1;
+        report.processed = true;
         let truth = frame.truth.unwrap_or([f64::NAN; 3]);
         // Append-only and flushed per frame: a crash loses at most the line being written.
         let row = TrajectoryRow {

@@ -39,6 +39,16 @@ pub fn fly(
     duration_s: f64,
     pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
 ) -> Flight {
+    fly_with(settings, duration_s, true, pipeline)
+}
+
+/// [`fly`], with or without the renderer's target masks (a real camera has none).
+pub fn fly_with(
+    settings: &Settings,
+    duration_s: f64,
+    masks: bool,
+    pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
+) -> Flight {
     let scenario = Scenario::load(&settings.camera.scenario).unwrap();
     let world = World::build(&scenario).unwrap();
     let renderer = Renderer::new(&world);
@@ -113,7 +123,7 @@ pub fn fly(
             capture_s: capture,
             pose,
             image,
-            mask: Some(mask),
+            mask: masks.then_some(mask),
             origin: core.origin(),
             truth: Some(seen_from.position.into()),
         };
@@ -233,4 +243,48 @@ fn indoor_flight_lands_in_the_zone_with_estimates_within_0_2_m_median_in_simulat
     assert!(median < 0.2, "median error {median} m");
     assert!(flight.core.on_ground(), "the vehicle landed");
     assert!(miss < radius, "landed {miss} m from the centre of a {radius} m zone");
+}
+
+/// A real camera gives no target mask: the live area pipeline segments the frames with
+/// `area.segmenter` (here the water segmenter on the rendered coastline) and localises
+/// the shore all the same.
+#[test]
+fn live_area_segments_frames_from_a_camera_without_masks() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut s = Settings::default();
+    sets(
+        &mut s,
+        &[
+            ("camera.width", "480"),
+            ("camera.height", "270"),
+            ("area.downscale", "1"),
+            ("area.band_px", "13"),
+            ("area.segmenter", "water"),
+        ],
+    );
+    let results = dir.path().join("area");
+    let origin = Scenario::load(&s.camera.scenario).unwrap().origin;
+    let out = results.clone();
+    let flight = fly_with(&s, 20.0, false, move |s| {
+        let k = mavloc::camera::intrinsics(s).unwrap();
+        Box::new(mavloc::daemon::live::AreaLive::new(s, k, origin, out).unwrap())
+    });
+    let events: Vec<&String> = flight.frames.iter().flat_map(|(_, r, _)| &r.events).collect();
+    assert!(!events.iter().any(|e| e.contains("no target mask")), "{events:?}");
+    let features: f32 = flight
+        .frames
+        .iter()
+        .flat_map(|(_, r, _)| r.counters.iter().filter(|c| c.0 == "LMK_FEAT").map(|c| c.1))
+        .sum();
+    assert!(features > 0.0, "SIFT features found in the segmented band");
+    let text = std::fs::read_to_string(results.join("landmarks.csv")).unwrap();
+    let landmarks = mavloc::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap();
+    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
+    let e = mavloc::area::eval::evaluate(&landmarks, &world.ground_truth, &[], 6.0);
+    println!(
+        "coastline without masks (water segmenter): {} landmarks, mean {:.2} m, max {:.2} m",
+        e.landmarks, e.mean_m, e.max_m
+    );
+    assert!(e.landmarks >= 10, "{e:?}");
+    assert!(e.mean_m < 3.0, "{e:?}");
 }

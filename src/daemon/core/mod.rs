@@ -63,6 +63,9 @@ pub use self::commands::{CMD_PIPELINE, CMD_SNAPSHOT};
 pub use self::streams::STREAMS;
 pub use self::time::Mono;
 
+/// ACTIVE needs a processed frame at least this recently.
+const ACTIVE_WITHIN: Duration = Duration::from_secs(3);
+
 /// Replies and pipeline results waiting to go out are bounded; past this the oldest
 /// pipeline result is dropped (a newer estimate supersedes it), never an ACK.
 const QUEUE_CAP: usize = 256;
@@ -83,6 +86,9 @@ pub struct Report {
     /// Where to point the camera to keep the target's border in view: earth-frame yaw and
     /// pitch, radians (area pipeline).
     pub aim: Option<(f64, f64)>,
+    /// The frame went through the pipeline (false: skipped, e.g. no target mask or an
+    /// unusable image). Only processed frames make the daemon ACTIVE.
+    pub processed: bool,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -203,6 +209,8 @@ pub enum PipelineState {
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct Counters {
     pub frames_processed: u64,
+    /// Frames the pipeline was given but skipped (see [`Report::processed`]).
+    pub frames_skipped: u64,
     pub frames_dropped: u64,
     pub pipeline_panics: u64,
     pub commands_refused: u64,
@@ -246,6 +254,10 @@ pub struct Core {
     heartbeat_requested: bool,
     pipeline: PipelineState,
     camera_live: bool,
+    /// When the pipeline last processed a frame.
+    last_processed: Option<Mono>,
+    /// The newest time an input or timeout carried.
+    now: Mono,
     counters: Counters,
 }
 
@@ -282,6 +294,8 @@ impl Core {
             heartbeat_requested: false,
             pipeline: PipelineState::Stopped,
             camera_live: false,
+            last_processed: None,
+            now: Mono::ZERO,
             counters: Counters::default(),
             tuned,
             settings,
@@ -364,14 +378,17 @@ impl Core {
         self.autopilot.on_ground()
     }
 
-    /// MAV_STATE reflecting reality: ACTIVE only while a pipeline runs with frames and
-    /// telemetry; STANDBY while idle or waiting; CRITICAL when the pipeline failed.
+    /// MAV_STATE reflecting reality: ACTIVE only while a pipeline runs with camera and
+    /// telemetry and has processed a frame within the last 3 s; STANDBY while idle,
+    /// waiting or skipping every frame; CRITICAL when the pipeline failed.
     pub fn mav_state(&self) -> MavState {
+        let producing = self.last_processed.is_some_and(|t| self.now.saturating_sub(t) <= ACTIVE_WITHIN);
         match self.pipeline {
             PipelineState::Failed(_) => MavState::MAV_STATE_CRITICAL,
             PipelineState::Running(_)
                 if self.autopilot.present()
                     && self.camera_live
+                    && producing
                     && self.telemetry.aligner.clock.offset().0.is_some() =>
             {
                 MavState::MAV_STATE_ACTIVE
@@ -383,6 +400,14 @@ impl Core {
     // ---- inputs ----
 
     pub fn handle(&mut self, input: Input) {
+        let at = match &input {
+            Input::Mav { rx, .. } => *rx,
+            Input::Pipeline { now, .. }
+            | Input::Camera { now, .. }
+            | Input::Done { now, .. }
+            | Input::Stats { now, .. } => *now,
+        };
+        self.now = self.now.max(at);
         match input {
             Input::Mav { rx, frame } => self.on_frame(rx, frame),
             Input::Pipeline { now, event } => self.on_pipeline(now, event),
@@ -394,6 +419,7 @@ impl Core {
 
     /// Expires whatever is due; a no-op before every deadline.
     pub fn handle_timeout(&mut self, now: Mono) {
+        self.now = self.now.max(now);
         if let Some(ApNotice::Lost) = self.autopilot.on_timeout(now) {
             let t = self.autopilot.timeout().as_secs_f64();
             self.notes.warn(&format!("autopilot lost (no heartbeat for {t} s)"));
@@ -885,7 +911,12 @@ impl Core {
     /// Area landmarks go out as DEBUG_VECT named `LMK` (north, east, down in metres,
     /// local NED of the autopilot), which QGroundControl's MAVLink inspector shows.
     fn publish(&mut self, now: Mono, report: &Report, capture: f64, attitude: (f64, f64, f64)) {
-        self.counters.frames_processed += 1;
+        if report.processed {
+            self.counters.frames_processed += 1;
+            self.last_processed = Some(now);
+        } else {
+            self.counters.frames_skipped += 1;
+        }
         let usec = (capture.max(0.0) * 1e6) as u64;
         for p in &report.new_landmarks {
             self.result(MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {

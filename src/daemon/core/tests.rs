@@ -304,6 +304,32 @@ fn heartbeat_is_active_only_with_autopilot_clock_camera_and_pipeline() {
     sim.run_for(Duration::from_secs(3));
     assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_STANDBY, "no frames yet");
     sim.input(Input::Camera { now: sim.now, event: CameraEvent::Up("test".into()) });
+    assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_STANDBY, "no frame processed yet");
+    let report = |now: Mono, processed| Input::Pipeline {
+        now,
+        event: PipelineEvent::Report {
+            capture: 0.0,
+            attitude: (0.0, 0.0, 0.0),
+            report: Report { processed, ..Report::default() },
+        },
+    };
+    // Frames skipped (say, no target mask): running, but producing nothing.
+    for _ in 0..10 {
+        sim.input(report(sim.now, false));
+    }
+    assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_STANDBY, "skipping every frame is not ACTIVE");
+    assert_eq!(sim.core.counters().frames_skipped, 10);
+    sim.input(report(sim.now, true));
+    assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_ACTIVE);
+    // The pipeline stops producing: STANDBY again after 3 s, in the next heartbeat too.
+    sim.run_for(Duration::from_secs(5));
+    assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_STANDBY);
+    let last_beat = sim.sent.iter().rev().find_map(|(_, m)| match m {
+        MavMessage::HEARTBEAT(h) => Some(h.system_status),
+        _ => None,
+    });
+    assert_eq!(last_beat, Some(MavState::MAV_STATE_STANDBY));
+    sim.input(report(sim.now, true));
     assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_ACTIVE);
     sim.input(Input::Pipeline { now: sim.now, event: PipelineEvent::Failed("boom".into()) });
     assert_eq!(sim.core.mav_state(), MavState::MAV_STATE_CRITICAL);
