@@ -47,7 +47,7 @@ use self::commands::{Decision, Owed, PipelineRequest};
 use self::gimbal::Gimbal;
 use self::health::Health;
 use self::landing::{Landing, LandingNotice};
-use self::notes::Notes;
+use self::notes::{Notes, SenderLimit};
 use self::params::ParamPacer;
 use self::streams::Streams;
 use self::telemetry::Telemetry;
@@ -216,6 +216,10 @@ pub struct Counters {
     pub commands_refused: u64,
     pub params_refused: u64,
     pub autopilot_reboots: u64,
+    /// Parameter list and read requests refused (untrusted sender).
+    pub param_requests_refused: u64,
+    /// Log lines and STATUSTEXTs on a peer's behalf left out by the per-sender limit.
+    pub peer_lines_suppressed: u64,
     pub statustext_dropped: u64,
     pub results_dropped: u64,
 }
@@ -243,6 +247,8 @@ pub struct Core {
     landing: Landing,
     health: Health,
     notes: Notes,
+    /// Lines written on a peer's behalf, rate-limited per sender.
+    peer_lines: SenderLimit,
     owed: Owed,
     jobs: BTreeMap<u64, Job>,
     next_job: u64,
@@ -285,6 +291,7 @@ impl Core {
             landing: Landing::default(),
             health: Health::new(m.heartbeat_hz, watchdog),
             notes: Notes::default(),
+            peer_lines: SenderLimit::default(),
             owed: Owed::default(),
             jobs: BTreeMap::new(),
             next_job: 0,
@@ -539,6 +546,15 @@ impl Core {
         Ok(())
     }
 
+    /// A parameter request addressed to mavloc (LIST may be broadcast, READ may not).
+    fn addressed(&self, m: &MavMessage) -> bool {
+        match m {
+            MavMessage::PARAM_REQUEST_LIST(r) => self.for_us(r.target_system, r.target_component, true),
+            MavMessage::PARAM_REQUEST_READ(r) => self.for_us(r.target_system, r.target_component, false),
+            _ => false,
+        }
+    }
+
     fn for_us(&self, target_system: u8, target_component: u8, allow_broadcast: bool) -> bool {
         (target_system == self.system_id || (allow_broadcast && target_system == 0))
             && (target_component == self.component_id || (allow_broadcast && target_component == 0))
@@ -587,6 +603,17 @@ impl Core {
                     self.telemetry.aligner.clock.observe_timesync(s.sent, s.received, s.remote);
                 }
             }
+            MavMessage::PARAM_REQUEST_LIST(_) | MavMessage::PARAM_REQUEST_READ(_)
+                if self.addressed(&f.message) && self.trusted(&f).is_err() =>
+            {
+                // Only the ground station and the autopilot may have the list: a flood of
+                // requests from anyone else costs a counter, not the link.
+                self.counters.param_requests_refused += 1;
+                if self.peer_lines.allow(from, rx) {
+                    let why = self.trusted(&f).err().unwrap_or_default();
+                    tracing::warn!("refused a parameter request from {}/{}: {why}", from.0, from.1);
+                }
+            }
             MavMessage::PARAM_REQUEST_LIST(r) if self.for_us(r.target_system, r.target_component, true) => {
                 self.params.on_list();
             }
@@ -598,19 +625,20 @@ impl Core {
                 };
                 match i {
                     Some(i) => self.params.on_single(i),
-                    None => {
+                    None if self.peer_lines.allow(from, rx) => {
                         let id = param_name(&r.param_id).unwrap_or_else(|| "?".into());
                         self.notes.warn(&format!("no parameter {id} (index {})", r.param_index));
                     }
+                    None => {}
                 }
             }
             MavMessage::PARAM_SET(p) if self.for_us(p.target_system, p.target_component, false) => {
                 let name = param_name(&p.param_id).unwrap_or_default();
-                self.param_set(&f, &name, Wire { value: p.param_value, ty: p.param_type });
+                self.param_set(rx, &f, &name, Wire { value: p.param_value, ty: p.param_type });
             }
             MavMessage::COMMAND_LONG(c) if self.for_us(c.target_system, c.target_component, true) => {
                 let broadcast = c.target_component == 0 || c.target_system == 0;
-                self.on_command(&f, c, broadcast);
+                self.on_command(rx, &f, c, broadcast);
             }
             _ => {}
         }
@@ -660,13 +688,18 @@ impl Core {
         })
     }
 
-    fn param_set(&mut self, f: &Frame, name: &str, w: Wire) {
+    fn param_set(&mut self, rx: Mono, f: &Frame, name: &str, w: Wire) {
+        let from = (f.header.system_id as u8, f.header.component_id);
         let index = param_table::find(name).map(|(i, _)| i);
         if let Err(why) = self.trusted(f) {
             self.counters.params_refused += 1;
-            self.notes.warn(&format!("refused PARAM_SET {name}: {why}"));
-            if let Some(i) = index {
-                self.params.on_single(i);
+            // Said, and answered with the unchanged value, once per sender per 10 s: a
+            // flood of refused sets must not become a flood of answers.
+            if self.peer_lines.allow(from, rx) {
+                self.notes.warn(&format!("refused PARAM_SET {name}: {why}"));
+                if let Some(i) = index {
+                    self.params.on_single(i);
+                }
             }
             return;
         }
@@ -693,7 +726,9 @@ impl Core {
             }
             Err(e) => {
                 self.counters.params_refused += 1;
-                self.notes.warn(&format!("refused {e}"));
+                if self.peer_lines.allow(from, rx) {
+                    self.notes.warn(&format!("refused {e}"));
+                }
                 if let SetError::Refused { .. } = e {
                     self.params.on_single(index.expect("refused, so it exists"));
                 }
@@ -701,7 +736,7 @@ impl Core {
         }
     }
 
-    fn on_command(&mut self, f: &Frame, c: &COMMAND_LONG_DATA, broadcast: bool) {
+    fn on_command(&mut self, rx: Mono, f: &Frame, c: &COMMAND_LONG_DATA, broadcast: bool) {
         let from = (f.header.system_id as u8, f.header.component_id);
         let decision =
             commands::decide(c, broadcast, self.settings.daemon.pipeline, param_table::PARAMS.len());
@@ -710,7 +745,9 @@ impl Core {
         }
         if let Err(why) = self.trusted(f) {
             self.counters.commands_refused += 1;
-            tracing::warn!("refused command {} from {}/{}: {why}", c.command as u32, from.0, from.1);
+            if self.peer_lines.allow(from, rx) {
+                tracing::warn!("refused command {} from {}/{}: {why}", c.command as u32, from.0, from.1);
+            }
             return self.reply(commands::ack(c.command, MavResult::MAV_RESULT_DENIED, from));
         }
         let ack = |core: &mut Core, r| core.reply(commands::ack(c.command, r, from));
@@ -882,6 +919,7 @@ impl Core {
 
     fn on_stats(&mut self, now: Mono, s: ShellStats) {
         self.counters.frames_dropped = s.frames_dropped;
+        self.counters.peer_lines_suppressed = self.peer_lines.suppressed;
         self.counters.statustext_dropped = self.notes.dropped;
         let ms = (now.0 / 1000) as u32;
         let values: [(&str, f32); 5] = [

@@ -79,6 +79,41 @@ impl Notes {
     }
 }
 
+/// Per-sender allowance for things that write a log line or a STATUSTEXT on a peer's
+/// behalf (a refused set, an unknown parameter): the first from a sender is said, then at
+/// most one per `PERIOD`; the rest are only counted. A flood costs a counter, not the
+/// disk. Senders are bounded too (the oldest is forgotten).
+#[derive(Debug, Default)]
+pub struct SenderLimit {
+    last: std::collections::BTreeMap<(u8, u8), super::time::Mono>,
+    pub suppressed: u64,
+}
+
+impl SenderLimit {
+    const PERIOD: std::time::Duration = std::time::Duration::from_secs(10);
+    const SENDERS: usize = 64;
+
+    /// Whether a line on behalf of `from` may be written at `now`.
+    pub fn allow(&mut self, from: (u8, u8), now: super::time::Mono) -> bool {
+        match self.last.get(&from) {
+            Some(&t) if now.saturating_sub(t) < Self::PERIOD => {
+                self.suppressed += 1;
+                false
+            }
+            _ => {
+                if self.last.len() >= Self::SENDERS && !self.last.contains_key(&from) {
+                    let oldest = self.last.iter().min_by_key(|(_, t)| **t).map(|(k, _)| *k);
+                    if let Some(k) = oldest {
+                        self.last.remove(&k);
+                    }
+                }
+                self.last.insert(from, now);
+                true
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -501,3 +501,39 @@ fn the_core_reads_no_clock_and_does_no_io() {
     }
     assert!(violations.is_empty(), "the core must not do I/O or read clocks:\n{}", violations.join("\n"));
 }
+
+#[test]
+fn a_foreign_flood_of_parameter_requests_and_sets_costs_counters_not_the_link() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(3));
+    let before = sim.sent.len();
+    let start = sim.now;
+    for ms in 0..1000u64 {
+        let foreign = |m| frame(77, 1, m);
+        sim.deliver(foreign(param_request_list()));
+        sim.deliver(foreign(param_read((ms % 10) as i16)));
+        sim.deliver(foreign(MavMessage::PARAM_SET(PARAM_SET_DATA {
+            param_value: 0.9,
+            target_system: 1,
+            target_component: 191,
+            param_id: "AREA_RATIO".into(),
+            param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+        })));
+        sim.run_until(start + Duration::from_millis(ms + 1));
+    }
+    // The ground station's own list goes through the same second.
+    sim.gcs_sends(param_request_list());
+    sim.run_for(Duration::from_secs(3));
+    let c = sim.core.counters();
+    assert_eq!(c.param_requests_refused, 2000);
+    assert_eq!(c.params_refused, 1000);
+    assert!(c.peer_lines_suppressed >= 1990, "{}", c.peer_lines_suppressed);
+    let texts: Vec<String> = sim.statustexts().into_iter().filter(|t| t.contains("refused")).collect();
+    assert!(texts.len() <= 2, "one line per sender per 10 s: {texts:?}");
+    // Exactly one list went out: the ground station's.
+    let values = sim.sent[before..].iter().filter(|(_, m)| matches!(m, MavMessage::PARAM_VALUE(_))).count();
+    assert_eq!(values, param_table::PARAMS.len());
+    let tuned = param_table::find("AREA_RATIO").map(|(_, d)| param_table::value_of(sim.core.settings(), d));
+    assert_ne!(tuned, Some(0.9_f32 as f64), "the foreign set changed nothing");
+}
