@@ -42,7 +42,13 @@ pub struct ClockSync {
     /// (local time, round trip, offset local - autopilot) of recent TIMESYNC replies.
     syncs: VecDeque<(f64, f64, f64)>,
     last_stamp: Option<f64>,
+    /// Local arrival of the stamp that set `last_stamp`.
+    last_arrival: Option<f64>,
 }
+
+/// A stamp further ahead of the last one than the local time elapsed since, plus this,
+/// is not believed: the autopilot's clock cannot run faster than ours.
+const FUTURE_JUMP_S: f64 = 5.0;
 
 impl Default for ClockSync {
     fn default() -> Self {
@@ -52,7 +58,18 @@ impl Default for ClockSync {
 
 impl ClockSync {
     pub fn new() -> ClockSync {
-        ClockSync { stamps: VecDeque::new(), syncs: VecDeque::new(), last_stamp: None }
+        ClockSync { stamps: VecDeque::new(), syncs: VecDeque::new(), last_stamp: None, last_arrival: None }
+    }
+
+    /// Whether a stamp arriving at `arrival` can be true: not further ahead of the last
+    /// one than the time that passed here (plus 5 s). A stamp from the future (a bad
+    /// clock, a forged frame) would otherwise skew the offset and make the next true
+    /// stamp look like a reboot; callers drop such messages.
+    pub fn plausible(&self, stamp: f64, arrival: f64) -> bool {
+        match (self.last_stamp, self.last_arrival) {
+            (Some(last), Some(at)) => stamp <= last + (arrival - at).max(0.0) + FUTURE_JUMP_S,
+            _ => true,
+        }
     }
 
     /// A telemetry stamp (autopilot seconds since boot) that arrived at local time
@@ -64,10 +81,14 @@ impl ClockSync {
             self.stamps.clear();
             self.syncs.clear();
         }
-        self.last_stamp = Some(match self.last_stamp {
+        let newest = match self.last_stamp {
             Some(last) if !rebooted => last.max(stamp),
             _ => stamp,
-        });
+        };
+        if Some(newest) != self.last_stamp {
+            self.last_arrival = Some(arrival);
+        }
+        self.last_stamp = Some(newest);
         let d = arrival - stamp;
         // Keep the lower envelope only: a sample above a later, smaller one can never be
         // the minimum again.
@@ -532,6 +553,10 @@ mod tests {
         let mut c = ClockSync::new();
         assert!(!c.observe_stamp(500.0, 1000.0));
         assert!(c.observe_stamp(0.5, 1001.0));
+        // A stamp from the future is not plausible; the next true one is no reboot.
+        assert!(c.plausible(1.5, 1002.0) && c.plausible(6.0, 1002.0) && !c.plausible(7.0, 1002.0));
+        assert!(!c.plausible(5000.0, 1002.0));
+        assert!(!c.observe_stamp(1.5, 1002.0));
         assert!((c.offset().0.unwrap() - 1000.5).abs() < 1e-9);
     }
 

@@ -46,6 +46,9 @@ use crate::link::transport::{self, LinkEvent};
 use crate::link::LinkAddress;
 use crate::settings::{CameraSource, PipelineKind, Settings};
 
+/// A pose stamped further ahead of mavloc's clock than this is not believed.
+const MAX_POSE_LEAD_S: f64 = 0.5;
+
 /// A frame whose telemetry has not arrived yet waits at most this long.
 const MAX_ALIGN_WAIT_S: f64 = 0.5;
 
@@ -62,8 +65,8 @@ struct Live {
     /// Frames dropped before the worker: no pose, too old, or no pipeline running.
     dropped_before: u64,
     last_align_error: Option<String>,
-    /// Newest vehicle sample handed to the sim camera (autopilot time).
-    fed_pose_t: f64,
+    /// Newest vehicle sample handed to the sim camera (mavloc's clock, seconds).
+    fed_pose_local: f64,
     next_drop_log: Mono,
     dropped_logged: u64,
 }
@@ -88,7 +91,7 @@ impl Live {
             worker_rx,
             dropped_before: 0,
             last_align_error: None,
-            fed_pose_t: f64::NEG_INFINITY,
+            fed_pose_local: f64::NEG_INFINITY,
             next_drop_log: Mono::ZERO + Duration::from_secs(10),
             dropped_logged: 0,
         }
@@ -517,16 +520,19 @@ async fn serve(
     Ok(())
 }
 
-/// Hands the sim camera the newest pose the telemetry gives.
+/// Hands the sim camera the newest pose the telemetry gives. Compared on mavloc's own
+/// clock, not the autopilot's: an autopilot reboot restarts its clock (the camera must
+/// not wait for it to pass the old one), and a stamp from the future (a bad clock, a
+/// spoofed frame) is not taken, so it cannot hold back every true pose after it.
 fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
     let now = now.secs();
     let Some((t, _)) = core.aligner().vehicle.newest() else { return };
-    if t <= live.fed_pose_t {
+    let Some(local) = core.aligner().clock.to_local(t) else { return };
+    if local <= live.fed_pose_local || local > now + MAX_POSE_LEAD_S {
         return;
     }
-    let Some(local) = core.aligner().clock.to_local(t) else { return };
     if let Ok(p) = core.aligner().align(local, now) {
-        live.fed_pose_t = t;
+        live.fed_pose_local = local;
         *live.ctx.latest_pose.lock().expect("pose") = Some((local, p.camera));
     }
 }
@@ -672,6 +678,8 @@ mod shell_tests {
         outgoing: mpsc::Receiver<Outgoing>,
         stop: Option<tokio::sync::oneshot::Sender<()>>,
         task: tokio::task::JoinHandle<anyhow::Result<()>>,
+        /// What the shell hands the sim camera: (mavloc time, camera pose).
+        latest_pose: Arc<Mutex<Option<(f64, crate::geometry::CameraPose)>>>,
         _dir: tempfile::TempDir,
     }
 
@@ -692,6 +700,7 @@ mod shell_tests {
             stop: Arc::new(AtomicBool::new(false)),
             credits: None,
         };
+        let latest_pose = ctx.latest_pose.clone();
         let mut settings = Settings::default();
         settings.daemon.pipeline = PipelineKind::None;
         let live = Live::new(dir.path().join("results"), ctx, camera_rx, None);
@@ -712,7 +721,7 @@ mod shell_tests {
             })
             .await
         });
-        Harness { events: ev_tx, outgoing: out_rx, stop: Some(stop_tx), task, _dir: dir }
+        Harness { events: ev_tx, outgoing: out_rx, stop: Some(stop_tx), task, latest_pose, _dir: dir }
     }
 
     impl Harness {
@@ -754,6 +763,52 @@ mod shell_tests {
             let gap = (w[1] - w[0]).as_secs_f64();
             assert!((0.999..=1.001).contains(&gap), "gap {gap}");
         }
+        h.stop().await;
+    }
+
+    /// Telemetry at 20 Hz from the autopilot's boot clock `boot_ms`, for `ms`.
+    async fn fly(h: &mut Harness, boot_ms: &mut u32, ms: u32) {
+        for _ in 0..ms / 50 {
+            *boot_ms += 50;
+            let t = *boot_ms;
+            h.send(1, 1, MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: t, ..Default::default() })).await;
+            let p = LOCAL_POSITION_NED_DATA { time_boot_ms: t, z: -10.0, ..Default::default() };
+            h.send(1, 1, MavMessage::LOCAL_POSITION_NED(p)).await;
+            h.collect(Duration::from_millis(50)).await;
+        }
+    }
+
+    fn pose_time(h: &Harness) -> f64 {
+        h.latest_pose.lock().unwrap().map(|(t, _)| t).unwrap_or(f64::NEG_INFINITY)
+    }
+
+    /// The sim camera renders from the newest pose the shell hands it; after an autopilot
+    /// reboot (its clock restarts) and after a stamp from the future, it keeps getting new
+    /// ones.
+    #[tokio::test(start_paused = true)]
+    async fn the_sim_camera_keeps_its_poses_through_a_reboot_and_a_future_stamp() {
+        let mut h = start();
+        let mut boot_ms = 600_000;
+        fly(&mut h, &mut boot_ms, 2000).await;
+        let before = pose_time(&h);
+        assert!(before > 1.5, "poses fed: {before}");
+        // The autopilot reboots: its clock starts again near zero.
+        boot_ms = 0;
+        fly(&mut h, &mut boot_ms, 2000).await;
+        let after_reboot = pose_time(&h);
+        assert!(after_reboot > before + 1.5, "fed after the reboot: {before} -> {after_reboot}");
+        // One stamp an hour ahead, then true ones again.
+        let future = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            time_boot_ms: boot_ms + 3_600_000,
+            ..Default::default()
+        });
+        h.send(1, 1, future).await;
+        fly(&mut h, &mut boot_ms, 2000).await;
+        let after_future = pose_time(&h);
+        assert!(
+            after_future > after_reboot + 1.5,
+            "fed after the future stamp: {after_reboot} -> {after_future}"
+        );
         h.stop().await;
     }
 

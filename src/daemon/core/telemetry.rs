@@ -29,6 +29,8 @@ pub fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
 
 pub struct Telemetry {
     pub aligner: Aligner,
+    /// Messages dropped for a stamp from the future (see `ClockSync::plausible`).
+    pub implausible: u64,
     latest_attitude: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
     pub home: Option<HOME_POSITION_DATA>,
     pub global: Option<GLOBAL_POSITION_INT_DATA>,
@@ -43,6 +45,7 @@ impl Telemetry {
         let (ap, mount, offsets) = align_params(s);
         Telemetry {
             aligner: Aligner::new(ap, mount, offsets),
+            implausible: 0,
             latest_attitude: None,
             home: None,
             global: None,
@@ -78,6 +81,18 @@ impl Telemetry {
     /// A message from the autopilot's system; `component` says whether it came from the
     /// flight controller itself (component 1).
     pub fn on_message(&mut self, rx: Mono, m: &MavMessage, flight_controller: bool) -> Option<Rebooted> {
+        let stamp_ms = match m {
+            MavMessage::ATTITUDE(a) => Some(a.time_boot_ms),
+            MavMessage::LOCAL_POSITION_NED(p) => Some(p.time_boot_ms),
+            MavMessage::GLOBAL_POSITION_INT(g) => Some(g.time_boot_ms),
+            _ => None,
+        };
+        if let Some(ms) = stamp_ms.filter(|_| flight_controller) {
+            if !self.aligner.clock.plausible(ms as f64 * 1e-3, rx.secs()) {
+                self.implausible += 1;
+                return None;
+            }
+        }
         match m {
             MavMessage::ATTITUDE(a) if flight_controller => {
                 let stamp = a.time_boot_ms as f64 * 1e-3;

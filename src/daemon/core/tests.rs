@@ -537,3 +537,26 @@ fn a_foreign_flood_of_parameter_requests_and_sets_costs_counters_not_the_link() 
     let tuned = param_table::find("AREA_RATIO").map(|(_, d)| param_table::value_of(sim.core.settings(), d));
     assert_ne!(tuned, Some(0.9_f32 as f64), "the foreign set changed nothing");
 }
+
+#[test]
+fn a_stamp_from_the_future_is_no_reboot_and_moves_nothing() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(10));
+    let offset = sim.core.aligner().clock.offset().0.unwrap();
+    // One forged (or corrupt) ATTITUDE, stamped an hour ahead.
+    sim.deliver(frame(
+        1,
+        1,
+        MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: 3_600_000, ..Default::default() }),
+    ));
+    sim.run_until(secs(20));
+    assert_eq!(sim.core.counters().autopilot_reboots, 0);
+    assert!(!sim.statustexts().concat().contains("rebooted"));
+    let now = sim.core.aligner().clock.offset().0.unwrap();
+    assert!((now - offset).abs() < 0.05, "offset {offset} -> {now}");
+    // A true reboot is still seen.
+    sim.ap.reboot(sim.now);
+    sim.run_for(Duration::from_secs(5));
+    assert_eq!(sim.core.counters().autopilot_reboots, 1);
+}
