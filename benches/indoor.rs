@@ -3,7 +3,7 @@
 //! histograms, k-NN (brute force against a kiddo k-d tree at 500 and 50 000 training
 //! samples), systematic resampling against the seed's resampling wheel, the particle
 //! filter step, and the whole per-frame loop of the target (400-sample histogram,
-//! k-NN over 1000 samples, 100 particles). Frames come from the indoor-floor scenario.
+//! k-NN over 1000 samples, 100 and 500 particles). Frames come from the indoor-floor scenario.
 
 use std::hint::black_box;
 use std::num::NonZero;
@@ -158,13 +158,18 @@ fn stages(c: &mut Criterion) {
 
     let mut g = c.benchmark_group("indoor_frame");
     let m = model(dict.clone(), 1000);
-    for (name, motion) in [("velocity", MotionModel::Velocity), ("noise", MotionModel::Noise)] {
+    // The seed's 100 particles against the default 500, in the same run.
+    for (name, motion, particles) in [
+        ("velocity_100", MotionModel::Velocity, 100),
+        ("velocity_500", MotionModel::Velocity, 500),
+        ("noise_100", MotionModel::Noise, 100),
+    ] {
         let params =
-            LocalizerParams { k: 5, particles: 100, samples: 400, motion, velocity_sigma_m_s: 0.1, seed: 1 };
+            LocalizerParams { k: 5, particles, samples: 400, motion, velocity_sigma_m_s: 0.1, seed: 1 };
         let mut loc = Localizer::new(&m, params).unwrap();
         let mut t = 0.0;
         let v = nalgebra::Vector2::new(0.3, -0.1);
-        g.bench_function(BenchmarkId::new("loop_400_samples_knn_1000_100_particles", name), |b| {
+        g.bench_function(BenchmarkId::new("loop_400_samples_knn_1000", name), |b| {
             b.iter(|| {
                 t += 1.0 / 15.0;
                 loc.step(t, black_box(&canvases[2]), Some(v)).position
