@@ -152,6 +152,8 @@ pub fn origin(s: &Settings) -> Option<Geodetic> {
         CameraSource::Dataset => {
             mavloc_data::Dataset::open(std::path::Path::new(&s.camera.path)).ok().map(|d| d.camera.origin)
         }
+        // The simulated world's origin, which the simulated vehicle's home matches.
+        CameraSource::Sim => sim::origin(s),
         _ => None,
     }
 }

@@ -96,6 +96,11 @@ pub fn perturb(
     CameraPose { position: pose.position - dp, attitude }
 }
 
+/// The WGS84 origin of the configured scenario's world.
+pub fn origin(s: &Settings) -> Option<crate::geometry::Geodetic> {
+    Scenario::load(&s.camera.scenario).ok().map(|sc| sc.origin)
+}
+
 /// The seed of the sim camera's noise for a scenario (the live test replays it).
 pub fn noise_seed(scenario_seed: u64) -> u64 {
     scenario_seed ^ 0x00ca_3e7a

@@ -116,9 +116,9 @@ fn factory(kind: PipelineKind, results: PathBuf) -> Factory {
         let k = camera::intrinsics(s)?;
         match kind {
             PipelineKind::Area => {
-                let origin = camera::origin(s)
-                    .or_else(|| mavloc_sim::Scenario::load(&s.camera.scenario).ok().map(|sc| sc.origin))
-                    .unwrap_or(Geodetic::new(0.0, 0.0, 0.0));
+                // Until the autopilot's HOME_POSITION gives the real one (each frame
+                // carries it then), the camera's own origin, if it has one.
+                let origin = camera::origin(s).unwrap_or(Geodetic::new(0.0, 0.0, 0.0));
                 Ok(Box::new(live::AreaLive::new(s, k, origin, results.join("area"))?))
             }
             PipelineKind::Indoor => Ok(Box::new(live::IndoorLive::new(s, k, results.join("indoor"))?)),

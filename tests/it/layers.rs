@@ -122,8 +122,7 @@ const SIM_FACING: &[&str] = &[
     "src/demo.rs",
     "src/simulated/",
     "src/camera/sim.rs",
-    // The daemon takes the sim camera's scenario origin; the `sim` subcommands.
-    "src/daemon/mod.rs",
+    // The `sim` subcommands.
     "src/commands/sim.rs",
 ];
 
