@@ -14,6 +14,7 @@
 
 use mavlink::dialects::common::MavMessage;
 use mavlink::{MavHeader, MavlinkVersion};
+use mavloc::area::eval::AreaEvaluation;
 use mavloc::daemon::core::{Action, Core, Input, Mono, PipelineEvent, ShellStats, WorkerRequest};
 use mavloc::daemon::worker::{LiveFrame, LivePipeline, Report};
 use mavloc::link::codec::{Auth, Frame};
@@ -146,28 +147,39 @@ fn sets(s: &mut Settings, pairs: &[(&str, &str)]) {
     *s = mavloc::settings::load(&layers).unwrap().settings;
 }
 
-#[test]
-fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated_time() {
+/// A coastline flight with the area pipeline at the live test's frame size (480x270,
+/// band 13 px, no downscale) plus `extra` settings; `masks`: whether the camera gives
+/// the renderer's target masks. Returns the flight and its landmarks scored against the
+/// world's true shore.
+fn coastline_flight(extra: &[(&str, &str)], duration_s: f64, masks: bool) -> (Flight, AreaEvaluation) {
     let dir = tempfile::tempdir().unwrap();
     let mut s = Settings::default();
-    // The live test's settings (closed_loop.rs).
-    sets(
-        &mut s,
-        &[
-            ("camera.width", "480"),
-            ("camera.height", "270"),
-            ("area.downscale", "1"),
-            ("area.band_px", "13"),
-            ("gimbal.aim", "border"),
-        ],
-    );
+    let mut pairs = vec![
+        ("camera.width", "480"),
+        ("camera.height", "270"),
+        ("area.downscale", "1"),
+        ("area.band_px", "13"),
+    ];
+    pairs.extend_from_slice(extra);
+    sets(&mut s, &pairs);
     let results = dir.path().join("area");
-    let origin = Scenario::load(&s.camera.scenario).unwrap().origin;
     let out = results.clone();
-    let flight = fly(&s, 35.0, move |s| {
+    let flight = fly_with(&s, duration_s, masks, move |s| {
         let k = mavloc::camera::intrinsics(s).unwrap();
+        let origin = mavloc::camera::origin(s).unwrap();
         Box::new(mavloc::daemon::live::AreaLive::new(s, k, origin, out).unwrap())
     });
+    let text = std::fs::read_to_string(results.join("landmarks.csv")).unwrap();
+    let landmarks = mavloc::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap();
+    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
+    let e = mavloc::area::eval::evaluate(&landmarks, &world.ground_truth, &[], 6.0);
+    (flight, e)
+}
+
+#[test]
+fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated_time() {
+    // The live test's settings (closed_loop.rs).
+    let (flight, e) = coastline_flight(&[("gimbal.aim", "border")], 35.0, true);
     // mavloc aimed the gimbal: control taken once, setpoints at most 5 Hz.
     let commands = |cmd| {
         flight
@@ -182,10 +194,6 @@ fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated
     assert!(setpoints > 20 && setpoints <= 5 * 35 + 1, "{setpoints} setpoints");
     // Accuracy: the live test's bounds, on every frame of the flight.
     let files = flight.frames.len();
-    let text = std::fs::read_to_string(results.join("landmarks.csv")).unwrap();
-    let landmarks = mavloc::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap();
-    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
-    let e = mavloc::area::eval::evaluate(&landmarks, &world.ground_truth, &[], 6.0);
     println!(
         "coastline, simulated time: {files} frames, {} landmarks, mean {:.2} m, max {:.2} m",
         e.landmarks, e.mean_m, e.max_m
@@ -250,25 +258,7 @@ fn indoor_flight_lands_in_the_zone_with_estimates_within_0_2_m_median_in_simulat
 /// the shore all the same.
 #[test]
 fn live_area_segments_frames_from_a_camera_without_masks() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut s = Settings::default();
-    sets(
-        &mut s,
-        &[
-            ("camera.width", "480"),
-            ("camera.height", "270"),
-            ("area.downscale", "1"),
-            ("area.band_px", "13"),
-            ("area.segmenter", "water"),
-        ],
-    );
-    let results = dir.path().join("area");
-    let origin = Scenario::load(&s.camera.scenario).unwrap().origin;
-    let out = results.clone();
-    let flight = fly_with(&s, 20.0, false, move |s| {
-        let k = mavloc::camera::intrinsics(s).unwrap();
-        Box::new(mavloc::daemon::live::AreaLive::new(s, k, origin, out).unwrap())
-    });
+    let (flight, e) = coastline_flight(&[("area.segmenter", "water")], 20.0, false);
     let events: Vec<&String> = flight.frames.iter().flat_map(|(_, r, _)| &r.events).collect();
     assert!(!events.iter().any(|e| e.contains("no target mask")), "{events:?}");
     let features: f32 = flight
@@ -277,10 +267,6 @@ fn live_area_segments_frames_from_a_camera_without_masks() {
         .flat_map(|(_, r, _)| r.counters.iter().filter(|c| c.0 == "LMK_FEAT").map(|c| c.1))
         .sum();
     assert!(features > 0.0, "SIFT features found in the segmented band");
-    let text = std::fs::read_to_string(results.join("landmarks.csv")).unwrap();
-    let landmarks = mavloc::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap();
-    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
-    let e = mavloc::area::eval::evaluate(&landmarks, &world.ground_truth, &[], 6.0);
     println!(
         "coastline without masks (water segmenter): {} landmarks, mean {:.2} m, max {:.2} m",
         e.landmarks, e.mean_m, e.max_m
