@@ -41,6 +41,7 @@ use crate::align::AlignError;
 use crate::camera::{self, CameraEvent, Captured, Credits, SourceContext};
 use crate::geometry::Geodetic;
 use crate::link::params::ParamStore;
+use crate::link::peers::Trust;
 use crate::link::signing::{self, Signer};
 use crate::link::transport::{self, LinkEvent};
 use crate::link::LinkAddress;
@@ -155,6 +156,9 @@ struct Status<'a> {
     frames_in: u64,
     frames_out: u64,
     dropped_out: u64,
+    /// Peers disconnected for not reading or falling silent; peers turned away (full).
+    peers_dropped: u64,
+    peers_refused: u64,
     skipped: SkippedJson,
     clock_source: String,
     clock_offset_s: Option<f64>,
@@ -401,7 +405,13 @@ pub async fn run(
     // 4. Link.
     let address = LinkAddress::parse(&settings.mavlink.connection).map_err(anyhow::Error::msg)?;
     let (shutdown_tx, _) = broadcast::channel::<()>(4);
-    let link = transport::spawn(address.clone(), signer, shutdown_tx.subscribe());
+    let trust = Trust {
+        autopilot_system_id: settings.mavlink.autopilot_system_id,
+        gcs_system_id: settings.mavlink.gcs_system_id,
+        signing: signer.is_some(),
+        accept_unsigned_telemetry: settings.mavlink.accept_unsigned_telemetry,
+    };
+    let link = transport::spawn(address.clone(), trust, signer, shutdown_tx.subscribe());
     tracing::info!(
         "mavloc {} starting: link {address}, component {}, pipeline {:?}, signing {}, state in {}",
         env!("CARGO_PKG_VERSION"),
@@ -645,6 +655,8 @@ fn write_status(
         frames_in: link.stats.frames_in.load(Relaxed),
         frames_out: link.stats.frames_out.load(Relaxed),
         dropped_out: link.stats.dropped_out.load(Relaxed),
+        peers_dropped: link.stats.peers_dropped.load(Relaxed),
+        peers_refused: link.stats.peers_refused.load(Relaxed),
         skipped: SkippedJson {
             garbage_bytes: s.garbage_bytes,
             bad_crc: s.bad_crc,

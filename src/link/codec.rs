@@ -59,6 +59,17 @@ pub struct SkipCounts {
 }
 
 impl SkipCounts {
+    /// Adds another decoder's counts (a link has one decoder per connection).
+    pub fn add(&mut self, o: &SkipCounts) {
+        self.garbage_bytes += o.garbage_bytes;
+        self.bad_crc += o.bad_crc;
+        self.unknown_id += o.unknown_id;
+        self.unparseable += o.unparseable;
+        self.truncated += o.truncated;
+        self.unsupported_flags += o.unsupported_flags;
+        self.bad_signature += o.bad_signature;
+    }
+
     pub fn total_frames(&self) -> u64 {
         self.bad_crc
             + self.unknown_id

@@ -2,6 +2,14 @@
 //! file, signing what mavloc sends, verifying what it receives with replay protection,
 //! and a timestamp that never goes backwards across restarts.
 //!
+//! Replay protection outlives a restart: the spec keeps the last timestamp of each
+//! (link, system, component) stream in memory only, so a frame captured shortly before a
+//! restart would verify again after it (a new stream is accepted within a minute of our
+//! clock). The state file therefore holds our own timestamp *and* every stream's last
+//! one; it is saved every [`SAVE_INTERVAL_S`], at shutdown, and at once after a signed
+//! frame that changes mavloc (a command or a parameter set), so even a crash right after
+//! one cannot let it be replayed.
+//!
 //! The `mavlink` crate computes the SHA-256/48 signature; the policy (which messages need a
 //! signature) lives in the daemon, so verification here answers per frame.
 
@@ -33,12 +41,55 @@ pub struct Signer {
     timestamp: u64,
     streams: HashMap<(u8, u8, u8), u64>,
     state_file: Option<PathBuf>,
-    saved: u64,
+    /// Something to save since the last save.
+    dirty: bool,
+}
+
+/// Message ids whose replay would change mavloc: saved at once when accepted.
+const COMMANDING: [u32; 3] = [
+    23, // PARAM_SET
+    75, // COMMAND_INT
+    76, // COMMAND_LONG
+];
+
+/// The state file: our timestamp on the first line, then one stream per line as
+/// `link system component timestamp`. Unparseable stream lines are skipped (each is one
+/// stream's memory, not a reason to refuse to start).
+fn parse_state(text: &str) -> Option<(u64, HashMap<(u8, u8, u8), u64>)> {
+    let mut lines = text.lines();
+    let ts = lines.next()?.trim().parse::<u64>().ok()?;
+    let mut streams = HashMap::new();
+    for l in lines {
+        let f: Vec<u64> = l.split_whitespace().filter_map(|v| v.parse().ok()).collect();
+        if let [link, sys, comp, t] = f[..] {
+            if let (Ok(a), Ok(b), Ok(c)) = (u8::try_from(link), u8::try_from(sys), u8::try_from(comp)) {
+                streams.insert((a, b, c), t);
+            }
+        }
+    }
+    Some((ts, streams))
 }
 
 fn now_units() -> u64 {
     let unix = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
     (unix.as_micros() as u64 / 10).saturating_sub(EPOCH_2015_UNIX_S * 100_000)
+}
+
+/// Renames an unreadable state file to `NAME.corrupt-UNIXSECONDS`, with a warning.
+fn move_aside(p: &Path) {
+    let secs = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_secs();
+    let aside = p.with_file_name(format!(
+        "{}.corrupt-{secs}",
+        p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+    ));
+    match std::fs::rename(p, &aside) {
+        Ok(()) => tracing::warn!(
+            "signing state {} does not parse; moved aside to {}; starting with none",
+            p.display(),
+            aside.display()
+        ),
+        Err(e) => tracing::warn!("signing state {} does not parse and cannot be moved aside: {e}", p.display()),
+    }
 }
 
 /// Reads a key file: 64 hexadecimal characters (surrounding whitespace allowed), the form
@@ -83,15 +134,21 @@ pub fn parse_key(hex: &str) -> Result<[u8; 32], String> {
 
 impl Signer {
     /// A signer whose outgoing timestamp starts after anything saved in `state_file`.
+    /// A state file that does not parse is moved aside (named in a warning): starting
+    /// matters more, and the spec's one-minute window still guards new streams.
     pub fn new(key: [u8; 32], link_id: u8, state_file: Option<PathBuf>) -> Signer {
-        let stored = state_file
-            .as_deref()
-            .and_then(|p| std::fs::read_to_string(p).ok())
-            .and_then(|t| t.trim().parse::<u64>().ok())
-            .map(|t| t + SAVE_INTERVAL_S * 100_000)
-            .unwrap_or(0);
+        let (stored, streams) = match state_file.as_deref().map(|p| (p, std::fs::read_to_string(p))) {
+            Some((p, Ok(text))) => match parse_state(&text) {
+                Some((t, streams)) => (t + SAVE_INTERVAL_S * 100_000, streams),
+                None => {
+                    move_aside(p);
+                    (0, HashMap::new())
+                }
+            },
+            _ => (0, HashMap::new()),
+        };
         let timestamp = stored.max(now_units());
-        let mut s = Signer { key, link_id, timestamp, streams: HashMap::new(), state_file, saved: 0 };
+        let mut s = Signer { key, link_id, timestamp, streams, state_file, dirty: true };
         s.save();
         s
     }
@@ -101,22 +158,32 @@ impl Signer {
         self.timestamp
     }
 
-    /// Saves the timestamp (write, then rename) if it moved since the last save.
+    /// Saves the timestamps (write, then rename) if anything moved since the last save.
     pub fn save(&mut self) {
-        if self.saved == self.timestamp {
+        if !self.dirty {
             return;
         }
         if let Some(p) = &self.state_file {
-            match mavloc_data::write_atomic(p, format!("{}\n", self.timestamp).as_bytes()) {
-                Ok(()) => self.saved = self.timestamp,
-                Err(e) => tracing::warn!("cannot save the signing timestamp to {}: {e}", p.display()),
+            use std::fmt::Write;
+            let mut text = format!("{}\n", self.timestamp);
+            let mut streams: Vec<_> = self.streams.iter().collect();
+            streams.sort();
+            for ((link, sys, comp), t) in streams {
+                let _ = writeln!(text, "{link} {sys} {comp} {t}");
             }
+            match mavloc_data::write_atomic(p, text.as_bytes()) {
+                Ok(()) => self.dirty = false,
+                Err(e) => tracing::warn!("cannot save the signing state to {}: {e}", p.display()),
+            }
+        } else {
+            self.dirty = false;
         }
     }
 
     /// Signs a frame serialised with the signed flag set.
     pub fn sign(&mut self, raw: &mut MAVLinkV2MessageRaw) {
         self.timestamp = (self.timestamp + 1).max(now_units());
+        self.dirty = true;
         *raw.signature_link_id_mut() = self.link_id;
         raw.signature_timestamp_bytes_mut().copy_from_slice(&self.timestamp.to_le_bytes()[..6]);
         let mut sig = [0u8; 6];
@@ -145,6 +212,10 @@ impl Signer {
             _ => {}
         }
         self.streams.insert(stream, ts);
+        self.dirty = true;
+        if COMMANDING.contains(&raw.message_id()) {
+            self.save();
+        }
         Verdict::Valid
     }
 }
@@ -194,6 +265,56 @@ mod tests {
         assert!(s.timestamp() > future);
         let saved: u64 = std::fs::read_to_string(&file).unwrap().trim().parse().unwrap();
         assert_eq!(saved, s.timestamp());
+    }
+
+    #[test]
+    fn a_frame_accepted_before_a_restart_is_a_replay_after_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("signing-timestamp");
+        let key = [5u8; 32];
+        let mut gcs = Signer::new(key, 2, None);
+        let set = MavMessage::PARAM_SET(mavlink::dialects::common::PARAM_SET_DATA {
+            target_system: 1,
+            target_component: 191,
+            param_id: "IND_LAND_EN".into(),
+            param_value: 1.0,
+            param_type: mavlink::dialects::common::MavParamType::MAV_PARAM_TYPE_REAL32,
+        });
+        let captured = Encoder::new().encode(255, 190, &set, Some(&mut gcs));
+        let verify = |s: &mut Signer| {
+            let mut d = Decoder::new();
+            d.push(&captured);
+            d.next_frame(Some(s)).map(|f| f.auth)
+        };
+        {
+            let mut before = Signer::new(key, 0, Some(file.clone()));
+            assert_eq!(verify(&mut before), Some(Auth::Signed));
+            // No save() and no drop here: a crash right after the command.
+            std::mem::forget(before);
+        }
+        let mut after = Signer::new(key, 0, Some(file.clone()));
+        assert_eq!(verify(&mut after), None, "the captured frame replayed after a restart");
+        // The stream itself goes on.
+        let next = Encoder::new().encode(255, 190, &set, Some(&mut gcs));
+        let mut d = Decoder::new();
+        d.push(&next);
+        assert_eq!(d.next_frame(Some(&mut after)).map(|f| f.auth), Some(Auth::Signed));
+    }
+
+    #[test]
+    fn a_corrupt_state_file_is_moved_aside_and_signing_starts() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("signing-timestamp");
+        std::fs::write(&file, "not a number\n").unwrap();
+        let s = Signer::new([1; 32], 0, Some(file.clone()));
+        assert!(s.timestamp() > 0);
+        let aside: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("signing-timestamp.corrupt-"))
+            .collect();
+        assert_eq!(aside.len(), 1);
+        assert!(file.exists(), "a fresh state file is written");
     }
 
     #[test]

@@ -1,11 +1,25 @@
 //! The link task: opens the configured transport, keeps it open (reconnecting with
 //! backoff), turns bytes into checked frames and outgoing messages into bytes.
 //!
-//! It logs one line per state change, never one per retry. While the link is down,
-//! outgoing messages are dropped and counted: MAVLink is a stream of current state, and
-//! a queue of stale heartbeats helps nobody.
+//! No peer can make it wait. Each stream connection (serial, TCP) has its own reader and
+//! writer task; the writer takes bytes from a bounded queue, and the link only ever
+//! *offers* to that queue: a peer that stops reading loses messages (counted), and one
+//! whose write does not complete within [`WRITE_STALL`] is disconnected. UDP sends never
+//! wait either (a full socket buffer drops the datagram, counted). So heartbeats keep
+//! going to everyone else whatever one peer does.
+//!
+//! Listening links (`udpin`, `tcpin`) talk only to peers a checked frame vouched for
+//! ([`super::peers`]): no datagram or client can take the autopilot's place. `tcpin`
+//! takes up to [`MAX_PEERS`] clients at once and drops one that sends no vouching frame
+//! for [`PEER_EXPIRY`].
+//!
+//! It logs one line per state change, never one per retry or per datagram. While the
+//! link is down, outgoing messages are dropped and counted: MAVLink is a stream of
+//! current state, and a queue of stale heartbeats helps nobody.
 
+use std::collections::HashMap;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -13,8 +27,11 @@ use mavlink::dialects::common::MavMessage;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream, UdpSocket};
 use tokio::sync::{broadcast, mpsc};
+use tokio::task::JoinHandle;
+use tokio::time::Instant;
 
 use super::codec::{Decoder, Encoder, Frame, SkipCounts};
+use super::peers::{Heard, Peers, Trust, MAX_PEERS, PEER_EXPIRY};
 use super::signing::{Signer, SAVE_INTERVAL_S};
 use super::LinkAddress;
 
@@ -31,21 +48,25 @@ pub struct Outgoing {
 pub enum LinkEvent {
     /// A checked frame and when the reader took it off the wire, so queueing delay
     /// cannot bend time alignment or TIMESYNC.
-    Frame { rx: tokio::time::Instant, frame: Box<Frame> },
-    /// The transport is open (for `udpin`: bound; answers go to whoever spoke last).
+    Frame { rx: Instant, frame: Box<Frame> },
+    /// The transport is open (for listening links: bound, talking to vouched peers).
     Up(String),
     /// The transport closed or failed; the link is retrying.
     Down(String),
 }
 
-/// Counters shared with the daemon (for logs and NAMED_VALUE_FLOAT).
+/// Counters shared with the daemon (for logs, `status.json` and NAMED_VALUE_FLOAT).
 #[derive(Default)]
 pub struct LinkStats {
     pub skipped: Mutex<SkipCounts>,
-    pub frames_in: std::sync::atomic::AtomicU64,
-    pub frames_out: std::sync::atomic::AtomicU64,
-    /// Outgoing messages dropped because the link was down or had no peer yet.
-    pub dropped_out: std::sync::atomic::AtomicU64,
+    pub frames_in: AtomicU64,
+    pub frames_out: AtomicU64,
+    /// Outgoing messages dropped: link down, no peer yet, or a peer's queue full.
+    pub dropped_out: AtomicU64,
+    /// Peers disconnected because they stopped reading (write stalled) or fell silent.
+    pub peers_dropped: AtomicU64,
+    /// Would-be peers turned away because the table was full.
+    pub peers_refused: AtomicU64,
 }
 
 /// The daemon's side of a running link.
@@ -53,230 +74,658 @@ pub struct LinkHandle {
     pub outgoing: mpsc::Sender<Outgoing>,
     pub events: mpsc::Receiver<LinkEvent>,
     pub stats: Arc<LinkStats>,
-    pub task: tokio::task::JoinHandle<()>,
+    pub task: JoinHandle<()>,
 }
 
-/// Starts the link task. It runs until `shutdown` fires, then saves the signing
-/// timestamp and returns.
-pub fn spawn(address: LinkAddress, signer: Option<Signer>, shutdown: broadcast::Receiver<()>) -> LinkHandle {
+/// Starts the link task. It runs until `shutdown` fires, then saves the signing state
+/// and returns.
+pub fn spawn(
+    address: LinkAddress,
+    trust: Trust,
+    signer: Option<Signer>,
+    shutdown: broadcast::Receiver<()>,
+) -> LinkHandle {
+    spawn_with_expiry(address, trust, signer, shutdown, PEER_EXPIRY)
+}
+
+/// [`spawn`] with another peer expiry (tests use a short one on real sockets).
+fn spawn_with_expiry(
+    address: LinkAddress,
+    trust: Trust,
+    signer: Option<Signer>,
+    shutdown: broadcast::Receiver<()>,
+    expiry: Duration,
+) -> LinkHandle {
     let (out_tx, out_rx) = mpsc::channel(256);
     let (ev_tx, ev_rx) = mpsc::channel(1024);
     let stats = Arc::new(LinkStats::default());
-    let task = tokio::spawn(run(address, signer, out_rx, ev_tx, stats.clone(), shutdown));
+    let link = Link {
+        address,
+        trust,
+        decoder: Decoder::new(),
+        encoder: Encoder::new(),
+        signer,
+        stats: stats.clone(),
+        events: ev_tx,
+        expiry,
+    };
+    let task = tokio::spawn(link.run(out_rx, shutdown));
     LinkHandle { outgoing: out_tx, events: ev_rx, stats, task }
 }
 
 const BACKOFF_MIN: Duration = Duration::from_millis(250);
 const BACKOFF_MAX: Duration = Duration::from_secs(5);
+/// A write that has not completed in this long means the peer stopped reading.
+pub const WRITE_STALL: Duration = Duration::from_secs(2);
+/// Frames waiting for one stream peer's writer; beyond it they are dropped.
+const PEER_QUEUE: usize = 128;
 
 trait Stream: AsyncRead + AsyncWrite + Unpin + Send {}
 impl<T: AsyncRead + AsyncWrite + Unpin + Send> Stream for T {}
 
-enum Conn {
-    Udp { socket: UdpSocket, peer: Option<SocketAddr>, follow_sender: bool },
-    Stream(Box<dyn Stream>),
+/// What a stream connection's tasks tell the link.
+enum Wire {
+    Bytes(u64, Vec<u8>),
+    /// Closed, and why; `stalled`: the peer stopped reading.
+    Closed { id: u64, reason: String, stalled: bool },
 }
 
-struct Session {
+/// One stream connection: its decoder, its writer's queue, its two tasks.
+struct Conn {
+    what: String,
+    decoder: Decoder,
+    queue: mpsc::Sender<Arc<[u8]>>,
+    /// Last vouching frame (listening links send only to vouched clients).
+    vouched: Option<Instant>,
+    opened: Instant,
+    tasks: [JoinHandle<()>; 2],
+}
+
+impl Drop for Conn {
+    fn drop(&mut self) {
+        for t in &self.tasks {
+            t.abort();
+        }
+    }
+}
+
+fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender<Wire>) -> Conn {
+    let (mut rd, mut wr) = tokio::io::split(stream);
+    let (queue, mut rx) = mpsc::channel::<Arc<[u8]>>(PEER_QUEUE);
+    let w = wire.clone();
+    let reader = tokio::spawn(async move {
+        let mut buf = vec![0u8; 16384];
+        let reason = loop {
+            match rd.read(&mut buf).await {
+                Ok(0) => break "closed by the peer".to_string(),
+                Ok(n) => {
+                    if w.send(Wire::Bytes(id, buf[..n].to_vec())).await.is_err() {
+                        return;
+                    }
+                }
+                Err(e) => break e.to_string(),
+            }
+        };
+        let _ = w.send(Wire::Closed { id, reason, stalled: false }).await;
+    });
+    let writer = tokio::spawn(async move {
+        while let Some(bytes) = rx.recv().await {
+            let (reason, stalled) = match tokio::time::timeout(WRITE_STALL, wr.write_all(&bytes)).await {
+                Ok(Ok(())) => continue,
+                Ok(Err(e)) => (e.to_string(), false),
+                Err(_) => (format!("stopped reading (a write waited {WRITE_STALL:?})"), true),
+            };
+            let _ = wire.send(Wire::Closed { id, reason, stalled }).await;
+            return;
+        }
+    });
+    Conn { what, decoder: Decoder::new(), queue, vouched: None, opened: Instant::now(), tasks: [reader, writer] }
+}
+
+/// An open transport.
+enum Endpoint {
+    /// `udpin` (peers learnt from vouching frames) or `udpout` (one fixed peer).
+    Udp { socket: UdpSocket, fixed: Option<SocketAddr>, peers: Peers },
+    /// Serial or `tcpout`: one connection; the link is down when it closes.
+    Single,
+    /// `tcpin`: clients come and go; the link is up while the listener is.
+    Listener(TcpListener),
+}
+
+struct Link {
+    address: LinkAddress,
+    trust: Trust,
+    /// For datagrams (one per datagram, so a frame cut short ends with it).
     decoder: Decoder,
     encoder: Encoder,
     signer: Option<Signer>,
     stats: Arc<LinkStats>,
     events: mpsc::Sender<LinkEvent>,
+    /// A `tcpin` client with no vouching frame for this long is dropped.
+    expiry: Duration,
 }
 
-impl Session {
-    /// Forwards decoded frames; false when the daemon has gone. `datagram`: the bytes
-    /// pushed are a whole datagram, so a frame cut short ends there.
-    async fn drain(&mut self, datagram: bool) -> bool {
-        loop {
-            let signer = self.signer.as_mut();
-            let f = if datagram {
-                self.decoder.next_in_datagram(signer)
-            } else {
-                self.decoder.next_frame(signer)
+/// Why serving an endpoint ended.
+enum End {
+    Down(String),
+    Shutdown,
+}
+
+impl Link {
+    async fn open(&self) -> std::io::Result<(Endpoint, Option<Box<dyn Stream>>, String)> {
+        match &self.address {
+            LinkAddress::UdpIn { host, port } => {
+                let socket = UdpSocket::bind((host.as_str(), *port)).await?;
+                let e = Endpoint::Udp { socket, fixed: None, peers: Peers::default() };
+                Ok((e, None, format!("listening on udp {host}:{port}")))
+            }
+            LinkAddress::UdpOut { host, port } => {
+                let peer = tokio::net::lookup_host((host.as_str(), *port))
+                    .await?
+                    .next()
+                    .ok_or_else(|| std::io::Error::other(format!("{host} resolves to no address")))?;
+                let local: SocketAddr =
+                    if peer.is_ipv4() { "0.0.0.0:0".parse().unwrap() } else { "[::]:0".parse().unwrap() };
+                let socket = UdpSocket::bind(local).await?;
+                let e = Endpoint::Udp { socket, fixed: Some(peer), peers: Peers::default() };
+                Ok((e, None, format!("sending to udp {peer}")))
+            }
+            LinkAddress::TcpOut { host, port } => {
+                let s = TcpStream::connect((host.as_str(), *port)).await?;
+                tune(&s)?;
+                Ok((Endpoint::Single, Some(Box::new(s)), format!("connected to tcp {host}:{port}")))
+            }
+            LinkAddress::TcpIn { host, port } => {
+                let l = TcpListener::bind((host.as_str(), *port)).await?;
+                Ok((Endpoint::Listener(l), None, format!("listening on tcp {host}:{port}")))
+            }
+            LinkAddress::Serial { device, baud } => {
+                use tokio_serial::SerialPortBuilderExt;
+                let s = tokio_serial::new(device, *baud).open_native_async().map_err(std::io::Error::other)?;
+                Ok((Endpoint::Single, Some(Box::new(s)), format!("serial {device} at {baud} baud")))
+            }
+        }
+    }
+
+    async fn run(mut self, mut outgoing: mpsc::Receiver<Outgoing>, mut shutdown: broadcast::Receiver<()>) {
+        let mut backoff = BACKOFF_MIN;
+        let mut last_error: Option<String> = None;
+        'outer: loop {
+            let opened = tokio::select! {
+                r = self.open() => r,
+                _ = shutdown.recv() => break 'outer,
             };
-            let Some(f) = f else { break };
-            let rx = tokio::time::Instant::now();
-            self.stats.frames_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            if self.events.send(LinkEvent::Frame { rx, frame: Box::new(f) }).await.is_err() {
+            let (endpoint, stream, what) = match opened {
+                Ok(c) => c,
+                Err(e) => {
+                    let msg = format!("{}: {e}", self.address);
+                    if last_error.as_deref() != Some(&msg) {
+                        tracing::warn!("link down: {msg}; retrying with backoff up to {BACKOFF_MAX:?}");
+                        let _ = self.events.send(LinkEvent::Down(msg.clone())).await;
+                        last_error = Some(msg);
+                    }
+                    // Drop what the daemon wants to send meanwhile, and keep waiting.
+                    let sleep = tokio::time::sleep(backoff);
+                    tokio::pin!(sleep);
+                    loop {
+                        tokio::select! {
+                            _ = &mut sleep => break,
+                            o = outgoing.recv() => match o {
+                                Some(_) => { self.stats.dropped_out.fetch_add(1, Relaxed); }
+                                None => break 'outer,
+                            },
+                            _ = shutdown.recv() => break 'outer,
+                        }
+                    }
+                    backoff = (backoff * 2).min(BACKOFF_MAX);
+                    continue;
+                }
+            };
+            if last_error.take().is_some() || backoff > BACKOFF_MIN {
+                tracing::info!("link up again: {what}");
+            } else {
+                tracing::info!("link up: {what}");
+            }
+            backoff = BACKOFF_MIN;
+            if self.events.send(LinkEvent::Up(what.clone())).await.is_err() {
+                break;
+            }
+            match self.serve(endpoint, stream, what, &mut outgoing, &mut shutdown).await {
+                End::Shutdown => break 'outer,
+                End::Down(reason) => {
+                    tracing::warn!("link down: {reason}; reconnecting");
+                    if self.events.send(LinkEvent::Down(reason.clone())).await.is_err() {
+                        break;
+                    }
+                    last_error = Some(reason);
+                    tokio::time::sleep(BACKOFF_MIN).await;
+                }
+            }
+        }
+        if let Some(s) = self.signer.as_mut() {
+            s.save();
+        }
+    }
+
+    /// Serves one open endpoint until it fails or shutdown.
+    async fn serve(
+        &mut self,
+        mut endpoint: Endpoint,
+        stream: Option<Box<dyn Stream>>,
+        what: String,
+        outgoing: &mut mpsc::Receiver<Outgoing>,
+        shutdown: &mut broadcast::Receiver<()>,
+    ) -> End {
+        let (wire_tx, mut wire_rx) = mpsc::channel::<Wire>(64);
+        let mut conns: HashMap<u64, Conn> = HashMap::new();
+        let mut next_id = 0u64;
+        if let Some(s) = stream {
+            conns.insert(next_id, start_conn(next_id, what.clone(), s, wire_tx.clone()));
+            next_id += 1;
+        }
+        let listening = matches!(endpoint, Endpoint::Listener(_) | Endpoint::Udp { fixed: None, .. });
+        let mut buf = vec![0u8; 65536];
+        let mut housekeeping = tokio::time::interval((self.expiry / 10).min(Duration::from_secs(1)));
+        let mut save_tick = tokio::time::interval(Duration::from_secs(SAVE_INTERVAL_S));
+        loop {
+            tokio::select! {
+                r = recv_datagram(&endpoint, &mut buf) => match r {
+                    Ok((n, from)) => {
+                        if !self.datagram(&mut endpoint, &buf[..n], from).await { return End::Shutdown; }
+                    }
+                    Err(e) => return End::Down(format!("{}: {e}", self.address)),
+                },
+                a = accept(&endpoint) => match a {
+                    Ok((s, peer)) => {
+                        if conns.len() >= MAX_PEERS {
+                            // Closing at once tells the client, and costs nothing.
+                            self.stats.peers_refused.fetch_add(1, Relaxed);
+                            drop(s);
+                            continue;
+                        }
+                        if let Err(e) = tune(&s) {
+                            tracing::info!("tcp client {peer}: {e}; not accepted");
+                            continue;
+                        }
+                        tracing::info!("tcp client {peer} connected");
+                        conns.insert(next_id, start_conn(next_id, format!("tcp client {peer}"), Box::new(s), wire_tx.clone()));
+                        next_id += 1;
+                    }
+                    Err(e) => return End::Down(format!("{}: {e}", self.address)),
+                },
+                w = wire_rx.recv() => match w {
+                    Some(Wire::Bytes(id, bytes)) => {
+                        if !self.stream_bytes(&mut conns, id, &bytes).await { return End::Shutdown; }
+                    }
+                    Some(Wire::Closed { id, reason, stalled }) => {
+                        if let Some(c) = conns.remove(&id) {
+                            if stalled {
+                                self.stats.peers_dropped.fetch_add(1, Relaxed);
+                            }
+                            if !listening {
+                                return End::Down(format!("{}: {reason}", self.address));
+                            }
+                            tracing::info!("{}: {reason}; disconnected", c.what);
+                        }
+                    }
+                    None => return End::Down(format!("{}: connection tasks ended", self.address)),
+                },
+                o = outgoing.recv() => match o {
+                    Some(o) => self.send(&endpoint, &conns, &o, listening),
+                    None => return End::Shutdown,
+                },
+                _ = housekeeping.tick() => {
+                    let now = Instant::now();
+                    if let Endpoint::Udp { peers, fixed: None, .. } = &mut endpoint {
+                        for gone in peers.expire(now) {
+                            tracing::info!("udp peer {gone} silent for {PEER_EXPIRY:?}; no longer sent to");
+                        }
+                    }
+                    if matches!(endpoint, Endpoint::Listener(_)) {
+                        let idle: Vec<u64> = conns
+                            .iter()
+                            .filter(|(_, c)| now.saturating_duration_since(c.vouched.unwrap_or(c.opened)) >= self.expiry)
+                            .map(|(&id, _)| id)
+                            .collect();
+                        for id in idle {
+                            if let Some(c) = conns.remove(&id) {
+                                self.stats.peers_dropped.fetch_add(1, Relaxed);
+                                tracing::info!("{}: no frame from the autopilot or ground station for {:?}; disconnected", c.what, self.expiry);
+                            }
+                        }
+                    }
+                },
+                _ = save_tick.tick() => if let Some(s) = self.signer.as_mut() { s.save() },
+                _ = shutdown.recv() => return End::Shutdown,
+            }
+        }
+    }
+
+    /// Decodes one datagram; on `udpin`, a vouching frame makes its sender a peer.
+    /// False when the daemon has gone.
+    async fn datagram(&mut self, endpoint: &mut Endpoint, bytes: &[u8], from: SocketAddr) -> bool {
+        self.decoder.push(bytes);
+        loop {
+            let Some(f) = self.decoder.next_in_datagram(self.signer.as_mut()) else { break };
+            let rx = Instant::now();
+            if let Endpoint::Udp { peers, fixed: None, .. } = endpoint {
+                if self.trust.vouches(&f) {
+                    match peers.heard(from, rx) {
+                        Heard::Added => tracing::info!(
+                            "udp peer {from} (system {}) added; {} peer(s)",
+                            f.header.system_id,
+                            peers.len()
+                        ),
+                        Heard::Full => {
+                            self.stats.peers_refused.fetch_add(1, Relaxed);
+                        }
+                        Heard::Known => {}
+                    }
+                }
+            }
+            if !self.forward(rx, f).await {
                 return false;
             }
         }
-        *self.stats.skipped.lock().expect("stats lock") = self.decoder.skipped;
+        let counts = std::mem::take(&mut self.decoder.skipped);
+        self.stats.skipped.lock().expect("stats lock").add(&counts);
         true
     }
 
-    fn encode(&mut self, o: &Outgoing) -> Vec<u8> {
-        self.encoder.encode(o.system_id, o.component_id, &o.message, self.signer.as_mut())
-    }
-}
-
-async fn open(address: &LinkAddress, listener: &mut Option<TcpListener>) -> std::io::Result<(Conn, String)> {
-    match address {
-        LinkAddress::UdpIn { host, port } => {
-            let socket = UdpSocket::bind((host.as_str(), *port)).await?;
-            Ok((
-                Conn::Udp { socket, peer: None, follow_sender: true },
-                format!("listening on udp {host}:{port}"),
-            ))
-        }
-        LinkAddress::UdpOut { host, port } => {
-            let peer = tokio::net::lookup_host((host.as_str(), *port))
-                .await?
-                .next()
-                .ok_or_else(|| std::io::Error::other(format!("{host} resolves to no address")))?;
-            let local: SocketAddr =
-                if peer.is_ipv4() { "0.0.0.0:0".parse().unwrap() } else { "[::]:0".parse().unwrap() };
-            let socket = UdpSocket::bind(local).await?;
-            Ok((
-                Conn::Udp { socket, peer: Some(peer), follow_sender: false },
-                format!("sending to udp {peer}"),
-            ))
-        }
-        LinkAddress::TcpOut { host, port } => {
-            let s = TcpStream::connect((host.as_str(), *port)).await?;
-            s.set_nodelay(true)?;
-            Ok((Conn::Stream(Box::new(s)), format!("connected to tcp {host}:{port}")))
-        }
-        LinkAddress::TcpIn { host, port } => {
-            if listener.is_none() {
-                *listener = Some(TcpListener::bind((host.as_str(), *port)).await?);
+    /// Decodes bytes from a stream connection. False when the daemon has gone.
+    async fn stream_bytes(&mut self, conns: &mut HashMap<u64, Conn>, id: u64, bytes: &[u8]) -> bool {
+        let Some(c) = conns.get_mut(&id) else { return true };
+        c.decoder.push(bytes);
+        let mut frames = Vec::new();
+        while let Some(f) = c.decoder.next_frame(self.signer.as_mut()) {
+            if self.trust.vouches(&f) {
+                c.vouched = Some(Instant::now());
             }
-            let (s, peer) = listener.as_ref().expect("bound").accept().await?;
-            s.set_nodelay(true)?;
-            Ok((Conn::Stream(Box::new(s)), format!("tcp client {peer} on {host}:{port}")))
+            frames.push(f);
         }
-        LinkAddress::Serial { device, baud } => {
-            use tokio_serial::SerialPortBuilderExt;
-            let s = tokio_serial::new(device, *baud).open_native_async().map_err(std::io::Error::other)?;
-            Ok((Conn::Stream(Box::new(s)), format!("serial {device} at {baud} baud")))
+        let counts = std::mem::take(&mut c.decoder.skipped);
+        self.stats.skipped.lock().expect("stats lock").add(&counts);
+        for f in frames {
+            if !self.forward(Instant::now(), f).await {
+                return false;
+            }
         }
+        true
     }
-}
 
-async fn run(
-    address: LinkAddress,
-    signer: Option<Signer>,
-    mut outgoing: mpsc::Receiver<Outgoing>,
-    events: mpsc::Sender<LinkEvent>,
-    stats: Arc<LinkStats>,
-    mut shutdown: broadcast::Receiver<()>,
-) {
-    use std::sync::atomic::Ordering::Relaxed;
-    let mut session =
-        Session { decoder: Decoder::new(), encoder: Encoder::new(), signer, stats: stats.clone(), events };
-    let mut backoff = BACKOFF_MIN;
-    let mut listener = None;
-    let mut last_error: Option<String> = None;
-    let mut save_tick = tokio::time::interval(Duration::from_secs(SAVE_INTERVAL_S));
-    'outer: loop {
-        let opened = tokio::select! {
-            r = open(&address, &mut listener) => r,
-            _ = shutdown.recv() => break 'outer,
-        };
-        let (mut conn, what) = match opened {
-            Ok(c) => c,
-            Err(e) => {
-                let msg = format!("{address}: {e}");
-                if last_error.as_deref() != Some(&msg) {
-                    tracing::warn!("link down: {msg}; retrying with backoff up to {BACKOFF_MAX:?}");
-                    let _ = session.events.send(LinkEvent::Down(msg.clone())).await;
-                    last_error = Some(msg);
-                }
-                // Drop what the daemon wants to send meanwhile, and keep waiting.
-                let sleep = tokio::time::sleep(backoff);
-                tokio::pin!(sleep);
-                loop {
-                    tokio::select! {
-                        _ = &mut sleep => break,
-                        o = outgoing.recv() => match o {
-                            Some(_) => { stats.dropped_out.fetch_add(1, Relaxed); }
-                            None => break 'outer,
-                        },
-                        _ = shutdown.recv() => break 'outer,
+    async fn forward(&mut self, rx: Instant, f: Frame) -> bool {
+        self.stats.frames_in.fetch_add(1, Relaxed);
+        self.events.send(LinkEvent::Frame { rx, frame: Box::new(f) }).await.is_ok()
+    }
+
+    /// Encodes once, offers to every peer; never waits.
+    fn send(&mut self, endpoint: &Endpoint, conns: &HashMap<u64, Conn>, o: &Outgoing, listening: bool) {
+        let bytes = self.encoder.encode(o.system_id, o.component_id, &o.message, self.signer.as_mut());
+        let mut sent = false;
+        match endpoint {
+            Endpoint::Udp { socket, fixed, peers } => {
+                let targets: Vec<SocketAddr> = match fixed {
+                    Some(p) => vec![*p],
+                    None => peers.addresses().collect(),
+                };
+                for p in targets {
+                    match socket.try_send_to(&bytes, p) {
+                        Ok(_) => sent = true,
+                        Err(_) => {
+                            self.stats.dropped_out.fetch_add(1, Relaxed);
+                        }
                     }
                 }
-                backoff = (backoff * 2).min(BACKOFF_MAX);
-                continue;
             }
-        };
-        if last_error.take().is_some() || backoff > BACKOFF_MIN {
-            tracing::info!("link up again: {what}");
-        } else {
-            tracing::info!("link up: {what}");
-        }
-        backoff = BACKOFF_MIN;
-        if session.events.send(LinkEvent::Up(what)).await.is_err() {
-            break;
-        }
-        session.decoder.reset();
-        let mut buf = vec![0u8; 65536];
-        let reason: String = loop {
-            match &mut conn {
-                Conn::Udp { socket, peer, follow_sender } => tokio::select! {
-                    r = socket.recv_from(&mut buf) => match r {
-                        Ok((n, from)) => {
-                            if *follow_sender {
-                                *peer = Some(from);
-                            }
-                            session.decoder.push(&buf[..n]);
-                            if !session.drain(true).await { break 'outer; }
+            Endpoint::Single | Endpoint::Listener(_) => {
+                let shared: Arc<[u8]> = bytes.into();
+                for c in conns.values().filter(|c| !listening || c.vouched.is_some()) {
+                    match c.queue.try_send(shared.clone()) {
+                        Ok(()) => sent = true,
+                        Err(_) => {
+                            self.stats.dropped_out.fetch_add(1, Relaxed);
                         }
-                        // ICMP "port unreachable" from a peer that went away surfaces
-                        // here on Linux; the socket itself is fine.
-                        Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => {}
-                        Err(e) => break format!("{address}: {e}"),
-                    },
-                    o = outgoing.recv() => match o {
-                        Some(o) => match peer {
-                            Some(p) => {
-                                let bytes = session.encode(&o);
-                                match socket.send_to(&bytes, *p).await {
-                                    Ok(_) => { stats.frames_out.fetch_add(1, Relaxed); }
-                                    Err(_) => { stats.dropped_out.fetch_add(1, Relaxed); }
-                                }
-                            }
-                            None => { stats.dropped_out.fetch_add(1, Relaxed); }
-                        },
-                        None => break 'outer,
-                    },
-                    _ = save_tick.tick() => if let Some(s) = session.signer.as_mut() { s.save() },
-                    _ = shutdown.recv() => break 'outer,
-                },
-                Conn::Stream(s) => tokio::select! {
-                    r = s.read(&mut buf) => match r {
-                        Ok(0) => break format!("{address}: closed by the peer"),
-                        Ok(n) => {
-                            session.decoder.push(&buf[..n]);
-                            if !session.drain(false).await { break 'outer; }
-                        }
-                        Err(e) => break format!("{address}: {e}"),
-                    },
-                    o = outgoing.recv() => match o {
-                        Some(o) => {
-                            let bytes = session.encode(&o);
-                            if let Err(e) = s.write_all(&bytes).await {
-                                stats.dropped_out.fetch_add(1, Relaxed);
-                                break format!("{address}: {e}");
-                            }
-                            stats.frames_out.fetch_add(1, Relaxed);
-                        }
-                        None => break 'outer,
-                    },
-                    _ = save_tick.tick() => if let Some(s) = session.signer.as_mut() { s.save() },
-                    _ = shutdown.recv() => break 'outer,
-                },
+                    }
+                }
             }
-        };
-        tracing::warn!("link down: {reason}; reconnecting");
-        if session.events.send(LinkEvent::Down(reason.clone())).await.is_err() {
-            break;
         }
-        last_error = Some(reason);
-        tokio::time::sleep(BACKOFF_MIN).await;
+        if sent {
+            self.stats.frames_out.fetch_add(1, Relaxed);
+        } else if listening && !matches!(endpoint, Endpoint::Udp { fixed: Some(_), .. }) {
+            // Nobody to send to yet (no vouched peer): dropped, counted.
+            self.stats.dropped_out.fetch_add(1, Relaxed);
+        }
     }
-    if let Some(s) = session.signer.as_mut() {
-        s.save();
+}
+
+/// No Nagle delay (telemetry is small and late is useless), and a small send buffer: a
+/// peer that stops reading is noticed within seconds, not after megabytes of kernel
+/// buffer, and nothing it was sent is minutes old.
+fn tune(s: &TcpStream) -> std::io::Result<()> {
+    s.set_nodelay(true)?;
+    socket2::SockRef::from(s).set_send_buffer_size(TCP_SEND_BUFFER)
+}
+
+/// Bytes the kernel may hold for one TCP peer: about a second of a busy link.
+const TCP_SEND_BUFFER: usize = 32 * 1024;
+
+async fn recv_datagram(endpoint: &Endpoint, buf: &mut [u8]) -> std::io::Result<(usize, SocketAddr)> {
+    match endpoint {
+        Endpoint::Udp { socket, .. } => loop {
+            match socket.recv_from(buf).await {
+                // ICMP "port unreachable" from a peer that went away surfaces here on
+                // Linux; the socket itself is fine.
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => continue,
+                r => return r,
+            }
+        },
+        _ => std::future::pending().await,
+    }
+}
+
+async fn accept(endpoint: &Endpoint) -> std::io::Result<(TcpStream, SocketAddr)> {
+    match endpoint {
+        Endpoint::Listener(l) => l.accept().await,
+        _ => std::future::pending().await,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The link on real loopback sockets: who gets mavloc's output, and that no peer
+    //! can make it wait.
+    use super::*;
+    use crate::link::codec::Encoder;
+    use mavlink::dialects::common::HEARTBEAT_DATA;
+
+    fn trust(signing: bool) -> Trust {
+        Trust { autopilot_system_id: 1, gcs_system_id: 255, signing, accept_unsigned_telemetry: false }
+    }
+
+    fn heartbeat(sys: u8, signer: Option<&mut Signer>) -> Vec<u8> {
+        Encoder::new().encode(sys, 1, &MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()), signer)
+    }
+
+    fn out() -> Outgoing {
+        Outgoing { system_id: 1, component_id: 191, message: MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()) }
+    }
+
+    fn free_port() -> u16 {
+        std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+    }
+
+    /// Waits for `n` frames from the link (skipping Up/Down).
+    async fn frames(h: &mut LinkHandle, n: usize) {
+        let mut got = 0;
+        while got < n {
+            match tokio::time::timeout(Duration::from_secs(5), h.events.recv()).await {
+                Ok(Some(LinkEvent::Frame { .. })) => got += 1,
+                Ok(Some(_)) => {}
+                other => panic!("link ended or timed out: {other:?}"),
+            }
+        }
+    }
+
+    async fn up(h: &mut LinkHandle) {
+        match tokio::time::timeout(Duration::from_secs(5), h.events.recv()).await {
+            Ok(Some(LinkEvent::Up(_))) => {}
+            other => panic!("expected the link up: {other:?}"),
+        }
+    }
+
+    /// Sends one heartbeat through the link and says who received it within 300 ms.
+    async fn who_hears(h: &LinkHandle, sockets: &[&UdpSocket]) -> Vec<bool> {
+        h.outgoing.send(out()).await.unwrap();
+        let mut heard = Vec::new();
+        for s in sockets {
+            let mut buf = [0u8; 512];
+            let r = tokio::time::timeout(Duration::from_millis(300), s.recv(&mut buf)).await;
+            heard.push(matches!(r, Ok(Ok(n)) if n > 0));
+        }
+        heard
+    }
+
+    #[tokio::test]
+    async fn udpin_output_is_not_hijacked_by_garbage_empty_or_foreign_datagrams() {
+        let port = free_port();
+        let (_stop, rx) = broadcast::channel(1);
+        let addr = LinkAddress::UdpIn { host: "127.0.0.1".into(), port };
+        let mut h = spawn(addr, trust(false), None, rx);
+        up(&mut h).await;
+        let autopilot = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let attacker = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        autopilot.connect(("127.0.0.1", port)).await.unwrap();
+        attacker.connect(("127.0.0.1", port)).await.unwrap();
+        autopilot.send(&heartbeat(1, None)).await.unwrap();
+        frames(&mut h, 1).await;
+        assert_eq!(who_hears(&h, &[&autopilot, &attacker]).await, vec![true, false]);
+        // The old rule (answer whoever spoke last) would send everything to the attacker.
+        attacker.send(&[]).await.unwrap();
+        attacker.send(b"\xfd\x09garbage that is not mavlink").await.unwrap();
+        attacker.send(&heartbeat(42, None)).await.unwrap();
+        frames(&mut h, 1).await; // the foreign heartbeat is a valid frame: the daemon sees it
+        assert_eq!(who_hears(&h, &[&autopilot, &attacker]).await, vec![true, false]);
+        assert_eq!(h.stats.skipped.lock().unwrap().garbage_bytes > 0, true);
+    }
+
+    #[tokio::test]
+    async fn with_signing_only_signed_frames_make_a_peer() {
+        let key = [9u8; 32];
+        let port = free_port();
+        let (_stop, rx) = broadcast::channel(1);
+        let addr = LinkAddress::UdpIn { host: "127.0.0.1".into(), port };
+        let mut h = spawn(addr, trust(true), Some(Signer::new(key, 0, None)), rx);
+        up(&mut h).await;
+        let spoofer = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let gcs = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        spoofer.connect(("127.0.0.1", port)).await.unwrap();
+        gcs.connect(("127.0.0.1", port)).await.unwrap();
+        // An unsigned frame claiming to be the autopilot makes nobody a peer.
+        spoofer.send(&heartbeat(1, None)).await.unwrap();
+        frames(&mut h, 1).await;
+        assert_eq!(who_hears(&h, &[&spoofer, &gcs]).await, vec![false, false]);
+        let mut their = Signer::new(key, 3, None);
+        gcs.send(&heartbeat(255, Some(&mut their))).await.unwrap();
+        frames(&mut h, 1).await;
+        assert_eq!(who_hears(&h, &[&spoofer, &gcs]).await, vec![false, true]);
+    }
+
+    /// Reads frames from a TCP client until one arrives or `limit` passes.
+    async fn hears_tcp(s: &mut TcpStream, limit: Duration) -> bool {
+        let mut buf = [0u8; 4096];
+        matches!(tokio::time::timeout(limit, s.read(&mut buf)).await, Ok(Ok(n)) if n > 0)
+    }
+
+    #[tokio::test]
+    async fn a_tcp_client_that_stops_reading_is_dropped_and_the_others_keep_hearing() {
+        let port = free_port();
+        let (_stop, rx) = broadcast::channel(1);
+        let addr = LinkAddress::TcpIn { host: "127.0.0.1".into(), port };
+        let mut h = spawn(addr, trust(false), None, rx);
+        up(&mut h).await;
+        // The stuck client: a tiny receive buffer it never reads.
+        let sock = tokio::net::TcpSocket::new_v4().unwrap();
+        sock.set_recv_buffer_size(4096).unwrap();
+        let mut stuck = sock.connect(SocketAddr::from(([127, 0, 0, 1], port))).await.unwrap();
+        let mut good = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        stuck.write_all(&heartbeat(255, None)).await.unwrap();
+        good.write_all(&heartbeat(1, None)).await.unwrap();
+        frames(&mut h, 2).await;
+        // Far more than both sockets' buffers hold: the link must never wait on `stuck`.
+        let big = MavMessage::STATUSTEXT(mavlink::dialects::common::STATUSTEXT_DATA {
+            text: [b'x'; 50].into(),
+            ..Default::default()
+        });
+        let reader = tokio::spawn(async move {
+            let mut total = 0usize;
+            let mut buf = vec![0u8; 65536];
+            while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_secs(4), good.read(&mut buf)).await {
+                if n == 0 {
+                    break;
+                }
+                total += n;
+            }
+            total
+        });
+        for _ in 0..20_000 {
+            let m = Outgoing { system_id: 1, component_id: 191, message: big.clone() };
+            // The daemon's own rule: offer, never wait.
+            if h.outgoing.try_send(m).is_err() {
+                tokio::task::yield_now().await;
+            }
+        }
+        let deadline = Instant::now() + Duration::from_secs(8);
+        while h.stats.peers_dropped.load(Relaxed) == 0 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        assert_eq!(h.stats.peers_dropped.load(Relaxed), 1, "the stuck client is disconnected");
+        let received = reader.await.unwrap();
+        assert!(received > 500_000, "the reading client kept hearing: {received} bytes");
+        // The stuck client finds its connection closed once it reads again.
+        let mut buf = vec![0u8; 1 << 20];
+        let mut closed = false;
+        while let Ok(Ok(n)) = tokio::time::timeout(Duration::from_secs(2), stuck.read(&mut buf)).await {
+            if n == 0 {
+                closed = true;
+                break;
+            }
+        }
+        assert!(closed, "the stuck client was closed");
+    }
+
+    #[tokio::test]
+    async fn tcpin_serves_several_clients_and_drops_a_silent_one() {
+        let port = free_port();
+        let (_stop, rx) = broadcast::channel(1);
+        let addr = LinkAddress::TcpIn { host: "127.0.0.1".into(), port };
+        let expiry = Duration::from_millis(1000);
+        let mut h = spawn_with_expiry(addr, trust(false), None, rx, expiry);
+        up(&mut h).await;
+        let mut a = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        let mut b = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        let mut silent = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        a.write_all(&heartbeat(1, None)).await.unwrap();
+        b.write_all(&heartbeat(255, None)).await.unwrap();
+        frames(&mut h, 2).await;
+        h.outgoing.send(out()).await.unwrap();
+        assert!(hears_tcp(&mut a, Duration::from_secs(1)).await);
+        assert!(hears_tcp(&mut b, Duration::from_secs(1)).await);
+        // The silent client hears nothing and, after PEER_EXPIRY, is closed. The others
+        // keep their place by vouching (a heartbeat a second, like PX4 and QGC).
+        for _ in 0..15 {
+            a.write_all(&heartbeat(1, None)).await.unwrap();
+            b.write_all(&heartbeat(255, None)).await.unwrap();
+            tokio::time::sleep(expiry / 8).await;
+        }
+        let mut buf = [0u8; 64];
+        let r = tokio::time::timeout(Duration::from_secs(1), silent.read(&mut buf)).await;
+        assert!(matches!(r, Ok(Ok(0))), "the silent client was closed: {r:?}");
+        assert_eq!(h.stats.peers_dropped.load(Relaxed), 1);
+        // Drain what a and b were sent, then check they still hear.
+        while hears_tcp(&mut a, Duration::from_millis(50)).await {}
+        while hears_tcp(&mut b, Duration::from_millis(50)).await {}
+        h.outgoing.send(out()).await.unwrap();
+        assert!(hears_tcp(&mut a, Duration::from_secs(1)).await);
+        assert!(hears_tcp(&mut b, Duration::from_secs(1)).await);
     }
 }
