@@ -1,5 +1,7 @@
 //! `mavloc run`: the daemon ([`crate::daemon::run`]) on a tokio runtime, until SIGTERM or
-//! SIGINT.
+//! SIGINT. Exit codes: 0 after a clean stop; 78 (EX_CONFIG) when the configuration cannot
+//! run (bad file or key, unusable state directory: a restart would fail the same way, so
+//! the unit lists it in `RestartPreventExitStatus=`); 1 for anything else.
 
 use std::process::ExitCode;
 
@@ -11,14 +13,20 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     if let Some(address) = args.mavlink {
         global.overrides.push(format!("mavlink.connection={address}"));
     }
-    let loaded = global.load()?;
+    let loaded = match global.load() {
+        Ok(l) => l,
+        Err(e) => {
+            eprintln!("mavloc: {e:#}");
+            return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
+        }
+    };
     crate::logging::init(&loaded.settings.daemon.log);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .thread_name("mavloc-io")
         .build()?;
-    runtime.block_on(async {
+    let result = runtime.block_on(async {
         use tokio::signal::unix::{signal, SignalKind};
         let mut term = signal(SignalKind::terminate())?;
         let mut int = signal(SignalKind::interrupt())?;
@@ -29,7 +37,15 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
             }
         };
         crate::daemon::run(loaded.settings, shutdown).await
-    })?;
+    });
+    if let Err(e) = &result {
+        if e.downcast_ref::<crate::daemon::Unusable>().is_some() {
+            tracing::error!("{e:#}");
+            eprintln!("mavloc: {e:#}");
+            return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
+        }
+    }
+    result?;
     // The link task may still hold a socket read; do not wait for it.
     runtime.shutdown_timeout(std::time::Duration::from_millis(200));
     Ok(ExitCode::SUCCESS)

@@ -29,7 +29,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use anyhow::Context;
 use tokio::sync::broadcast;
 
 use self::core::{
@@ -46,6 +45,20 @@ use crate::link::signing::{self, Signer};
 use crate::link::transport::{self, LinkEvent};
 use crate::link::LinkAddress;
 use crate::settings::{CameraSource, PipelineKind, Settings};
+
+/// A configuration the daemon cannot run with (state directory unusable, signing key
+/// unreadable, bad link address): restarting will not help, so `mavloc run` exits with
+/// [`EXIT_UNUSABLE`], which the unit's `RestartPreventExitStatus=` lists.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct Unusable(pub String);
+
+/// sysexits' EX_CONFIG: "configuration error".
+pub const EXIT_UNUSABLE: u8 = 78;
+
+fn unusable(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::Error::new(Unusable(e.to_string()))
+}
 
 /// A pose stamped further ahead of mavloc's clock than this is not believed.
 const MAX_POSE_LEAD_S: f64 = 0.5;
@@ -365,10 +378,14 @@ pub async fn run(
     // 1. State directory.
     let dir = state_dir(&settings);
     std::fs::create_dir_all(&dir)
-        .with_context(|| format!("cannot create the state directory {}", dir.display()))?;
+        .map_err(|e| unusable(format!("cannot create the state directory {}: {e}", dir.display())))?;
     let probe = dir.join(".mavloc-write-test");
-    std::fs::write(&probe, b"")
-        .with_context(|| format!("state directory {} is not writable", dir.display()))?;
+    std::fs::write(&probe, b"").map_err(|e| {
+        unusable(format!(
+            "state directory {} is not writable ({e}); set daemon.state_dir or fix its owner and mode",
+            dir.display()
+        ))
+    })?;
     let _ = std::fs::remove_file(&probe);
 
     // 2. Tuned parameters.
@@ -386,24 +403,23 @@ pub async fn run(
             // service's dynamic user: no ownership or mode check applies.
             Some(name) => {
                 let dir = std::env::var("CREDENTIALS_DIRECTORY").map_err(|_| {
-                    anyhow::anyhow!("mavlink.signing_key = credential:{name}, but $CREDENTIALS_DIRECTORY is unset (not started by systemd with LoadCredential=)")
+                    unusable(format!("mavlink.signing_key = credential:{name}, but $CREDENTIALS_DIRECTORY is unset (not started by systemd with LoadCredential=)"))
                 })?;
                 let path = Path::new(&dir).join(name);
                 let text = std::fs::read_to_string(&path)
-                    .with_context(|| format!("signing key credential {}", path.display()))?;
+                    .map_err(|e| unusable(format!("signing key credential {}: {e}", path.display())))?;
                 signing::parse_key(text.trim())
-                    .map_err(|e| anyhow::anyhow!("signing key credential {}: {e}", path.display()))?
+                    .map_err(|e| unusable(format!("signing key credential {}: {e}", path.display())))?
             }
-            None => {
-                signing::load_key(Path::new(&settings.mavlink.signing_key)).map_err(anyhow::Error::msg)?
-            }
+            None => signing::load_key(Path::new(&settings.mavlink.signing_key)).map_err(unusable)?,
         };
         Some(Signer::new(key, 0, Some(dir.join("signing-timestamp"))))
     };
     let signing = signer.is_some();
 
     // 4. Link.
-    let address = LinkAddress::parse(&settings.mavlink.connection).map_err(anyhow::Error::msg)?;
+    let address = LinkAddress::parse(&settings.mavlink.connection)
+        .map_err(|e| unusable(format!("mavlink.connection: {e}")))?;
     let (shutdown_tx, _) = broadcast::channel::<()>(4);
     let trust = Trust {
         autopilot_system_id: settings.mavlink.autopilot_system_id,
@@ -753,6 +769,7 @@ mod shell_tests {
                 header: MavHeader { system_id: sys as u32, component_id: comp, sequence: 0 },
                 message,
                 auth: Auth::Unsigned,
+                unknown_command: None,
             };
             let ev = LinkEvent::Frame { rx: tokio::time::Instant::now(), frame: Box::new(frame) };
             self.events.send(ev).await.unwrap();

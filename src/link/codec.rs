@@ -37,6 +37,30 @@ pub struct Frame {
     pub header: MavHeader,
     pub message: MavMessage,
     pub auth: Auth,
+    /// A COMMAND_LONG or COMMAND_INT whose command id the dialect does not define: the id.
+    /// `message` then carries [`PLACEHOLDER_COMMAND`] in its place (the crate's typed
+    /// enum cannot hold the id) and must not be acted on, only answered UNSUPPORTED.
+    pub unknown_command: Option<u16>,
+}
+
+/// Stands in for a command id the dialect does not define (see [`Frame::unknown_command`]).
+pub const PLACEHOLDER_COMMAND: u16 = 16; // MAV_CMD_NAV_WAYPOINT
+
+/// COMMAND_INT (75) and COMMAND_LONG (76) both carry the command id at payload byte 28.
+const COMMAND_ID_AT: usize = 28;
+
+/// Parses a command whose id the dialect does not know: the id, and the message with
+/// [`PLACEHOLDER_COMMAND`] in its place. `None` for anything else that fails to parse.
+fn parse_unknown_command(version: MavlinkVersion, id: u32, payload: &[u8]) -> Option<(MavMessage, u16)> {
+    if id != 75 && id != 76 {
+        return None;
+    }
+    // MAVLink 2 drops trailing zero bytes; put them back so the id is there to read.
+    let mut p = payload.to_vec();
+    p.resize(p.len().max(COMMAND_ID_AT + 2), 0);
+    let command = u16::from_le_bytes([p[COMMAND_ID_AT], p[COMMAND_ID_AT + 1]]);
+    p[COMMAND_ID_AT..COMMAND_ID_AT + 2].copy_from_slice(&PLACEHOLDER_COMMAND.to_le_bytes());
+    MavMessage::parse(version, id, &p).ok().map(|m| (m, command))
 }
 
 /// What the decoder skipped, by reason. Counted, never fatal.
@@ -193,9 +217,19 @@ impl Decoder {
                 return Scan::Skip(1);
             }
             let header = MavHeader { system_id: b[3] as u32, component_id: b[4], sequence: b[2] };
-            return match MavMessage::parse(MavlinkVersion::V1, id, &b[6..6 + len]) {
-                Ok(message) => Scan::Frame(
-                    Box::new(Frame { version: MavlinkVersion::V1, header, message, auth: Auth::Unsigned }),
+            let payload = &b[6..6 + len];
+            let parsed = MavMessage::parse(MavlinkVersion::V1, id, payload)
+                .map(|m| (m, None))
+                .or_else(|e| parse_unknown_command(MavlinkVersion::V1, id, payload).map(|(m, c)| (m, Some(c))).ok_or(e));
+            return match parsed {
+                Ok((message, unknown_command)) => Scan::Frame(
+                    Box::new(Frame {
+                        version: MavlinkVersion::V1,
+                        header,
+                        message,
+                        auth: Auth::Unsigned,
+                        unknown_command,
+                    }),
                     n,
                 ),
                 Err(_) => {
@@ -247,10 +281,15 @@ impl Decoder {
             Auth::Unsigned
         };
         let header = MavHeader { system_id: b[5] as u32, component_id: b[6], sequence: b[4] };
-        match MavMessage::parse(MavlinkVersion::V2, id, &b[10..10 + len]) {
-            Ok(message) => {
-                Scan::Frame(Box::new(Frame { version: MavlinkVersion::V2, header, message, auth }), n)
-            }
+        let payload = &b[10..10 + len];
+        let parsed = MavMessage::parse(MavlinkVersion::V2, id, payload)
+            .map(|m| (m, None))
+            .or_else(|e| parse_unknown_command(MavlinkVersion::V2, id, payload).map(|(m, c)| (m, Some(c))).ok_or(e));
+        match parsed {
+            Ok((message, unknown_command)) => Scan::Frame(
+                Box::new(Frame { version: MavlinkVersion::V2, header, message, auth, unknown_command }),
+                n,
+            ),
             Err(_) => {
                 self.skipped.unparseable += 1;
                 Scan::Skip(n)
@@ -288,15 +327,39 @@ impl Encoder {
         message: &MavMessage,
         signer: Option<&mut Signer>,
     ) -> Vec<u8> {
+        self.encode_with_command(system_id, component_id, message, None, signer)
+    }
+
+    /// As [`Encoder::encode`]; `command`: for a COMMAND_ACK of an id the dialect does not
+    /// define, that id, written over the placeholder the typed message carries.
+    pub fn encode_with_command(
+        &mut self,
+        system_id: u8,
+        component_id: u8,
+        message: &MavMessage,
+        command: Option<u16>,
+        signer: Option<&mut Signer>,
+    ) -> Vec<u8> {
         let header = MavHeader { system_id: system_id as u32, component_id, sequence: self.sequence };
         self.sequence = self.sequence.wrapping_add(1);
         let mut raw = MAVLinkV2MessageRaw::new();
-        match signer {
-            None => raw.serialize_message(header, message),
-            Some(s) => {
-                raw.serialize_message_for_signing(header, message);
-                s.sign(&mut raw);
-            }
+        if signer.is_some() {
+            raw.serialize_message_for_signing(header, message);
+        } else {
+            raw.serialize_message(header, message);
+        }
+        if let (Some(id), MavMessage::COMMAND_ACK(_)) = (command, message) {
+            // COMMAND_ACK's payload starts with the command id (u16) then the result; a
+            // result is never 0 here (ACCEPTED is 0 but unknown ids are UNSUPPORTED), so
+            // MAVLink 2's trailing-zero truncation cannot have cut the id.
+            let b = raw.as_mut_slice();
+            let len = b[1] as usize;
+            b[10..12].copy_from_slice(&id.to_le_bytes());
+            let crc = mavlink::calculate_crc(&b[1..10 + len], MavMessage::extra_crc(77));
+            b[10 + len..12 + len].copy_from_slice(&crc.to_le_bytes());
+        }
+        if let Some(s) = signer {
+            s.sign(&mut raw);
         }
         raw.raw_bytes().to_vec()
     }
@@ -480,5 +543,42 @@ mod tests {
                 prop_assert!(got.contains(&m));
             }
         }
+    }
+
+    #[test]
+    fn a_command_with_an_id_the_dialect_lacks_is_decoded_and_its_ack_carries_the_id() {
+        use mavlink::dialects::common::{MavCmd, COMMAND_LONG_DATA};
+        let placeholder = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+            param1: 1.0,
+            target_system: 1,
+            target_component: 191,
+            ..Default::default()
+        });
+        // The same frame as a peer would send with command id 42424.
+        let mut b = Encoder::new().encode(255, 190, &placeholder, None);
+        let len = b[1] as usize;
+        b[10 + 28..10 + 30].copy_from_slice(&42424u16.to_le_bytes());
+        let crc = mavlink::calculate_crc(&b[1..10 + len], MavMessage::extra_crc(76));
+        b[10 + len..12 + len].copy_from_slice(&crc.to_le_bytes());
+        let mut d = Decoder::new();
+        d.push(&b);
+        let f = d.next_frame(None).expect("decoded, not skipped");
+        assert_eq!(f.unknown_command, Some(42424));
+        assert_eq!(d.skipped.unparseable, 0);
+        // A known id decodes as itself.
+        d.push(&Encoder::new().encode(255, 190, &placeholder, None));
+        assert_eq!(d.next_frame(None).unwrap().unknown_command, None);
+        // The ACK goes out with 42424 in its command field and a valid checksum.
+        let ack = MavMessage::COMMAND_ACK(mavlink::dialects::common::COMMAND_ACK_DATA {
+            command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+            result: mavlink::dialects::common::MavResult::MAV_RESULT_UNSUPPORTED,
+            ..Default::default()
+        });
+        let out = Encoder::new().encode_with_command(1, 191, &ack, Some(42424), None);
+        assert_eq!(u16::from_le_bytes([out[10], out[11]]), 42424);
+        let n = out.len();
+        let crc = mavlink::calculate_crc(&out[1..n - 2], MavMessage::extra_crc(77));
+        assert_eq!(u16::from_le_bytes([out[n - 2], out[n - 1]]), crc);
     }
 }

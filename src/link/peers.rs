@@ -116,6 +116,7 @@ mod tests {
             header: MavHeader { system_id: sys, component_id: 1, sequence: 0 },
             message: MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()),
             auth,
+            unknown_command: None,
         }
     }
 

@@ -41,6 +41,9 @@ pub struct Outgoing {
     pub system_id: u8,
     pub component_id: u8,
     pub message: MavMessage,
+    /// A COMMAND_ACK's command id when the dialect does not define it (see
+    /// [`super::codec::Frame::unknown_command`]).
+    pub unknown_command: Option<u16>,
 }
 
 /// What the link tells the daemon.
@@ -460,7 +463,13 @@ impl Link {
 
     /// Encodes once, offers to every peer; never waits.
     fn send(&mut self, endpoint: &Endpoint, conns: &HashMap<u64, Conn>, o: &Outgoing, listening: bool) {
-        let bytes = self.encoder.encode(o.system_id, o.component_id, &o.message, self.signer.as_mut());
+        let bytes = self.encoder.encode_with_command(
+            o.system_id,
+            o.component_id,
+            &o.message,
+            o.unknown_command,
+            self.signer.as_mut(),
+        );
         let mut sent = false;
         match endpoint {
             Endpoint::Udp { socket, fixed, peers } => {
@@ -547,7 +556,12 @@ mod tests {
     }
 
     fn out() -> Outgoing {
-        Outgoing { system_id: 1, component_id: 191, message: MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()) }
+        Outgoing {
+            system_id: 1,
+            component_id: 191,
+            message: MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()),
+            unknown_command: None,
+        }
     }
 
     fn free_port() -> u16 {
@@ -668,7 +682,7 @@ mod tests {
             total
         });
         for _ in 0..20_000 {
-            let m = Outgoing { system_id: 1, component_id: 191, message: big.clone() };
+            let m = Outgoing { system_id: 1, component_id: 191, message: big.clone(), unknown_command: None };
             // The daemon's own rule: offer, never wait.
             if h.outgoing.try_send(m).is_err() {
                 tokio::task::yield_now().await;

@@ -33,23 +33,32 @@ def free_port():
 
 
 class Daemon:
-    def __init__(self, extra_config=""):
-        self.dir = tempfile.mkdtemp(prefix="mavloc-e2e-")
-        self.port = free_port()
+    def __init__(self, extra_config="", scheme="udpin", same_as=None):
+        """A running `mavloc run`; `same_as`: restart with another daemon's folder and port."""
+        if same_as is None:
+            self.dir = tempfile.mkdtemp(prefix="mavloc-e2e-")
+            self.port = free_port()
+        else:
+            self.dir, self.port = same_as.dir, same_as.port
         self.state = os.path.join(self.dir, "state")
         cfg = os.path.join(self.dir, "mavloc.toml")
-        with open(cfg, "w") as f:
-            f.write(f"""
+        if same_as is None:
+            with open(cfg, "w") as f:
+                f.write(f"""
 [daemon]
 state_dir = "{self.state}"
 pipeline = "area"
 [mavlink]
-connection = "udpin:127.0.0.1:{self.port}"
+connection = "{scheme}:127.0.0.1:{self.port}"
 {extra_config}
 """)
-        self.log = open(os.path.join(self.dir, "mavloc.log"), "w")
+        self.log = open(os.path.join(self.dir, "mavloc.log"), "a")
         env = dict(os.environ, RUST_LOG="mavloc=info")
         self.proc = subprocess.Popen([BIN, "--config", cfg, "run"], stdout=self.log, stderr=subprocess.STDOUT, env=env)
+
+    def status(self):
+        with open(os.path.join(self.state, "status.json")) as f:
+            return json.load(f)
 
     def connect(self):
         c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.port}", source_system=GCS[0],
@@ -178,9 +187,14 @@ def test_link_params_commands_garbage_and_peer_loss():
         assert command(USER_2) == mav2.MAV_RESULT_IN_PROGRESS
         done = recv(c, "COMMAND_ACK", cond=lambda m: m.command == USER_2)
         assert done.result == mav2.MAV_RESULT_ACCEPTED, "the snapshot is acknowledged once written"
+        # A foreign system's command is DENIED; the answer goes to mavloc's peers, never
+        # to the intruder's address (no datagram makes its sender a peer).
         intruder = mavutil.mavlink_connection(f"udpout:127.0.0.1:{d.port}", source_system=77,
                                               source_component=190, dialect="common")
-        assert command(USER_1, 1, 0, conn=intruder) == mav2.MAV_RESULT_DENIED
+        intruder.mav.command_long_send(1, MAVLOC_COMP, USER_1, 0, 1, 0, 0, 0, 0, 0, 0)
+        ack = recv(c, "COMMAND_ACK", cond=lambda m: m.command == USER_1 and m.target_system == 77)
+        assert ack.result == mav2.MAV_RESULT_DENIED
+        assert intruder.recv_match(blocking=True, timeout=1.0) is None, "the intruder heard mavloc"
         intruder.close()
 
         # Garbage: random bytes, corrupted and truncated frames between valid requests.
@@ -227,10 +241,15 @@ def test_signing():
     d = Daemon(f'signing_key = "{keyfile}"')
     try:
         c = d.connect()
+        # With signing on, only a signed frame makes us a peer: unsigned, mavloc is silent.
         c.setup_signing(key, sign_outgoing=False, allow_unsigned_callback=lambda *a: False)
-        # Unsigned traffic from us; mavloc's heartbeats must arrive signed (we refuse others).
+        c.mav.heartbeat_send(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        assert c.recv_match(type="HEARTBEAT", blocking=True, timeout=2.5) is None, "an unsigned GCS was answered"
+        # Signed: answered, and mavloc's heartbeats arrive signed (we refuse others).
+        c.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda *a: False)
         hb = hello(c)
         assert hb is not None
+        c.setup_signing(key, sign_outgoing=False, allow_unsigned_callback=lambda *a: False)
         c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_BAND_PX", 80, mav2.MAV_PARAM_TYPE_REAL32)
         pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_BAND_PX")
         recv(c, "STATUSTEXT", cond=lambda m: "unsigned" in m.text)
@@ -258,7 +277,9 @@ def test_signing():
         code = d.stop()
     assert code == 0
     with open(os.path.join(d.state, "signing-timestamp")) as f:
-        assert int(f.read()) > 0
+        lines = f.read().splitlines()
+    assert int(lines[0]) > 0, "our own timestamp first"
+    assert any(l.split()[1:3] == ["255", "190"] for l in lines[1:]), f"our stream is remembered: {lines}"
 
 
 def test_sigterm_leaves_complete_results():
@@ -277,6 +298,177 @@ def test_sigterm_leaves_complete_results():
     assert status["link"] == "shutting down"
     assert not [n for n in os.listdir(d.state) if n.endswith(".tmp")], "no temporary files left"
     c.close()
+
+
+def raw_frame(sysid, build, signing_key=None):
+    """The bytes of one MAVLink 2 frame from `sysid`, built by `build(mav)`."""
+    m = mav2.MAVLink(None, srcSystem=sysid, srcComponent=190)
+    if signing_key is not None:
+        m.signing.secret_key = signing_key
+        m.signing.link_id = 4
+        m.signing.timestamp = int((time.time() - 1420070400) * 100000)
+        m.signing.sign_outgoing = True
+    return build(m).pack(m)
+
+
+def test_hostile_peers_on_udpin():
+    """Hijack attempts, a list-request and command flood from a foreign id, NaN sets and an
+    unknown command: the GCS keeps its link, the attacker hears nothing, the log stays small."""
+    d = Daemon()
+    try:
+        c = d.connect()
+        hello(c)
+        before = len(d.logtext().splitlines())
+        attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        attacker.bind(("127.0.0.1", 0))
+        attacker.settimeout(0.2)
+        target = ("127.0.0.1", d.port)
+        rnd = random.Random(7)
+        foreign_hb = raw_frame(42, lambda m: m.heartbeat_encode(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+        foreign_list = raw_frame(42, lambda m: m.param_request_list_encode(1, MAVLOC_COMP))
+        foreign_cmd = raw_frame(42, lambda m: m.command_long_encode(1, MAVLOC_COMP, USER_1, 0, 1, 0, 0, 0, 0, 0, 0))
+        for i in range(2000):
+            attacker.sendto(b"", target)
+            attacker.sendto(bytes(rnd.randrange(256) for _ in range(rnd.randrange(1, 60))), target)
+            attacker.sendto(foreign_hb, target)
+            attacker.sendto(foreign_list, target)
+            attacker.sendto(foreign_cmd, target)
+        # The GCS still hears heartbeats; the attacker hears nothing at all.
+        t0 = time.time()
+        beats = 0
+        while time.time() - t0 < 3.0:
+            m = c.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+            beats += m is not None and m.get_srcComponent() == MAVLOC_COMP
+        assert beats >= 2, f"the GCS heard {beats} heartbeats in 3 s"
+        heard = 0
+        try:
+            while True:
+                attacker.recv(4096)
+                heard += 1
+        except socket.timeout:
+            pass
+        assert heard == 0, f"the attacker received {heard} datagrams"
+        # Its list requests were refused, not answered to anyone.
+        time.sleep(1.2)
+        st = d.status()
+        assert st["counters"]["param_requests_refused"] >= 1000, st["counters"]
+        assert st["counters"]["commands_refused"] >= 1, st["counters"]
+        # 10,000 hostile datagrams cost at most a few dozen log lines (per-sender limit).
+        grown = len(d.logtext().splitlines()) - before
+        assert grown < 60, f"the log grew by {grown} lines"
+        # NaN and infinite sets are refused and answer the unchanged value.
+        c.mav.param_request_read_send(1, MAVLOC_COMP, b"AREA_RATIO", -1)
+        was = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO").param_value
+        for bad in (float("nan"), float("inf"), float("-inf")):
+            c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_RATIO", bad, mav2.MAV_PARAM_TYPE_REAL32)
+            pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO")
+            assert pv.param_value == was, f"{bad} changed AREA_RATIO to {pv.param_value}"
+        # An unknown command id gets UNSUPPORTED, not silence.
+        c.mav.command_long_send(1, MAVLOC_COMP, 42424, 0, 0, 0, 0, 0, 0, 0, 0)
+        assert recv(c, "COMMAND_ACK", cond=lambda m: m.command == 42424).result == mav2.MAV_RESULT_UNSUPPORTED
+        attacker.close()
+        c.close()
+    finally:
+        code = d.stop()
+    assert code == 0, f"exit status {code}"
+
+
+def test_signed_replay_after_a_crash_is_refused():
+    key = bytes(range(1, 33))
+    d0 = tempfile.mkdtemp(prefix="mavloc-key-")
+    keyfile = os.path.join(d0, "key")
+    with open(keyfile, "w") as f:
+        f.write(key.hex() + "\n")
+    os.chmod(keyfile, 0o600)
+    d = Daemon(f'signing_key = "{keyfile}"')
+    c = d.connect()
+    c.setup_signing(key, sign_outgoing=True, link_id=2, allow_unsigned_callback=lambda *a: False)
+    hello(c)
+    captured = raw_frame(255, lambda m: m.param_set_encode(1, MAVLOC_COMP, b"AREA_RATIO", 0.8,
+                                                             mav2.MAV_PARAM_TYPE_REAL32), signing_key=key)
+    c.port.sendto(captured, ("127.0.0.1", d.port))
+    assert abs(recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO").param_value - 0.8) < 1e-6
+    c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_RATIO", 0.6, mav2.MAV_PARAM_TYPE_REAL32)
+    assert abs(recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO").param_value - 0.6) < 1e-6
+    time.sleep(0.3)
+    d.proc.kill()  # a crash: nothing saved on the way out
+    d.proc.wait(timeout=5)
+    d2 = Daemon(same_as=d)
+    try:
+        hello(c)
+        c.port.sendto(captured, ("127.0.0.1", d.port))
+        time.sleep(1.0)
+        c.mav.param_request_read_send(1, MAVLOC_COMP, b"AREA_RATIO", -1)
+        pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_RATIO" and m.param_index >= 0)
+        assert abs(pv.param_value - 0.6) < 1e-6, f"the replayed set took effect: {pv.param_value}"
+        time.sleep(1.2)
+        assert d2.status()["skipped"]["bad_signature"] >= 1
+        c.close()
+    finally:
+        code = d2.stop()
+    assert code == 0
+
+
+def test_tcpin_serves_a_reader_beside_a_client_that_never_reads():
+    d = Daemon(scheme="tcpin")
+    try:
+        deadline = time.time() + 10
+        while True:
+            try:
+                stuck = socket.create_connection(("127.0.0.1", d.port), timeout=1)
+                break
+            except OSError:
+                assert time.time() < deadline, "mavloc never listened"
+                time.sleep(0.1)
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+        stuck.sendall(raw_frame(255, lambda m: m.heartbeat_encode(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, 0)))
+        # The old tcpin served one client at a time: this one would never be heard.
+        c = mavutil.mavlink_connection(f"tcp:127.0.0.1:{d.port}", source_system=GCS[0],
+                                       source_component=GCS[1], dialect="common")
+        hello(c)
+        c.mav.param_request_list_send(1, 0)
+        t0 = time.time()
+        beats = 0
+        while time.time() - t0 < 4.0:
+            m = c.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+            beats += m is not None and m.get_srcComponent() == MAVLOC_COMP
+        assert beats >= 3, f"the reading client heard {beats} heartbeats in 4 s"
+        c.close()
+        stuck.close()
+    finally:
+        code = d.stop()
+    assert code == 0
+
+
+def test_unusable_state_directory_exits_78_naming_it():
+    """/proc/self exists and nobody, root included, can create files in it."""
+    d = tempfile.mkdtemp(prefix="mavloc-ro-")
+    cfg = os.path.join(d, "mavloc.toml")
+    with open(cfg, "w") as f:
+        f.write(f'[daemon]\nstate_dir = "/proc/self"\n[mavlink]\nconnection = "udpin:127.0.0.1:{free_port()}"\n')
+    p = subprocess.run([BIN, "--config", cfg, "run"], capture_output=True, text=True, timeout=20)
+    assert p.returncode == 78, f"exit {p.returncode}: {p.stderr}"
+    assert "/proc/self" in p.stderr and "not writable" in p.stderr, p.stderr
+
+
+def test_corrupt_state_files_are_moved_aside():
+    d = Daemon()
+    c = d.connect()
+    hello(c)
+    c.close()
+    d.stop()
+    with open(os.path.join(d.state, "params.json"), "w") as f:
+        f.write("{ not json")
+    d2 = Daemon(same_as=d)
+    try:
+        c = d2.connect()
+        hello(c)
+        c.close()
+    finally:
+        code = d2.stop()
+    assert code == 0
+    aside = [n for n in os.listdir(d.state) if n.startswith("params.json.")]
+    assert aside, f"params.json was not moved aside: {os.listdir(d.state)}"
 
 
 TESTS = {n: f for n, f in globals().items() if n.startswith("test_")}

@@ -45,3 +45,28 @@ fn signing_refuses_unsigned_and_wrongly_signed_sets() {
 fn sigterm_exits_zero_quickly_with_complete_files() {
     run_python(&["test_sigterm_leaves_complete_results"], Duration::from_secs(30));
 }
+
+#[test]
+fn hostile_peers_on_udpin_cannot_hijack_flood_or_poison() {
+    run_python(&["test_hostile_peers_on_udpin"], Duration::from_secs(60));
+}
+
+#[test]
+fn a_signed_command_replayed_after_a_crash_is_refused() {
+    run_python(&["test_signed_replay_after_a_crash_is_refused"], Duration::from_secs(40));
+}
+
+#[test]
+fn tcpin_serves_a_reader_beside_a_client_that_never_reads() {
+    run_python(&["test_tcpin_serves_a_reader_beside_a_client_that_never_reads"], Duration::from_secs(40));
+}
+
+#[test]
+fn an_unusable_state_directory_exits_78_naming_it() {
+    run_python(&["test_unusable_state_directory_exits_78_naming_it"], Duration::from_secs(30));
+}
+
+#[test]
+fn corrupt_state_files_are_moved_aside_and_mavloc_starts() {
+    run_python(&["test_corrupt_state_files_are_moved_aside"], Duration::from_secs(30));
+}

@@ -253,7 +253,8 @@ pub struct Core {
     jobs: BTreeMap<u64, Job>,
     next_job: u64,
     /// ACKs and direct replies.
-    replies: VecDeque<MavMessage>,
+    /// With the raw command id of an ACK to a command the dialect does not define.
+    replies: VecDeque<(MavMessage, Option<u16>)>,
     /// Pipeline results (landmarks, position estimates, counters).
     results: VecDeque<MavMessage>,
     actions: VecDeque<Action>,
@@ -467,10 +468,16 @@ impl Core {
     /// The next message to send, in priority order.
     pub fn poll_transmit(&mut self, now: Mono) -> Option<Outgoing> {
         let target = self.settings.mavlink.autopilot_system_id;
+        if let Some((message, unknown_command)) = self.replies.pop_front() {
+            return Some(Outgoing {
+                system_id: self.system_id,
+                component_id: self.component_id,
+                message,
+                unknown_command,
+            });
+        }
         let message = self
-            .replies
-            .pop_front()
-            .or_else(|| self.poll_heartbeat())
+            .poll_heartbeat()
             .or_else(|| {
                 if let Some(line) = self.streams.poll_summary() {
                     self.notes.warn(&line);
@@ -483,7 +490,7 @@ impl Core {
             .or_else(|| self.landing.poll_transmit(now, target))
             .or_else(|| self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;
-        Some(Outgoing { system_id: self.system_id, component_id: self.component_id, message })
+        Some(Outgoing { system_id: self.system_id, component_id: self.component_id, message, unknown_command: None })
     }
 
     fn poll_heartbeat(&mut self) -> Option<MavMessage> {
@@ -505,7 +512,15 @@ impl Core {
         if self.replies.len() >= QUEUE_CAP * 4 {
             self.replies.pop_front();
         }
-        self.replies.push_back(m);
+        self.replies.push_back((m, None));
+    }
+
+    /// An ACK to a command id the dialect does not define (the encoder writes `id`).
+    fn reply_raw(&mut self, m: MavMessage, id: u16) {
+        if self.replies.len() >= QUEUE_CAP * 4 {
+            self.replies.pop_front();
+        }
+        self.replies.push_back((m, Some(id)));
     }
 
     fn result(&mut self, m: MavMessage) {
@@ -569,6 +584,21 @@ impl Core {
             return;
         }
         let from = (f.header.system_id as u8, f.header.component_id);
+        if let Some(id) = f.unknown_command {
+            let target = match &f.message {
+                MavMessage::COMMAND_LONG(c) => (c.target_system, c.target_component),
+                MavMessage::COMMAND_INT(c) => (c.target_system, c.target_component),
+                _ => return,
+            };
+            // Addressed to mavloc: UNSUPPORTED, so the sender stops retrying. A broadcast
+            // one is for whichever component knows it; silence is right there.
+            if target == (self.system_id, self.component_id) {
+                // The placeholder stands where the id goes (codec::PLACEHOLDER_COMMAND).
+                let ack = commands::ack(MavCmd::MAV_CMD_NAV_WAYPOINT, MavResult::MAV_RESULT_UNSUPPORTED, from);
+                self.reply_raw(ack, id);
+            }
+            return;
+        }
         if self.is_autopilot_system(&f) {
             let fc = self.is_autopilot(&f);
             if self.telemetry.on_message(rx, &f.message, fc).is_some() {
@@ -639,6 +669,24 @@ impl Core {
             MavMessage::COMMAND_LONG(c) if self.for_us(c.target_system, c.target_component, true) => {
                 let broadcast = c.target_component == 0 || c.target_system == 0;
                 self.on_command(rx, &f, c, broadcast);
+            }
+            // The same commands, with x and y as integers (MAVLink allows either).
+            MavMessage::COMMAND_INT(c) if self.for_us(c.target_system, c.target_component, true) => {
+                let broadcast = c.target_component == 0 || c.target_system == 0;
+                let long = COMMAND_LONG_DATA {
+                    param1: c.param1,
+                    param2: c.param2,
+                    param3: c.param3,
+                    param4: c.param4,
+                    param5: c.x as f32,
+                    param6: c.y as f32,
+                    param7: c.z,
+                    command: c.command,
+                    target_system: c.target_system,
+                    target_component: c.target_component,
+                    confirmation: 0,
+                };
+                self.on_command(rx, &f, &long, broadcast);
             }
             _ => {}
         }

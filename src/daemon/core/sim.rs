@@ -16,6 +16,7 @@ pub fn frame(sys: u8, comp: u8, message: MavMessage) -> Frame {
         header: MavHeader { system_id: sys as u32, component_id: comp, sequence: 0 },
         message,
         auth: Auth::Unsigned,
+        unknown_command: None,
     }
 }
 

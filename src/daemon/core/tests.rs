@@ -560,3 +560,48 @@ fn a_stamp_from_the_future_is_no_reboot_and_moves_nothing() {
     sim.run_for(Duration::from_secs(5));
     assert_eq!(sim.core.counters().autopilot_reboots, 1);
 }
+
+#[test]
+fn an_unknown_command_id_is_answered_unsupported_with_its_own_id() {
+    let mut core = Core::new(settings(), BTreeMap::new(), false, None);
+    let placeholder = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        command: MavCmd::MAV_CMD_NAV_WAYPOINT,
+        target_system: 1,
+        target_component: 191,
+        ..Default::default()
+    });
+    let mut f = frame(255, 190, placeholder);
+    f.unknown_command = Some(42424);
+    core.handle(Input::Mav { rx: Mono::ZERO, frame: f.clone() });
+    let out: Vec<_> = std::iter::from_fn(|| core.poll_transmit(Mono::ZERO)).collect();
+    let acks: Vec<_> = out
+        .iter()
+        .filter_map(|o| match &o.message {
+            MavMessage::COMMAND_ACK(a) => Some((a.result, a.target_system, o.unknown_command)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(acks, vec![(MavResult::MAV_RESULT_UNSUPPORTED, 255, Some(42424))]);
+    // Broadcast: not ours to answer. And the placeholder is never acted on.
+    if let MavMessage::COMMAND_LONG(c) = &mut f.message {
+        c.target_component = 0;
+    }
+    core.handle(Input::Mav { rx: Mono::ZERO, frame: f });
+    assert!(!std::iter::from_fn(|| core.poll_transmit(Mono::ZERO))
+        .any(|o| matches!(o.message, MavMessage::COMMAND_ACK(_))));
+}
+
+#[test]
+fn command_int_is_handled_like_command_long() {
+    let mut sim = Sim::new(settings());
+    sim.gcs_sends(MavMessage::COMMAND_INT(COMMAND_INT_DATA {
+        command: MavCmd::MAV_CMD_DO_SET_MODE,
+        target_system: 1,
+        target_component: 191,
+        ..Default::default()
+    }));
+    sim.run_for(Duration::from_millis(100));
+    assert!(sim.to_gcs.iter().any(|(_, m)| matches!(m,
+        MavMessage::COMMAND_ACK(a) if a.command == MavCmd::MAV_CMD_DO_SET_MODE
+            && a.result == MavResult::MAV_RESULT_UNSUPPORTED)));
+}
