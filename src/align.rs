@@ -72,6 +72,11 @@ impl ClockSync {
         }
     }
 
+    /// Would this stamp say the autopilot rebooted (its boot clock ran backwards)?
+    pub fn is_backstep(&self, stamp: f64) -> bool {
+        matches!(self.last_stamp, Some(last) if stamp < last - REBOOT_BACKSTEP_S)
+    }
+
     /// A telemetry stamp (autopilot seconds since boot) that arrived at local time
     /// `arrival`. Returns true when the stamp says the autopilot rebooted; the estimate is
     /// then reset.

@@ -218,9 +218,9 @@ impl Decoder {
             }
             let header = MavHeader { system_id: b[3] as u32, component_id: b[4], sequence: b[2] };
             let payload = &b[6..6 + len];
-            let parsed = MavMessage::parse(MavlinkVersion::V1, id, payload)
-                .map(|m| (m, None))
-                .or_else(|e| parse_unknown_command(MavlinkVersion::V1, id, payload).map(|(m, c)| (m, Some(c))).ok_or(e));
+            let parsed = MavMessage::parse(MavlinkVersion::V1, id, payload).map(|m| (m, None)).or_else(|e| {
+                parse_unknown_command(MavlinkVersion::V1, id, payload).map(|(m, c)| (m, Some(c))).ok_or(e)
+            });
             return match parsed {
                 Ok((message, unknown_command)) => Scan::Frame(
                     Box::new(Frame {
@@ -282,9 +282,9 @@ impl Decoder {
         };
         let header = MavHeader { system_id: b[5] as u32, component_id: b[6], sequence: b[4] };
         let payload = &b[10..10 + len];
-        let parsed = MavMessage::parse(MavlinkVersion::V2, id, payload)
-            .map(|m| (m, None))
-            .or_else(|e| parse_unknown_command(MavlinkVersion::V2, id, payload).map(|(m, c)| (m, Some(c))).ok_or(e));
+        let parsed = MavMessage::parse(MavlinkVersion::V2, id, payload).map(|m| (m, None)).or_else(|e| {
+            parse_unknown_command(MavlinkVersion::V2, id, payload).map(|(m, c)| (m, Some(c))).ok_or(e)
+        });
         match parsed {
             Ok((message, unknown_command)) => Scan::Frame(
                 Box::new(Frame { version: MavlinkVersion::V2, header, message, auth, unknown_command }),

@@ -107,7 +107,7 @@ impl Peers {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mavlink::dialects::common::{HEARTBEAT_DATA, MavMessage};
+    use mavlink::dialects::common::{MavMessage, HEARTBEAT_DATA};
     use mavlink::{MavHeader, MavlinkVersion};
 
     fn frame(sys: u32, auth: Auth) -> Frame {

@@ -88,7 +88,9 @@ fn move_aside(p: &Path) {
             p.display(),
             aside.display()
         ),
-        Err(e) => tracing::warn!("signing state {} does not parse and cannot be moved aside: {e}", p.display()),
+        Err(e) => {
+            tracing::warn!("signing state {} does not parse and cannot be moved aside: {e}", p.display())
+        }
     }
 }
 

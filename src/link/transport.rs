@@ -130,7 +130,11 @@ impl<T: AsyncRead + AsyncWrite + Unpin + Send> Stream for T {}
 enum Wire {
     Bytes(u64, Vec<u8>),
     /// Closed, and why; `stalled`: the peer stopped reading.
-    Closed { id: u64, reason: String, stalled: bool },
+    Closed {
+        id: u64,
+        reason: String,
+        stalled: bool,
+    },
 }
 
 /// One stream connection: its decoder, its writer's queue, its two tasks.
@@ -182,7 +186,14 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
             return;
         }
     });
-    Conn { what, decoder: Decoder::new(), queue, vouched: None, opened: Instant::now(), tasks: [reader, writer] }
+    Conn {
+        what,
+        decoder: Decoder::new(),
+        queue,
+        vouched: None,
+        opened: Instant::now(),
+        tasks: [reader, writer],
+    }
 }
 
 /// An open transport.
@@ -244,7 +255,8 @@ impl Link {
             }
             LinkAddress::Serial { device, baud } => {
                 use tokio_serial::SerialPortBuilderExt;
-                let s = tokio_serial::new(device, *baud).open_native_async().map_err(std::io::Error::other)?;
+                let s =
+                    tokio_serial::new(device, *baud).open_native_async().map_err(std::io::Error::other)?;
                 Ok((Endpoint::Single, Some(Box::new(s)), format!("serial {device} at {baud} baud")))
             }
         }

@@ -69,7 +69,13 @@ pub fn fly_with(
         vehicle.step(t);
         for (component, message) in vehicle.out.drain(..) {
             let header = MavHeader { system_id: 1, component_id: component, sequence: 0 };
-            let frame = Frame { version: MavlinkVersion::V2, header, message, auth: Auth::Unsigned, unknown_command: None };
+            let frame = Frame {
+                version: MavlinkVersion::V2,
+                header,
+                message,
+                auth: Auth::Unsigned,
+                unknown_command: None,
+            };
             core.handle(Input::Mav { rx: now, frame });
         }
         if core.poll_timeout().is_some_and(|d| d <= now) {

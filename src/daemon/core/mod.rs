@@ -220,6 +220,11 @@ pub struct Counters {
     pub param_requests_refused: u64,
     /// Log lines and STATUSTEXTs on a peer's behalf left out by the per-sender limit.
     pub peer_lines_suppressed: u64,
+    /// Autopilot telemetry dropped for a stamp far ahead of its clock.
+    pub telemetry_from_the_future: u64,
+    /// Backwards steps of the autopilot's clock that its old timeline then disproved
+    /// (a spoofed or garbled reboot; see `telemetry`).
+    pub reboot_claims_rejected: u64,
     pub statustext_dropped: u64,
     pub results_dropped: u64,
 }
@@ -490,7 +495,12 @@ impl Core {
             .or_else(|| self.landing.poll_transmit(now, target))
             .or_else(|| self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;
-        Some(Outgoing { system_id: self.system_id, component_id: self.component_id, message, unknown_command: None })
+        Some(Outgoing {
+            system_id: self.system_id,
+            component_id: self.component_id,
+            message,
+            unknown_command: None,
+        })
     }
 
     fn poll_heartbeat(&mut self) -> Option<MavMessage> {
@@ -594,7 +604,8 @@ impl Core {
             // one is for whichever component knows it; silence is right there.
             if target == (self.system_id, self.component_id) {
                 // The placeholder stands where the id goes (codec::PLACEHOLDER_COMMAND).
-                let ack = commands::ack(MavCmd::MAV_CMD_NAV_WAYPOINT, MavResult::MAV_RESULT_UNSUPPORTED, from);
+                let ack =
+                    commands::ack(MavCmd::MAV_CMD_NAV_WAYPOINT, MavResult::MAV_RESULT_UNSUPPORTED, from);
                 self.reply_raw(ack, id);
             }
             return;
@@ -968,6 +979,8 @@ impl Core {
     fn on_stats(&mut self, now: Mono, s: ShellStats) {
         self.counters.frames_dropped = s.frames_dropped;
         self.counters.peer_lines_suppressed = self.peer_lines.suppressed;
+        self.counters.telemetry_from_the_future = self.telemetry.implausible;
+        self.counters.reboot_claims_rejected = self.telemetry.reboot_claims_rejected;
         self.counters.statustext_dropped = self.notes.dropped;
         let ms = (now.0 / 1000) as u32;
         let values: [(&str, f32); 5] = [

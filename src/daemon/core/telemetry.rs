@@ -1,6 +1,13 @@
 //! The autopilot's telemetry, taken in for time alignment: attitude and position
 //! (paired), the gimbal's attitude, home and the global position; the autopilot's boot
 //! clock, whose running backwards means it rebooted.
+//!
+//! A reboot is believed only when the new timeline holds: [`REBOOT_CONFIRM`] stamps
+//! consistent with one another over [`REBOOT_CONFIRM_S`], with no stamp of the old
+//! timeline among them. Without signing anyone can send a frame as the autopilot; one
+//! stamp of 0 would otherwise reset time alignment, streams and gimbal control and
+//! warn of a reboot that never happened. A real autopilot that rebooted no longer speaks
+//! on its old clock; a live one keeps doing so and so unmasks the claim.
 
 use mavlink::dialects::common::*;
 
@@ -31,9 +38,26 @@ pub struct Telemetry {
     pub aligner: Aligner,
     /// Messages dropped for a stamp from the future (see `ClockSync::plausible`).
     pub implausible: u64,
+    /// Reboot claims the old timeline disproved (see the module doc).
+    pub reboot_claims_rejected: u64,
+    /// A backwards step waiting for confirmation.
+    candidate: Option<Candidate>,
     latest_attitude: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
     pub home: Option<HOME_POSITION_DATA>,
     pub global: Option<GLOBAL_POSITION_INT_DATA>,
+}
+
+/// Stamps on a new timeline needed to believe a reboot...
+pub const REBOOT_CONFIRM: u32 = 3;
+/// ...spread over at least this long (PX4 streams attitude at 10-50 Hz after a boot).
+pub const REBOOT_CONFIRM_S: f64 = 0.5;
+
+/// A new timeline: its offset (arrival minus stamp), when it was first seen, how often.
+#[derive(Clone, Copy, Debug)]
+struct Candidate {
+    offset: f64,
+    since: f64,
+    count: u32,
 }
 
 /// The autopilot rebooted (its boot clock ran backwards).
@@ -46,6 +70,8 @@ impl Telemetry {
         Telemetry {
             aligner: Aligner::new(ap, mount, offsets),
             implausible: 0,
+            reboot_claims_rejected: 0,
+            candidate: None,
             latest_attitude: None,
             home: None,
             global: None,
@@ -65,6 +91,37 @@ impl Telemetry {
             Geodetic::new(h.latitude as f64 * 1e-7, h.longitude as f64 * 1e-7, h.altitude as f64 * 1e-3);
         home.validate().ok()?;
         Some(LocalFrame::new(home).to_geodetic(&-Vec3::new(h.x as f64, h.y as f64, h.z as f64)))
+    }
+
+    /// Screens a stamp for a reboot claim: false while a backwards step waits for
+    /// confirmation (the sample is not used), true for the old timeline and for the stamp
+    /// that confirms the new one.
+    fn reboot_holds(&mut self, stamp: f64, now: f64) -> bool {
+        if !self.aligner.clock.is_backstep(stamp) {
+            if self.candidate.take().is_some() {
+                self.reboot_claims_rejected += 1;
+            }
+            return true;
+        }
+        let offset = now - stamp;
+        match &mut self.candidate {
+            // Consistent with the candidate timeline (within a second of its offset).
+            Some(c) if (c.offset - offset).abs() < 1.0 => {
+                c.count += 1;
+                if c.count >= REBOOT_CONFIRM && now - c.since >= REBOOT_CONFIRM_S {
+                    self.candidate = None;
+                    return true;
+                }
+                false
+            }
+            other => {
+                if other.is_some() {
+                    self.reboot_claims_rejected += 1;
+                }
+                *other = Some(Candidate { offset, since: now, count: 1 });
+                false
+            }
+        }
     }
 
     fn stamp(&mut self, stamp: f64, rx: Mono) -> Option<Rebooted> {
@@ -88,8 +145,12 @@ impl Telemetry {
             _ => None,
         };
         if let Some(ms) = stamp_ms.filter(|_| flight_controller) {
-            if !self.aligner.clock.plausible(ms as f64 * 1e-3, rx.secs()) {
+            let (stamp, now) = (ms as f64 * 1e-3, rx.secs());
+            if !self.aligner.clock.plausible(stamp, now) {
                 self.implausible += 1;
+                return None;
+            }
+            if !self.reboot_holds(stamp, now) {
                 return None;
             }
         }

@@ -605,3 +605,29 @@ fn command_int_is_handled_like_command_long() {
         MavMessage::COMMAND_ACK(a) if a.command == MavCmd::MAV_CMD_DO_SET_MODE
             && a.result == MavResult::MAV_RESULT_UNSUPPORTED)));
 }
+
+#[test]
+fn a_spoofed_reboot_is_not_believed_while_the_autopilot_speaks_on_its_old_clock() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(30));
+    assert!(sim.core.autopilot_found());
+    // A stranger sends "ATTITUDE at boot + 0.1 s" as the autopilot, ten times a second
+    // for 5 s, while the real one goes on streaming on its own clock.
+    for i in 0..50u32 {
+        sim.deliver(frame(
+            1,
+            1,
+            MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: 100 + i * 100, ..Default::default() }),
+        ));
+        sim.run_for(Duration::from_millis(100));
+    }
+    sim.run_for(Duration::from_secs(1));
+    assert_eq!(sim.core.counters().autopilot_reboots, 0, "{:?}", sim.statustexts());
+    assert!(!sim.statustexts().concat().contains("rebooted"));
+    assert!(sim.core.counters().reboot_claims_rejected >= 1);
+    // A real reboot is still seen (within a second of the first new stamp).
+    sim.ap.reboot(sim.now);
+    sim.run_for(Duration::from_secs(3));
+    assert_eq!(sim.core.counters().autopilot_reboots, 1);
+}
