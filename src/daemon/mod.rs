@@ -338,6 +338,7 @@ impl Shell {
                 self.live.worker = None;
                 PipelineEvent::Failed(e)
             }
+            WorkerEvent::WriteFailed(e) => PipelineEvent::WriteFailed(e),
             WorkerEvent::Stopped { files } => {
                 tracing::info!(
                     "pipeline results: {}",

@@ -67,6 +67,9 @@ pub enum Event {
         message: String,
     },
     Failed(String),
+    /// The results could not be written when the pipeline stopped (sent before
+    /// `Stopped`); the files on disk are those of the last good write.
+    WriteFailed(String),
     Stopped {
         files: Vec<PathBuf>,
     },
@@ -183,7 +186,10 @@ fn run(
                 }
                 Request::Stop => {
                     let files = pipeline.write_results().unwrap_or_else(|e| {
-                        tracing::error!("cannot write the pipeline's results: {e}");
+                        // Logged here too: at shutdown nobody reads the event.
+                        let line = format!("cannot write the pipeline's results at stop: {e}");
+                        tracing::warn!("{line}");
+                        let _ = events.try_send(Event::WriteFailed(line));
                         Vec::new()
                     });
                     let _ = events.try_send(Event::Stopped { files });
@@ -290,5 +296,23 @@ mod tests {
         assert!(matches!(&events[5], Event::Report { frame: 5, report, .. } if report.counters[0].1 == 2.0));
         assert!(matches!(&events[6], Event::Stopped { files } if files.len() == 1));
         assert_eq!(std::fs::read_to_string(dir.path().join("seen.txt")).unwrap(), "2");
+    }
+
+    #[test]
+    fn a_failed_write_at_stop_is_reported_not_only_logged() {
+        let dir = tempfile::tempdir().unwrap();
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+        // A results folder that is not there: the write at stop fails.
+        let out = dir.path().join("gone");
+        let factory: Factory =
+            Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));
+        let w = Worker::start(factory, Settings::default(), tx);
+        w.stop();
+        let failed = rx.blocking_recv().unwrap();
+        assert!(
+            matches!(&failed, Event::WriteFailed(e) if e.contains("cannot write the pipeline's results")),
+            "{failed:?}"
+        );
+        assert!(matches!(rx.blocking_recv().unwrap(), Event::Stopped { files } if files.is_empty()));
     }
 }
