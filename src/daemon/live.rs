@@ -22,7 +22,7 @@
 //! ([`new_run`]). A new run starts empty, so a restart does not add the world it sees
 //! again to what the last run found (it did: 171 landmarks became 342); the last run's
 //! results stay in `area.runs/`. A pipeline rebuilt after a panic continues its run from
-//! the run's last complete set. A failed write is a [`Report::write_error`]: a WARNING to
+//! the run's last complete set. A failed write is a [`Warning::WriteFailed`]: a WARNING to
 //! the ground and a counter.
 
 use std::io;
@@ -30,6 +30,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Vector2;
 
+use super::core::Warning;
 use super::worker::{LiveFrame, LivePipeline, PositionEstimate, Report};
 use crate::area::features::prepare;
 use crate::area::offline::{write_results, RunSummary};
@@ -262,7 +263,9 @@ impl LivePipeline for AreaLive {
                     report.counters.push(("BRD_LINES", lines.len() as f32));
                     report.counters.push(("BRD_LEN", length as f32));
                 }
-                Err(e) => report.write_error = Some(format!("area: cannot write results: {e}")),
+                Err(e) => {
+                    report.warnings.push(Warning::WriteFailed(format!("area: cannot write results: {e}")))
+                }
             }
         }
         report
@@ -410,7 +413,8 @@ impl LivePipeline for IndoorLive {
             true_y: truth[1],
         };
         if let Err(err) = self.trajectory.push(&row) {
-            report.write_error = Some(format!("indoor: cannot append to trajectory.csv: {err}"));
+            let line = format!("indoor: cannot append to trajectory.csv: {err}");
+            report.warnings.push(Warning::WriteFailed(line));
         }
         report.position = Some(PositionEstimate {
             autopilot_time: t,

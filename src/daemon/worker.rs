@@ -52,6 +52,9 @@ pub enum Request {
 }
 
 /// What the worker tells the daemon.
+// A report is a few hundred bytes, one per frame through a bounded channel: boxing it
+// would cost an allocation per frame to save a few kilobytes of channel.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Event {
     /// `capture_s`: the frame's local capture time; `attitude`: the vehicle's roll, pitch,

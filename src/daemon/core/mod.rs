@@ -82,10 +82,7 @@ pub struct Report {
     /// Human-readable events (STATUSTEXT, INFO).
     pub events: Vec<String>,
     /// What the ground should not miss (STATUSTEXT, WARNING; WARN in the log).
-    pub warnings: Vec<String>,
-    /// A result write failed on this frame (a full disk, a read-only state folder): said
-    /// as a WARNING and counted in [`Counters::result_writes_failed`].
-    pub write_error: Option<String>,
+    pub warnings: Vec<Warning>,
     /// The landing trigger fired on this frame.
     pub landing_requested: bool,
     /// Where to point the camera to keep the target's border in view: earth-frame yaw and
@@ -94,6 +91,15 @@ pub struct Report {
     /// The frame went through the pipeline (false: skipped, e.g. no target mask or an
     /// unusable image). Only processed frames make the daemon ACTIVE.
     pub processed: bool,
+}
+
+/// A [`Report`]'s warning.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Warning {
+    /// A result write failed (a full disk, a read-only state folder): counted in
+    /// [`Counters::result_writes_failed`], said at most every 10 s.
+    WriteFailed(String),
+    Other(String),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -1017,10 +1023,10 @@ impl Core {
             self.notes.info(e);
         }
         for w in &report.warnings {
-            self.notes.warn(w);
-        }
-        if let Some(e) = &report.write_error {
-            self.write_failed(now, e);
+            match w {
+                Warning::WriteFailed(e) => self.write_failed(now, e),
+                Warning::Other(w) => self.notes.warn(w),
+            }
         }
         if let Some((yaw, pitch)) = report.aim {
             if self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present() {

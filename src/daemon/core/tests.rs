@@ -584,7 +584,11 @@ fn a_failed_result_write_is_a_counted_warning_and_a_full_disk_no_flood() {
         event: PipelineEvent::Report {
             capture: 0.0,
             attitude: (0.0, 0.0, 0.0),
-            report: Report { processed: true, write_error: Some(disk_full.into()), ..Report::default() },
+            report: Report {
+                processed: true,
+                warnings: vec![Warning::WriteFailed(disk_full.into())],
+                ..Report::default()
+            },
         },
     };
     // A full disk fails every checkpoint: said once, every one counted.
@@ -611,7 +615,8 @@ fn a_failed_result_write_is_a_counted_warning_and_a_full_disk_no_flood() {
     let json = serde_json::to_value(sim.core.counters()).unwrap();
     assert_eq!(json["result_writes_failed"], 7);
     // Other warnings of a report are WARNINGs too, not INFO notes.
-    let report = Report { warnings: vec!["indoor: model and camera disagree".into()], ..Report::default() };
+    let other = vec![Warning::Other("indoor: model and camera disagree".into())];
+    let report = Report { warnings: other, ..Report::default() };
     let event = PipelineEvent::Report { capture: 0.0, attitude: (0.0, 0.0, 0.0), report };
     sim.input(Input::Pipeline { now: sim.now, event });
     sim.run_for(Duration::from_millis(100));
