@@ -107,6 +107,7 @@ impl AreaLive {
             None => Vec::new(),
         };
         let id_offset = results.iter().map(|l| l.id + 1).max().unwrap_or(0);
+        tracing::info!("area: run {run}, results in {} (a link to its newest set)", link.display());
         Ok(AreaLive {
             pipeline,
             k_full,
@@ -367,6 +368,7 @@ impl IndoorLive {
         let localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
         let dir = sets::open_run_dir(link, run)
             .map_err(|e| format!("cannot open results {}: {e}", link.display()))?;
+        tracing::info!("indoor: run {run}, results in {} (a link to {})", link.display(), dir.display());
         let path = dir.join("trajectory.csv");
         let trajectory =
             Appender::append(&path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;

@@ -35,8 +35,9 @@ pub trait LivePipeline: Send {
     fn process(&mut self, frame: &LiveFrame) -> Report;
     /// Applies tuned parameters without a restart.
     fn apply(&mut self, settings: &Settings);
-    /// Writes the complete current results (atomically per file, in the pipeline's own
-    /// results folder); returns the files written.
+    /// Writes the complete current results (as one unit, in the pipeline's own run: see
+    /// [`super::live`]); returns the files written. On an error the results on disk are
+    /// those of the last good write.
     fn write_results(&self) -> std::io::Result<Vec<PathBuf>>;
 }
 
