@@ -269,6 +269,8 @@ fn coastline(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Res
             .collect();
     let flight = Flight::start(&opts.bin, &dir, "coastline", opts.coast_s, &sets)?;
     let daemon_ok = flight.finish(Duration::from_secs_f64(opts.coast_s + 60.0))?;
+    // A link to the run's last complete set, written when the daemon stopped: the plots
+    // join that set, which stays (only a run's older sets are removed).
     let results = dir.join("state/results/area");
     let lpath = results.join("landmarks.csv");
     let landmarks = parse_landmarks_csv(&std::fs::read_to_string(&lpath)?, &lpath.display().to_string())

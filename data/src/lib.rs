@@ -13,11 +13,17 @@
 //!   ground truth): its records, [`Dataset::open`] and the writers.
 //! * [`results`]: result files of the pipelines: landmarks (CSV, PLY, GeoJSON, KML),
 //!   border lines, indoor trajectories and landing trials.
+//! * [`sets`]: result folders replaced as a unit (`results/area` a symlink to the newest
+//!   complete set of the run), one folder per daemon run, tidied after a crash.
+//! * [`state`]: state files that do not parse are moved aside (`NAME.corrupt-<stamp>`);
+//!   UTC stamps for names.
 //! * [`truth`]: the simulated vehicle's true track (`truth.csv`).
 
 pub mod atomic;
 pub mod dataset;
 pub mod results;
+pub mod sets;
+pub mod state;
 pub mod table;
 pub mod truth;
 

@@ -387,3 +387,29 @@ impl Library {
         added
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The live pipeline reports what purge returned plus the converged landmarks still in
+    /// the library (`AreaPipeline::converged_now`) as one list: that is only right if a
+    /// purged landmark has left the library, so no landmark is counted twice.
+    #[test]
+    fn a_purged_landmark_leaves_the_library_so_results_count_it_once() {
+        let a = crate::settings::Area { l_max: 10, turnover: 2, ..Default::default() };
+        let mut lib = Library::new(LibraryParams::from_settings(&a)).unwrap();
+        let p = lib.params.clone();
+        for i in 0..12u32 {
+            let ukf = Ukf::new(Vec3::new(i as f64, 0.0, 0.0), Matrix3::identity() * 1e-4, p.ukf).unwrap();
+            let mut l = Landmark::new(ukf, &[0.0; DESCRIPTOR_LEN], 0);
+            l.observations = p.min_observations + i;
+            lib.push(l);
+        }
+        let (purged, results) = lib.purge(5);
+        assert_eq!((purged, results.len()), (4, 4), "12 above l_max - turnover = 8, all converged");
+        let tracked: Vec<u64> = lib.landmarks.iter().filter(|l| lib.converged(l)).map(|l| l.id).collect();
+        assert_eq!(tracked.len(), 8);
+        assert!(results.iter().all(|r| !tracked.contains(&r.id)), "{results:?} vs {tracked:?}");
+    }
+}

@@ -30,6 +30,8 @@ pub struct Video {
     maps: Option<(Mat, Mat)>,
     /// CLOCK_MONOTONIC at the daemon's start, to read driver timestamps on our clock.
     mono_at_start: f64,
+    /// Images of a folder that could not be read and were skipped.
+    skipped: u64,
 }
 
 fn monotonic_now() -> f64 {
@@ -99,6 +101,7 @@ impl Video {
             index: 0,
             maps: undistort_maps(c)?,
             mono_at_start,
+            skipped: 0,
             ctx,
         })
     }
@@ -147,6 +150,7 @@ impl Video {
             index: 0,
             maps: undistort_maps(c)?,
             mono_at_start: 0.0,
+            skipped: 0,
             ctx,
         })
     }
@@ -177,18 +181,19 @@ impl Video {
                 }
                 Ok(Some((frame, t)))
             }
-            Input::Images { files, next } => {
+            // One bad file (truncated by a full card, garbage) must not end a folder of
+            // good ones: it is skipped, named and counted.
+            Input::Images { files, next } => loop {
                 let Some(p) = files.get(*next).cloned() else { return Ok(None) };
                 *next += 1;
-                let img = imgcodecs::imread(&p, imgcodecs::IMREAD_COLOR)?;
-                if img.empty() {
-                    return Err(SourceError::Fatal(format!(
-                        "{} is not an image OpenCV can read",
-                        p.display()
-                    )));
-                }
-                Ok(Some((img, self.ctx.now())))
-            }
+                let why = match imgcodecs::imread(&p, imgcodecs::IMREAD_COLOR) {
+                    Ok(img) if !img.empty() => return Ok(Some((img, self.ctx.now()))),
+                    Ok(_) => "not an image OpenCV can read".to_string(),
+                    Err(e) => e.to_string(),
+                };
+                self.skipped += 1;
+                tracing::warn!("{}: {why}; skipped ({} skipped in all)", p.display(), self.skipped);
+            },
         }
     }
 }
@@ -241,7 +246,17 @@ impl FrameSource for Video {
     }
 
     fn describe(&self) -> String {
-        self.what.clone()
+        match self.skipped {
+            0 => self.what.clone(),
+            n => format!("{} ({n} unreadable skipped)", self.what),
+        }
+    }
+}
+
+impl Video {
+    /// Images of a folder skipped because they could not be read.
+    pub fn skipped(&self) -> u64 {
+        self.skipped
     }
 }
 
@@ -286,6 +301,35 @@ mod tests {
         let a = v.next().unwrap().unwrap();
         assert_eq!(*a.image.at_2d::<core::Vec3b>(0, 0).unwrap(), core::Vec3b::from([200, 200, 200]));
         assert_eq!(v.next().unwrap().unwrap().index, 1);
+        assert!(v.next().unwrap().is_none());
+    }
+
+    #[test]
+    fn a_bad_image_in_a_folder_is_skipped_and_the_next_plays() {
+        let dir = tempfile::tempdir().unwrap();
+        let shade =
+            |v: f64| Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
+        imgcodecs::imwrite(dir.path().join("1.png"), &shade(10.0), &core::Vector::new()).unwrap();
+        imgcodecs::imwrite(dir.path().join("3.jpg"), &shade(200.0), &core::Vector::new()).unwrap();
+        // The middle one: a JPEG cut off after its first bytes, as a full card leaves it.
+        let mut jpeg = core::Vector::<u8>::new();
+        imgcodecs::imencode(".jpg", &shade(100.0), &mut jpeg, &core::Vector::new()).unwrap();
+        std::fs::write(dir.path().join("2.jpg"), &jpeg.to_vec()[..20]).unwrap();
+        let c = Camera {
+            path: dir.path().to_string_lossy().into(),
+            width: 32,
+            height: 24,
+            realtime: false,
+            ..Camera::default()
+        };
+        let mut v = Video::open_file(&c, ctx()).unwrap();
+        let shade_of = |f: &Captured| f.image.at_2d::<core::Vec3b>(0, 0).unwrap()[0];
+        let first = v.next().unwrap().unwrap();
+        assert_eq!(shade_of(&first), 10);
+        let third = v.next().expect("the camera goes on").unwrap();
+        assert!((shade_of(&third) as i32 - 200).abs() <= 2, "frame 3 follows frame 1");
+        assert_eq!(v.skipped(), 1);
+        assert!(v.describe().contains("1 unreadable skipped"), "{}", v.describe());
         assert!(v.next().unwrap().is_none());
     }
 }

@@ -2,17 +2,35 @@
 //! pure pipeline libraries ([`crate::area`], [`crate::indoor`]) and from their results to a
 //! [`Report`] and to result files in the state directory.
 //!
-//! Files (under `STATE/results/area/` or `STATE/results/indoor/`):
-//! - area: `landmarks.csv`, `.ply`, `area.geojson`, `area.kml`, `border.csv`,
-//!   `summary.json`, each rewritten atomically every [`AREA_CHECKPOINT_FRAMES`] frames and
-//!   when asked (snapshot, stop), so a crash leaves the last complete set;
+//! Files, read through `STATE/results/area/` and `STATE/results/indoor/`, which are
+//! symbolic links into one folder per run ([`mavloc_data::sets`]):
+//!
+//! ```text
+//! results/area   -> area.runs/<run>/set-<N>   landmarks.csv, .ply, area.geojson, area.kml,
+//!                                             border.csv, summary.json
+//! results/indoor -> indoor.runs/<run>         trajectory.csv, summary.json
+//! ```
+//!
+//! - area: the whole set is written into a fresh folder every [`AREA_CHECKPOINT_FRAMES`]
+//!   frames and when asked (snapshot, stop), and the link switched to it in one rename,
+//!   because the files belong together: a crash or a full disk leaves the previous
+//!   complete set, never new landmarks beside an old border;
 //! - indoor: `trajectory.csv`, appended and flushed every frame (a crash loses at most
-//!   the line being written), and `summary.json`.
+//!   the line being written), and `summary.json`, written atomically.
+//!
+//! A run is one daemon start (or a pipeline reset), named by its UTC start time
+//! ([`new_run`]). A new run starts empty, so a restart does not add the world it sees
+//! again to what the last run found (it did: 171 landmarks became 342); the last run's
+//! results stay in `area.runs/`. A pipeline rebuilt after a panic continues its run from
+//! the run's last complete set. A failed write is a [`Warning::WriteFailed`]: a WARNING to
+//! the ground and a counter.
 
+use std::io;
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector2;
 
+use super::core::Warning;
 use super::worker::{LiveFrame, LivePipeline, PositionEstimate, Report};
 use crate::area::features::prepare;
 use crate::area::offline::{write_results, RunSummary};
@@ -26,19 +44,36 @@ use crate::indoor::offline::model_settings;
 use crate::output::LandmarkRecord;
 use crate::settings::Settings;
 use mavloc_data::results::TrajectoryRow;
+use mavloc_data::sets::{self, ResultSets};
 use mavloc_data::table::Appender;
 
 /// Area results are rewritten every this many frames.
 pub const AREA_CHECKPOINT_FRAMES: u64 = 25;
+
+/// The files of an area result set.
+const AREA_FILES: [&str; 6] =
+    ["landmarks.csv", "landmarks.ply", "area.geojson", "area.kml", "border.csv", "summary.json"];
+
+/// A new run id: the UTC time now (`yyyymmddThhmmssZ`), made unique among the runs of
+/// both pipelines under `results` (`-2`, `-3`, ... for starts within one second). The
+/// daemon takes one per start and per pipeline reset.
+pub fn new_run(results: &Path) -> String {
+    sets::new_run_id(std::time::SystemTime::now(), |id| {
+        ["area", "indoor"].iter().any(|n| results.join(format!("{n}.runs")).join(id).exists())
+    })
+}
 
 /// The area pipeline, live.
 pub struct AreaLive {
     pipeline: AreaPipeline,
     k_full: Intrinsics,
     downscale: u32,
-    dir: PathBuf,
+    sets: ResultSets,
+    /// Landmarks purged from the library (converged ones still tracked are added when
+    /// writing; the two are disjoint, see `Library::purge`).
     results: Vec<LandmarkRecord>,
-    /// Added to the library's landmark ids, so results resumed from disk keep theirs.
+    /// Added to the library's landmark ids, so results resumed from the run's last set
+    /// keep theirs.
     id_offset: u64,
     origin: Geodetic,
     frames: u64,
@@ -51,27 +86,33 @@ pub struct AreaLive {
 
 impl AreaLive {
     /// `k_full`: the camera's intrinsics at capture size; `origin`: the local frame's WGS84
-    /// origin until the autopilot tells another.
-    pub fn new(s: &Settings, k_full: Intrinsics, origin: Geodetic, dir: PathBuf) -> Result<AreaLive, String> {
+    /// origin until the autopilot tells another; `link`: the results path users read
+    /// (`STATE/results/area`); `run`: the daemon's run id ([`new_run`]).
+    pub fn new(
+        s: &Settings,
+        k_full: Intrinsics,
+        origin: Geodetic,
+        link: &Path,
+        run: &str,
+    ) -> Result<AreaLive, String> {
         let downscale = s.area.downscale.max(1);
         let pipeline = AreaPipeline::new(&s.area, k_full.downscaled(downscale)).map_err(|e| e.to_string())?;
-        std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-        // Results of an earlier run (a restart after a crash, a pipeline rebuilt after a
-        // panic) are kept: the next checkpoint must not overwrite them with fewer.
-        let path = dir.join("landmarks.csv");
-        let results = match std::fs::read_to_string(&path) {
-            Ok(text) => crate::output::parse_landmarks_csv(&text, &path.display().to_string())?,
-            Err(_) => Vec::new(),
+        let sets = ResultSets::open(link, run)
+            .map_err(|e| format!("cannot open results {}: {e}", link.display()))?;
+        // A new run starts empty. This run's own last set exists only when the pipeline is
+        // rebuilt (after a panic, a pipeline switch): continue from it, or the next
+        // checkpoint would replace it with fewer landmarks.
+        let results = match sets.current() {
+            Some(set) => resume(&set.join("landmarks.csv"), &sets.run_dir()),
+            None => Vec::new(),
         };
-        if !results.is_empty() {
-            tracing::info!("area: resuming with {} landmarks from {}", results.len(), path.display());
-        }
         let id_offset = results.iter().map(|l| l.id + 1).max().unwrap_or(0);
+        tracing::info!("area: run {run}, results in {} (a link to its newest set)", link.display());
         Ok(AreaLive {
             pipeline,
             k_full,
             downscale,
-            dir,
+            sets,
             results,
             id_offset,
             origin,
@@ -95,9 +136,10 @@ impl AreaLive {
         l
     }
 
-    /// Writes the result files; returns them and the border lines fitted.
-    fn write(&self) -> std::io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
-        let dir = &self.dir;
+    /// Writes a new result set and makes it current; returns its files (by the link's
+    /// path, as users read them) and the border lines fitted. On an error the previous set
+    /// stays current.
+    fn write(&self) -> io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
         let landmarks = self.all_landmarks();
         let elapsed = self.started.elapsed().as_secs_f64();
         let mut summary = RunSummary {
@@ -108,13 +150,50 @@ impl AreaLive {
             ..RunSummary::default()
         };
         let frame = LocalFrame::new(self.origin);
-        let lines = write_results(dir, &frame, "mavloc run: area", &landmarks, &mut summary)?;
-        let files =
-            ["landmarks.csv", "landmarks.ply", "area.geojson", "area.kml", "border.csv", "summary.json"]
-                .iter()
-                .map(|f| dir.join(f))
-                .collect();
-        Ok((files, lines))
+        let mut lines = Vec::new();
+        self.sets.write(|dir| {
+            lines = write_results(dir, &frame, "mavloc run: area", &landmarks, &mut summary)?;
+            Ok(())
+        })?;
+        let link = self.sets.runs().link();
+        Ok((AREA_FILES.iter().map(|f| link.join(f)).collect(), lines))
+    }
+}
+
+/// The landmarks of this run's last set, for a rebuilt pipeline. A file that does not
+/// parse (a disk fault) is moved aside into the run's folder, where it outlives the set,
+/// and the run goes on without it: better fewer landmarks than no pipeline.
+fn resume(path: &Path, run_dir: &Path) -> Vec<LandmarkRecord> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) => {
+            tracing::warn!("area: cannot read {} ({e}); this run goes on without it", path.display());
+            return Vec::new();
+        }
+    };
+    match crate::output::parse_landmarks_csv(&text, &path.display().to_string()) {
+        Ok(results) => {
+            tracing::info!(
+                "area: continuing the run with {} landmarks from {}",
+                results.len(),
+                path.display()
+            );
+            results
+        }
+        Err(e) => {
+            match mavloc_data::state::move_aside_corrupt(path, run_dir) {
+                Ok(aside) => tracing::warn!(
+                    "area: {} does not parse ({e}); moved aside to {}, the run goes on without it",
+                    path.display(),
+                    aside.display()
+                ),
+                Err(m) => tracing::warn!(
+                    "area: {} does not parse ({e}) and cannot be moved aside ({m}); the run goes on without it",
+                    path.display()
+                ),
+            }
+            Vec::new()
+        }
     }
 }
 
@@ -185,7 +264,9 @@ impl LivePipeline for AreaLive {
                     report.counters.push(("BRD_LINES", lines.len() as f32));
                     report.counters.push(("BRD_LEN", length as f32));
                 }
-                Err(e) => report.events.push(format!("area: cannot write results: {e}")),
+                Err(e) => {
+                    report.warnings.push(Warning::WriteFailed(format!("area: cannot write results: {e}")))
+                }
             }
         }
         report
@@ -200,7 +281,7 @@ impl LivePipeline for AreaLive {
         }
     }
 
-    fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+    fn write_results(&self) -> io::Result<Vec<PathBuf>> {
         self.write().map(|(files, _)| files)
     }
 }
@@ -250,6 +331,7 @@ pub struct IndoorLive {
     localizer: Localizer,
     trigger: LandingTrigger,
     trajectory: Appender<TrajectoryRow>,
+    /// This run's folder (`results/indoor` points at it).
     dir: PathBuf,
     frames: u64,
     last_hold: Option<Hold>,
@@ -266,7 +348,9 @@ fn zone(s: &Settings) -> LandingZone {
 }
 
 impl IndoorLive {
-    pub fn new(s: &Settings, k: Intrinsics, dir: PathBuf) -> Result<IndoorLive, String> {
+    /// `link`: the results path users read (`STATE/results/indoor`); `run`: the daemon's
+    /// run id ([`new_run`]). A rebuilt pipeline appends to its run's trajectory.
+    pub fn new(s: &Settings, k: Intrinsics, link: &Path, run: &str) -> Result<IndoorLive, String> {
         let model = Model::load(Path::new(&s.indoor.model))?;
         let mut settings = s.clone();
         settings.indoor = model_settings(&model, &s.indoor);
@@ -282,7 +366,9 @@ impl IndoorLive {
             );
         }
         let localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
-        std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+        let dir = sets::open_run_dir(link, run)
+            .map_err(|e| format!("cannot open results {}: {e}", link.display()))?;
+        tracing::info!("indoor: run {run}, results in {} (a link to {})", link.display(), dir.display());
         let path = dir.join("trajectory.csv");
         let trajectory =
             Appender::append(&path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
@@ -329,7 +415,8 @@ impl LivePipeline for IndoorLive {
             true_y: truth[1],
         };
         if let Err(err) = self.trajectory.push(&row) {
-            report.events.push(format!("indoor: cannot append to trajectory.csv: {err}"));
+            let line = format!("indoor: cannot append to trajectory.csv: {err}");
+            report.warnings.push(Warning::WriteFailed(line));
         }
         report.position = Some(PositionEstimate {
             autopilot_time: t,
@@ -372,7 +459,7 @@ impl LivePipeline for IndoorLive {
         self.settings.indoor = indoor;
     }
 
-    fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+    fn write_results(&self) -> io::Result<Vec<PathBuf>> {
         let summary = serde_json::json!({
             "frames": self.frames,
             "landing_fired": self.trigger.fired(),
@@ -381,5 +468,89 @@ impl LivePipeline for IndoorLive {
         let path = self.dir.join("summary.json");
         crate::output::write_atomic(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
         Ok(vec![self.dir.join("trajectory.csv"), path])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Vec3;
+
+    fn area(link: &Path, run: &str) -> AreaLive {
+        let s = Settings::default();
+        let k = crate::camera::intrinsics(&s).unwrap();
+        AreaLive::new(&s, k, Geodetic::new(0.0, 0.0, 0.0), link, run).unwrap()
+    }
+
+    fn landmark(id: u64) -> LandmarkRecord {
+        LandmarkRecord {
+            id,
+            position: Vec3::new(id as f64, 2.0, 0.0),
+            sigma_max_m: 0.5,
+            observations: 9,
+            first_frame: 1,
+            last_frame: 20,
+        }
+    }
+
+    fn rows(path: &Path) -> usize {
+        let text = std::fs::read_to_string(path).unwrap();
+        crate::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap().len()
+    }
+
+    /// A user's test: after a restart the world seen again was added to the last run's
+    /// landmarks (171 became 342). A restart is a new run now, starting empty.
+    #[test]
+    fn a_restart_is_a_new_run_and_does_not_add_to_the_last_ones_landmarks() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let mut first = area(&link, "r1");
+        first.results = (0..171).map(landmark).collect();
+        first.write_results().unwrap();
+        assert_eq!(rows(&link.join("landmarks.csv")), 171);
+
+        // The daemon restarts: a new run.
+        let second = area(&link, "r2");
+        assert!(second.all_landmarks().is_empty(), "a new run starts empty");
+        second.write_results().unwrap();
+        assert_eq!(rows(&link.join("landmarks.csv")), 0, "not 171 again, and never 342");
+        let kept = ResultSets::open(&link, "r1").unwrap().current().unwrap();
+        assert_eq!(rows(&kept.join("landmarks.csv")), 171, "the last run's results are kept");
+
+        // The pipeline rebuilt after a panic continues its own run, with fresh ids.
+        let mut rebuilt = area(&link, "r2");
+        rebuilt.results.push(landmark(0));
+        rebuilt.write_results().unwrap();
+        let again = area(&link, "r2");
+        assert_eq!(again.all_landmarks().len(), 1);
+        assert_eq!(again.id_offset, 1, "new landmarks do not reuse the resumed ids");
+    }
+
+    #[test]
+    fn a_run_set_that_does_not_parse_is_moved_aside_and_the_pipeline_starts() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        sets.write(|d| std::fs::write(d.join("landmarks.csv"), "id,north\n1,x,y\n")).unwrap();
+        let live = area(&link, "r1");
+        assert!(live.all_landmarks().is_empty());
+        let aside: Vec<String> = std::fs::read_dir(sets.run_dir())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("landmarks.csv.corrupt-"))
+            .collect();
+        assert_eq!(aside.len(), 1, "kept for a person to look at, outside the set");
+        live.write_results().unwrap();
+        assert_eq!(rows(&link.join("landmarks.csv")), 0);
+    }
+
+    #[test]
+    fn new_runs_of_one_second_get_distinct_ids() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = new_run(dir.path());
+        std::fs::create_dir_all(dir.path().join("indoor.runs").join(&a)).unwrap();
+        let b = new_run(dir.path());
+        assert_ne!(a, b);
+        assert!(a.ends_with('Z') && a.len() == 16, "{a}");
     }
 }

@@ -69,6 +69,8 @@ const MAX_ALIGN_WAIT_S: f64 = 0.5;
 /// The live side: camera, frames waiting for telemetry, the pipeline worker.
 struct Live {
     results: PathBuf,
+    /// This start's run id: results go to `results/<pipeline>.runs/<run>/`.
+    run: String,
     ctx: SourceContext,
     camera_rx: tokio::sync::mpsc::Receiver<CameraEvent>,
     camera_thread: Option<std::thread::JoinHandle<()>>,
@@ -95,6 +97,7 @@ impl Live {
         // Bounded: the worker sends without blocking and at most one frame is in flight.
         let (worker_tx, worker_rx) = tokio::sync::mpsc::channel(1024);
         Live {
+            run: live::new_run(&results),
             results,
             ctx,
             camera_rx,
@@ -125,7 +128,7 @@ impl Live {
 }
 
 /// Builds the factory of the selected pipeline.
-fn factory(kind: PipelineKind, results: PathBuf) -> Factory {
+fn factory(kind: PipelineKind, results: PathBuf, run: String) -> Factory {
     Box::new(move |s: &Settings| -> Result<Box<dyn LivePipeline>, String> {
         let k = camera::intrinsics(s)?;
         match kind {
@@ -133,9 +136,9 @@ fn factory(kind: PipelineKind, results: PathBuf) -> Factory {
                 // Until the autopilot's HOME_POSITION gives the real one (each frame
                 // carries it then), the camera's own origin, if it has one.
                 let origin = camera::origin(s).unwrap_or(Geodetic::new(0.0, 0.0, 0.0));
-                Ok(Box::new(live::AreaLive::new(s, k, origin, results.join("area"))?))
+                Ok(Box::new(live::AreaLive::new(s, k, origin, &results.join("area"), &run)?))
             }
-            PipelineKind::Indoor => Ok(Box::new(live::IndoorLive::new(s, k, results.join("indoor"))?)),
+            PipelineKind::Indoor => Ok(Box::new(live::IndoorLive::new(s, k, &results.join("indoor"), &run)?)),
             PipelineKind::None => Err("no pipeline selected".into()),
         }
     })
@@ -320,23 +323,14 @@ impl Shell {
         Ok(())
     }
 
-    /// The old results are kept, moved aside; the new run starts empty.
+    /// A new run: the old one keeps its last results in `results/<pipeline>.runs/`, the
+    /// new one starts empty.
     fn reset_pipeline(&mut self, core: &Core) {
         let Some((k, _)) = &self.live.worker else { return };
         let k = *k;
         stop_worker(&mut self.live);
-        let sub = self.live.results.join(format!("{k:?}").to_lowercase());
-        if sub.exists() {
-            let stamp = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map(|d| d.as_secs())
-                .unwrap_or(0);
-            let aside = sub
-                .with_file_name(format!("{}-{stamp}", sub.file_name().unwrap_or_default().to_string_lossy()));
-            if let Err(e) = std::fs::rename(&sub, &aside) {
-                tracing::warn!("cannot move {} aside: {e}", sub.display());
-            }
-        }
+        self.live.run = live::new_run(&self.live.results);
+        tracing::info!("{k:?} pipeline reset: new run {}", self.live.run);
         start_worker(core, &mut self.live, k);
     }
 
@@ -355,6 +349,7 @@ impl Shell {
                 self.live.worker = None;
                 PipelineEvent::Failed(e)
             }
+            WorkerEvent::WriteFailed(e) => PipelineEvent::WriteFailed(e),
             WorkerEvent::Stopped { files } => {
                 tracing::info!(
                     "pipeline results: {}",
@@ -645,7 +640,8 @@ fn stop_worker(live: &mut Live) {
 }
 
 fn start_worker(core: &Core, live: &mut Live, k: PipelineKind) {
-    let w = Worker::start(factory(k, live.results.clone()), core.settings().clone(), live.worker_tx.clone());
+    let factory = factory(k, live.results.clone(), live.run.clone());
+    let w = Worker::start(factory, core.settings().clone(), live.worker_tx.clone());
     live.worker = Some((k, w));
 }
 

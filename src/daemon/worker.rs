@@ -35,8 +35,9 @@ pub trait LivePipeline: Send {
     fn process(&mut self, frame: &LiveFrame) -> Report;
     /// Applies tuned parameters without a restart.
     fn apply(&mut self, settings: &Settings);
-    /// Writes the complete current results (atomically per file, in the pipeline's own
-    /// results folder); returns the files written.
+    /// Writes the complete current results (as one unit, in the pipeline's own run: see
+    /// [`super::live`]); returns the files written. On an error the results on disk are
+    /// those of the last good write.
     fn write_results(&self) -> std::io::Result<Vec<PathBuf>>;
 }
 
@@ -52,6 +53,9 @@ pub enum Request {
 }
 
 /// What the worker tells the daemon.
+// A report is a few hundred bytes, one per frame through a bounded channel: boxing it
+// would cost an allocation per frame to save a few kilobytes of channel.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Event {
     /// `capture_s`: the frame's local capture time; `attitude`: the vehicle's roll, pitch,
@@ -67,6 +71,9 @@ pub enum Event {
         message: String,
     },
     Failed(String),
+    /// The results could not be written when the pipeline stopped (sent before
+    /// `Stopped`); the files on disk are those of the last good write.
+    WriteFailed(String),
     Stopped {
         files: Vec<PathBuf>,
     },
@@ -183,7 +190,10 @@ fn run(
                 }
                 Request::Stop => {
                     let files = pipeline.write_results().unwrap_or_else(|e| {
-                        tracing::error!("cannot write the pipeline's results: {e}");
+                        // Logged here too: at shutdown nobody reads the event.
+                        let line = format!("cannot write the pipeline's results at stop: {e}");
+                        tracing::warn!("{line}");
+                        let _ = events.try_send(Event::WriteFailed(line));
                         Vec::new()
                     });
                     let _ = events.try_send(Event::Stopped { files });
@@ -290,5 +300,23 @@ mod tests {
         assert!(matches!(&events[5], Event::Report { frame: 5, report, .. } if report.counters[0].1 == 2.0));
         assert!(matches!(&events[6], Event::Stopped { files } if files.len() == 1));
         assert_eq!(std::fs::read_to_string(dir.path().join("seen.txt")).unwrap(), "2");
+    }
+
+    #[test]
+    fn a_failed_write_at_stop_is_reported_not_only_logged() {
+        let dir = tempfile::tempdir().unwrap();
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+        // A results folder that is not there: the write at stop fails.
+        let out = dir.path().join("gone");
+        let factory: Factory =
+            Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));
+        let w = Worker::start(factory, Settings::default(), tx);
+        w.stop();
+        let failed = rx.blocking_recv().unwrap();
+        assert!(
+            matches!(&failed, Event::WriteFailed(e) if e.contains("cannot write the pipeline's results")),
+            "{failed:?}"
+        );
+        assert!(matches!(rx.blocking_recv().unwrap(), Event::Stopped { files } if files.is_empty()));
     }
 }

@@ -223,6 +223,10 @@ impl ParamStore {
         let text = match std::fs::read_to_string(path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return (store, notes),
+            Err(e) if e.kind() == std::io::ErrorKind::InvalidData => {
+                move_aside(path, &format!("not text: {e}"));
+                return (store, notes);
+            }
             Err(e) => {
                 notes.push(format!(
                     "{}: cannot read tuned parameters ({e}); using the configuration",
@@ -234,7 +238,7 @@ impl ParamStore {
         let map: BTreeMap<String, f64> = match serde_json::from_str(&text) {
             Ok(m) => m,
             Err(e) => {
-                notes.push(format!("{}: not a parameter file ({e}); ignored", path.display()));
+                move_aside(path, &e.to_string());
                 return (store, notes);
             }
         };
@@ -278,6 +282,24 @@ impl ParamStore {
             }
             None => Ok(()),
         }
+    }
+}
+
+/// A parameter file that does not parse is moved aside, not ignored: the next PARAM_SET
+/// would overwrite it and the tuned values it still holds would be lost unseen. mavloc
+/// starts with the configuration's values.
+fn move_aside(path: &Path, why: &str) {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    match mavloc_data::state::move_aside_corrupt(path, dir) {
+        Ok(aside) => tracing::warn!(
+            "{}: not a parameter file ({why}); moved aside to {}; starting with the configuration's values",
+            path.display(),
+            aside.display()
+        ),
+        Err(e) => tracing::warn!(
+            "{}: not a parameter file ({why}) and cannot be moved aside ({e}); starting with the configuration's values",
+            path.display()
+        ),
     }
 }
 
@@ -358,5 +380,30 @@ mod tests {
         assert_eq!(s.area.ratio_test, Settings::default().area.ratio_test);
         assert!(notes.iter().any(|n| n.contains("GONE_PARAM")));
         assert!(notes.iter().any(|n| n.contains("AREA_RATIO")));
+    }
+
+    #[test]
+    fn a_corrupt_parameter_file_is_moved_aside_and_mavloc_starts() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("params.json");
+        std::fs::write(&path, b"{\"AREA_BAND_PX\": 77, \"AREA_RA").unwrap(); // torn by a power cut
+        let mut s = Settings::default();
+        let (mut store, _) = ParamStore::open(&path, &mut s);
+        assert_eq!(s.area.band_px, Settings::default().area.band_px, "the configuration's values");
+        assert!(store.tuned.is_empty());
+        assert!(!path.exists());
+        let aside: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("params.json.corrupt-"))
+            .collect();
+        assert_eq!(aside.len(), 1, "kept, not overwritten by the next set");
+        store.record("AREA_RATIO", 0.7).unwrap();
+        let aside = std::fs::read(dir.path().join(&aside[0])).unwrap();
+        assert!(aside.starts_with(b"{\"AREA_BAND_PX\": 77"));
+        // Bytes that are not even text go the same way.
+        std::fs::write(&path, [0xff, 0xfe, 0x00]).unwrap();
+        ParamStore::open(&path, &mut Settings::default());
+        assert!(!path.exists());
     }
 }

@@ -260,19 +260,20 @@ fn dataset_replay_gives_the_offline_landmarks() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 
     let state = dir.path().join("state");
-    let mut child = daemon(
-        &state,
-        &[
-            "camera.source=dataset".into(),
-            format!("camera.path={}", ds.display()),
-            "camera.realtime=false".into(),
-            "area.downscale=1".into(),
-            "area.band_px=13".into(),
-        ],
-    );
-    wait_for(&state.join("mavloc.log"), "camera source ended", Duration::from_secs(60));
-    // The last frame may still be in the pipeline: SIGTERM waits for it and writes results.
-    assert!(sigterm(&mut child).success());
+    let sets = [
+        "camera.source=dataset".into(),
+        format!("camera.path={}", ds.display()),
+        "camera.realtime=false".into(),
+        "area.downscale=1".into(),
+        "area.band_px=13".into(),
+    ];
+    let replay = || {
+        let mut child = daemon(&state, &sets);
+        wait_for(&state.join("mavloc.log"), "camera source ended", Duration::from_secs(60));
+        // The last frame may still be in the pipeline: SIGTERM waits for it and writes results.
+        assert!(sigterm(&mut child).success());
+    };
+    replay();
     let read = |p: PathBuf| parse_landmarks_csv(&std::fs::read_to_string(&p).unwrap(), "csv").unwrap();
     let (a, b) = (read(offline.join("landmarks.csv")), read(state.join("results/area/landmarks.csv")));
     assert!(!a.is_empty());
@@ -281,6 +282,36 @@ fn dataset_replay_gives_the_offline_landmarks() {
         assert_eq!(x.id, y.id);
         assert!((x.position - y.position).norm() < 1e-3, "{x:?} vs {y:?}");
     }
+
+    // A restart flies the same flight again: a new run that starts empty. The landmarks
+    // of the last run were read back and the world seen again added to them (a user's
+    // 171 became 342).
+    replay();
+    let c = read(state.join("results/area/landmarks.csv"));
+    assert_eq!(c.len(), a.len(), "the second run's landmarks, not both runs'");
+    let runs = state.join("results/area.runs");
+    let mut names: Vec<String> =
+        std::fs::read_dir(&runs).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into()).collect();
+    names.sort();
+    assert_eq!(names.len(), 2, "one folder per daemon start: {names:?}");
+    let link = std::fs::read_link(state.join("results/area")).unwrap();
+    assert!(link.starts_with(format!("area.runs/{}", names[1])), "the newest run is current: {link:?}");
+    // Each run keeps its last complete set, and nothing half written is left.
+    for run in &names {
+        let sets: Vec<String> = std::fs::read_dir(runs.join(run))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into())
+            .collect();
+        assert_eq!(sets.len(), 1, "{run}: {sets:?}");
+        assert!(sets[0].starts_with("set-") && !sets[0].ends_with(".partial"), "{run}: {sets:?}");
+        assert_eq!(read(runs.join(run).join(&sets[0]).join("landmarks.csv")).len(), a.len());
+    }
+    let leftovers: Vec<_> = std::fs::read_dir(state.join("results"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .filter(|n| n.to_string_lossy().ends_with(".tmp"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
 }
 
 #[test]

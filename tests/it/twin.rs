@@ -173,7 +173,7 @@ fn coastline_flight(extra: &[(&str, &str)], duration_s: f64, masks: bool) -> (Fl
     let flight = fly_with(&s, duration_s, masks, move |s| {
         let k = mavloc::camera::intrinsics(s).unwrap();
         let origin = mavloc::camera::origin(s).unwrap();
-        Box::new(mavloc::daemon::live::AreaLive::new(s, k, origin, out).unwrap())
+        Box::new(mavloc::daemon::live::AreaLive::new(s, k, origin, &out, "twin").unwrap())
     });
     let text = std::fs::read_to_string(results.join("landmarks.csv")).unwrap();
     let landmarks = mavloc::output::parse_landmarks_csv(&text, "landmarks.csv").unwrap();
@@ -238,7 +238,7 @@ fn indoor_flight_lands_in_the_zone_with_estimates_within_0_2_m_median_in_simulat
     let out = dir.path().join("indoor");
     let flight = fly(&s, 35.0, move |s| {
         let k = mavloc::camera::intrinsics(s).unwrap();
-        Box::new(mavloc::daemon::live::IndoorLive::new(s, k, out).unwrap())
+        Box::new(mavloc::daemon::live::IndoorLive::new(s, k, &out, "twin").unwrap())
     });
     // Each estimate against the pose its frame was rendered from, after the particle
     // filter's first two seconds (as the live test).

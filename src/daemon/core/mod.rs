@@ -79,8 +79,10 @@ pub struct Report {
     pub new_landmarks: Vec<[f64; 3]>,
     /// The indoor estimate: x, y (local NED north, east), their covariance, time.
     pub position: Option<PositionEstimate>,
-    /// Human-readable events (STATUSTEXT).
+    /// Human-readable events (STATUSTEXT, INFO).
     pub events: Vec<String>,
+    /// What the ground should not miss (STATUSTEXT, WARNING; WARN in the log).
+    pub warnings: Vec<Warning>,
     /// The landing trigger fired on this frame.
     pub landing_requested: bool,
     /// Where to point the camera to keep the target's border in view: earth-frame yaw and
@@ -89,6 +91,15 @@ pub struct Report {
     /// The frame went through the pipeline (false: skipped, e.g. no target mask or an
     /// unusable image). Only processed frames make the daemon ACTIVE.
     pub processed: bool,
+}
+
+/// A [`Report`]'s warning.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Warning {
+    /// A result write failed (a full disk, a read-only state folder): counted in
+    /// [`Counters::result_writes_failed`], said at most every 10 s.
+    WriteFailed(String),
+    Other(String),
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -116,6 +127,8 @@ pub enum PipelineEvent {
         message: String,
     },
     Failed(String),
+    /// Writing the results failed outside a frame (when the pipeline stopped).
+    WriteFailed(String),
 }
 
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -227,7 +240,14 @@ pub struct Counters {
     pub reboot_claims_rejected: u64,
     pub statustext_dropped: u64,
     pub results_dropped: u64,
+    /// Result writes that failed: checkpoints, snapshots, the write at stop. The results
+    /// on disk are then older than the pipeline's.
+    pub result_writes_failed: u64,
 }
+
+/// A failing result write is said at most this often (a full disk fails every write):
+/// the rest are counted, and the next warning says how many.
+const WRITE_WARNING_PERIOD: Duration = Duration::from_secs(10);
 
 /// Why the shell owes a `Done`.
 #[derive(Debug)]
@@ -271,6 +291,9 @@ pub struct Core {
     /// The newest time an input or timeout carried.
     now: Mono,
     counters: Counters,
+    /// When a failed result write was last said, and how many failed since unsaid.
+    write_warned: Option<Mono>,
+    writes_failed_unsaid: u64,
 }
 
 impl Core {
@@ -310,6 +333,8 @@ impl Core {
             last_processed: None,
             now: Mono::ZERO,
             counters: Counters::default(),
+            write_warned: None,
+            writes_failed_unsaid: 0,
             tuned,
             settings,
         };
@@ -920,6 +945,7 @@ impl Core {
                 let result = match &result {
                     Ok(()) => MavResult::MAV_RESULT_ACCEPTED,
                     Err(e) => {
+                        self.counters.result_writes_failed += 1;
                         self.notes.error(&format!("snapshot failed: {e}"));
                         MavResult::MAV_RESULT_FAILED
                     }
@@ -955,7 +981,24 @@ impl Core {
                 }
                 self.notes.error(&format!("pipeline failed: {e}"));
             }
+            PipelineEvent::WriteFailed(e) => self.write_failed(now, &e),
         }
+    }
+
+    /// A result write failed: counted always, said as a WARNING at most every
+    /// [`WRITE_WARNING_PERIOD`].
+    fn write_failed(&mut self, now: Mono, what: &str) {
+        self.counters.result_writes_failed += 1;
+        if self.write_warned.is_some_and(|t| now.saturating_sub(t) < WRITE_WARNING_PERIOD) {
+            self.writes_failed_unsaid += 1;
+            return;
+        }
+        let line = match std::mem::take(&mut self.writes_failed_unsaid) {
+            0 => what.to_string(),
+            n => format!("{what} ({n} more failed writes since the last warning)"),
+        };
+        self.notes.warn(&line);
+        self.write_warned = Some(now);
     }
 
     fn on_camera(&mut self, event: CameraEvent) {
@@ -1039,6 +1082,12 @@ impl Core {
         }
         for e in &report.events {
             self.notes.info(e);
+        }
+        for w in &report.warnings {
+            match w {
+                Warning::WriteFailed(e) => self.write_failed(now, e),
+                Warning::Other(w) => self.notes.warn(w),
+            }
         }
         if let Some((yaw, pitch)) = report.aim {
             if self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present() {

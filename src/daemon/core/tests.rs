@@ -631,3 +631,65 @@ fn a_spoofed_reboot_is_not_believed_while_the_autopilot_speaks_on_its_old_clock(
     sim.run_for(Duration::from_secs(3));
     assert_eq!(sim.core.counters().autopilot_reboots, 1);
 }
+
+/// The WARNING STATUSTEXTs sent, chunks joined.
+fn warnings(sim: &Sim) -> String {
+    sim.sent
+        .iter()
+        .filter_map(|(_, m)| match m {
+            MavMessage::STATUSTEXT(s) if s.severity == MavSeverity::MAV_SEVERITY_WARNING => {
+                Some(String::from_utf8_lossy(&s.text[..]).trim_end_matches('\0').to_string())
+            }
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_failed_result_write_is_a_counted_warning_and_a_full_disk_no_flood() {
+    let mut sim = Sim::new(settings());
+    sim.run_until(secs(1));
+    let disk_full = "area: cannot write results: No space left on device (os error 28)";
+    let failing = |now| Input::Pipeline {
+        now,
+        event: PipelineEvent::Report {
+            capture: 0.0,
+            attitude: (0.0, 0.0, 0.0),
+            report: Report {
+                processed: true,
+                warnings: vec![Warning::WriteFailed(disk_full.into())],
+                ..Report::default()
+            },
+        },
+    };
+    // A full disk fails every checkpoint: said once, every one counted.
+    for _ in 0..5 {
+        sim.input(failing(sim.now));
+        sim.run_for(Duration::from_millis(500));
+    }
+    assert_eq!(sim.core.counters().result_writes_failed, 5);
+    assert_eq!(warnings(&sim).matches("No space left on device").count(), 1, "{}", warnings(&sim));
+    // Ten seconds on, the next failure is said again, with how many went unsaid.
+    sim.run_for(Duration::from_secs(10));
+    sim.input(failing(sim.now));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(warnings(&sim).matches("No space left on device").count(), 2);
+    assert!(warnings(&sim).contains("(4 more failed writes since the last warning)"), "{}", warnings(&sim));
+    // The write when the pipeline stops, reported by the worker.
+    sim.run_for(Duration::from_secs(10));
+    let at_stop = "cannot write the pipeline's results at stop: Read-only file system (os error 30)";
+    sim.input(Input::Pipeline { now: sim.now, event: PipelineEvent::WriteFailed(at_stop.into()) });
+    sim.run_for(Duration::from_millis(100));
+    assert!(warnings(&sim).contains("Read-only file system"), "{}", warnings(&sim));
+    assert_eq!(sim.core.counters().result_writes_failed, 7);
+    // status.json shows the counter with the others.
+    let json = serde_json::to_value(sim.core.counters()).unwrap();
+    assert_eq!(json["result_writes_failed"], 7);
+    // Other warnings of a report are WARNINGs too, not INFO notes.
+    let other = vec![Warning::Other("indoor: model and camera disagree".into())];
+    let report = Report { warnings: other, ..Report::default() };
+    let event = PipelineEvent::Report { capture: 0.0, attitude: (0.0, 0.0, 0.0), report };
+    sim.input(Input::Pipeline { now: sim.now, event });
+    sim.run_for(Duration::from_millis(100));
+    assert!(warnings(&sim).contains("model and camera disagree"));
+}

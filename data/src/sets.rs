@@ -1,0 +1,511 @@
+//! Result folders replaced as a unit, one folder per run.
+//!
+//! A pipeline's results are several files that belong together (the area pipeline's
+//! landmarks and the border, KML and summary made from them). Writing each atomically is
+//! not enough: a full disk half way through leaves a new `landmarks.csv` beside an old
+//! `area.kml`. So a whole set is written into a fresh folder and published by one
+//! `rename(2)` of a symbolic link. Readers keep using one fixed path,
+//! `results/area/landmarks.csv`, and always see one complete set.
+//!
+//! Layout, for a link `results/area` (the name is the pipeline's):
+//!
+//! ```text
+//! results/area -> area.runs/20250601T101500Z/set-12   relative symlink: the current set
+//! results/area.runs/20250601T101500Z/set-12/          this run's newest complete set
+//! results/area.runs/20250531T170000Z/set-40/          an earlier run's last set, kept
+//! results/area.runs/legacy-20250530T120000Z/set-0/    what an older mavloc left in results/area
+//! ```
+//!
+//! A run is one daemon start (named by its UTC start time, see [`new_run_id`]), so a
+//! restart never mixes what it sees with what an earlier run saw. [`ResultSets::write`]
+//! writes `set-N.partial/`, syncs every file and the folder, renames it to `set-N`, points
+//! the link at it (a `.area.tmp` symlink renamed over `area`, then the parent folder
+//! synced) and removes the run's previous set. On an error the new folder is removed and
+//! the previous set stays current. After a crash, [`ResultSets::open`] tidies up: it
+//! removes `*.partial` folders and `.area.tmp`, keeps only the newest complete set of each
+//! run (moving the link to it if it pointed at an older one) and moves a real `area`
+//! folder left by an older mavloc into `area.runs/legacy-<its mtime>/set-0`.
+//!
+//! Results that grow line by line (the indoor trajectory) have no sets: the link points at
+//! the run's folder itself ([`open_run_dir`]).
+//!
+//! Only std: `symlink` and `rename` are all this needs. Unix only, like mavloc.
+
+use std::fs;
+use std::io;
+use std::os::unix::fs::symlink;
+use std::path::{Path, PathBuf};
+use std::time::SystemTime;
+
+use crate::state::{unique_name, utc_stamp};
+
+/// A run id for a daemon start at `now`: `yyyymmddThhmmssZ` (UTC), with `-2`, `-3`, ...
+/// when `taken` says a run of that name exists (two starts within a second).
+pub fn new_run_id(now: SystemTime, taken: impl Fn(&str) -> bool) -> String {
+    unique_name(&utc_stamp(now), taken)
+}
+
+/// How a run's folder is used.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Layout {
+    /// The run holds `set-N` folders; the link points at the newest.
+    Sets,
+    /// The run's folder holds the files; the link points at it.
+    Plain,
+}
+
+/// The link `results/NAME` and its runs in `results/NAME.runs/`.
+#[derive(Clone, Debug)]
+pub struct Runs {
+    link: PathBuf,
+    root: PathBuf,
+    name: String,
+}
+
+impl Runs {
+    /// For the link `link` (no I/O).
+    pub fn new(link: &Path) -> io::Result<Runs> {
+        let name = link
+            .file_name()
+            .and_then(|n| n.to_str())
+            .filter(|n| !n.is_empty())
+            .ok_or_else(|| {
+                io::Error::new(io::ErrorKind::InvalidInput, format!("{}: no name", link.display()))
+            })?
+            .to_string();
+        Ok(Runs { link: link.to_path_buf(), root: link.with_file_name(format!("{name}.runs")), name })
+    }
+
+    /// `results/NAME`, the path users read through.
+    pub fn link(&self) -> &Path {
+        &self.link
+    }
+
+    /// `results/NAME.runs`.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn run_dir(&self, run: &str) -> PathBuf {
+        self.root.join(run)
+    }
+
+    fn parent(&self) -> &Path {
+        self.link.parent().unwrap_or(Path::new("."))
+    }
+
+    /// The temporary link renamed over the real one.
+    fn tmp_link(&self) -> PathBuf {
+        self.link.with_file_name(format!(".{}.tmp", self.name))
+    }
+
+    /// The link's target as written (relative), when it is a symlink.
+    fn target(&self) -> Option<PathBuf> {
+        fs::read_link(&self.link).ok()
+    }
+
+    /// `dir` (under [`Runs::root`]) relative to the link's folder: what the link holds, so
+    /// the state folder can be moved or mounted elsewhere.
+    fn relative(&self, dir: &Path) -> io::Result<PathBuf> {
+        dir.strip_prefix(self.parent()).map(Path::to_path_buf).map_err(|_| {
+            io::Error::new(io::ErrorKind::InvalidInput, format!("{} is not beside the link", dir.display()))
+        })
+    }
+
+    /// Points the link at `dir` in one step: a new symlink `.NAME.tmp` is renamed over
+    /// `NAME` (atomic on POSIX), then the parent folder is synced so the switch survives a
+    /// power cut. On failure the link is as it was.
+    pub fn point_at(&self, dir: &Path) -> io::Result<()> {
+        let target = self.relative(dir)?;
+        let tmp = self.tmp_link();
+        remove_file_if_any(&tmp)?;
+        symlink(&target, &tmp)?;
+        if let Err(e) = fs::rename(&tmp, &self.link) {
+            let _ = fs::remove_file(&tmp);
+            return Err(e);
+        }
+        sync_dir(self.parent());
+        Ok(())
+    }
+
+    /// Start-up tidying (see the module docs). Removals are best effort: what is left is
+    /// tried again at the next start and never read as a result.
+    fn tidy(&self, layout: Layout) -> io::Result<()> {
+        fs::create_dir_all(&self.root)?;
+        let _ = remove_file_if_any(&self.tmp_link());
+        self.adopt_legacy(layout)?;
+        if layout == Layout::Sets {
+            for run in subdirs(&self.root)? {
+                self.tidy_run(&self.root.join(run));
+            }
+        }
+        Ok(())
+    }
+
+    /// A real folder at the link (an older mavloc wrote results straight into it) becomes
+    /// a run of its own, once, and the link points at it until the new run writes.
+    fn adopt_legacy(&self, layout: Layout) -> io::Result<()> {
+        let meta = match fs::symlink_metadata(&self.link) {
+            Ok(m) if m.is_dir() => m,
+            _ => return Ok(()),
+        };
+        if fs::read_dir(&self.link)?.next().is_none() {
+            return fs::remove_dir(&self.link);
+        }
+        let stamp = utc_stamp(meta.modified().unwrap_or_else(|_| SystemTime::now()));
+        let run = unique_name(&format!("legacy-{stamp}"), |n| self.root.join(n).exists());
+        let run_dir = self.root.join(run);
+        let dest = match layout {
+            Layout::Sets => {
+                fs::create_dir(&run_dir)?;
+                run_dir.join("set-0")
+            }
+            Layout::Plain => run_dir,
+        };
+        fs::rename(&self.link, &dest)?;
+        sync_dir(&self.root);
+        self.point_at(&dest)
+    }
+
+    /// In one run: `*.partial` removed, only the newest complete set kept. The link is
+    /// moved to the newest first if it pointed at an older set of this run (a crash
+    /// between publishing a set and switching the link).
+    fn tidy_run(&self, run_dir: &Path) {
+        let Ok(sets) = scan(run_dir) else { return };
+        for p in &sets.partial {
+            let _ = fs::remove_dir_all(run_dir.join(p));
+        }
+        let Some(&newest) = sets.complete.iter().max() else { return };
+        let target = self.target();
+        for &n in sets.complete.iter().filter(|&&n| n != newest) {
+            let old = run_dir.join(set_name(n));
+            if target.is_some()
+                && target == self.relative(&old).ok()
+                && self.point_at(&run_dir.join(set_name(newest))).is_err()
+            {
+                continue; // still current: keep it
+            }
+            let _ = fs::remove_dir_all(&old);
+        }
+    }
+}
+
+/// A pipeline's result sets in one run (see the module docs).
+#[derive(Clone, Debug)]
+pub struct ResultSets {
+    runs: Runs,
+    run: String,
+}
+
+impl ResultSets {
+    /// Tidies `link`'s runs after a crash or an older mavloc and creates the folder of
+    /// `run`. Opening the run again (a pipeline rebuilt in the same daemon) continues it.
+    pub fn open(link: &Path, run: &str) -> io::Result<ResultSets> {
+        let runs = Runs::new(link)?;
+        runs.tidy(Layout::Sets)?;
+        fs::create_dir_all(runs.run_dir(run))?;
+        Ok(ResultSets { runs, run: run.to_string() })
+    }
+
+    pub fn runs(&self) -> &Runs {
+        &self.runs
+    }
+
+    pub fn run(&self) -> &str {
+        &self.run
+    }
+
+    pub fn run_dir(&self) -> PathBuf {
+        self.runs.run_dir(&self.run)
+    }
+
+    /// This run's newest complete set, if it wrote one.
+    pub fn current(&self) -> Option<PathBuf> {
+        let sets = scan(&self.run_dir()).ok()?;
+        sets.complete.iter().max().map(|&n| self.run_dir().join(set_name(n)))
+    }
+
+    /// Writes a new set: `fill(folder)` writes the files into a fresh folder, which
+    /// becomes current only once everything is on disk; then this run's previous set is
+    /// removed. Returns the new set's folder. On any error (from `fill` or the disk) the
+    /// new folder is removed, the previous set stays current and the error is returned.
+    pub fn write(&self, fill: impl FnOnce(&Path) -> io::Result<()>) -> io::Result<PathBuf> {
+        let run_dir = self.run_dir();
+        fs::create_dir_all(&run_dir)?;
+        let sets = scan(&run_dir)?;
+        let n = sets.complete.iter().chain(&sets.partial_numbers).max().map_or(1, |h| h + 1);
+        let set = run_dir.join(set_name(n));
+        let partial = run_dir.join(format!("{}.partial", set_name(n)));
+        let written = (|| {
+            fs::create_dir(&partial)?;
+            fill(&partial)?;
+            sync_tree(&partial)?;
+            fs::rename(&partial, &set)?;
+            sync_dir(&run_dir);
+            Ok(())
+        })();
+        if let Err(e) = written {
+            let _ = fs::remove_dir_all(&partial);
+            return Err(e);
+        }
+        if let Err(e) = self.runs.point_at(&set) {
+            // Complete but never current: removed, so the next start cannot take it for newer.
+            let _ = fs::remove_dir_all(&set);
+            sync_dir(&run_dir);
+            return Err(e);
+        }
+        // A reader that resolved the link a moment ago keeps its open files; one that
+        // opens a file of the old set by its own path now finds it gone and must retry.
+        for old in sets.complete.iter().filter(|&&o| o != n) {
+            let _ = fs::remove_dir_all(run_dir.join(set_name(*old)));
+        }
+        Ok(set)
+    }
+}
+
+/// Creates `run` under `link`'s runs (tidying as [`ResultSets::open`] does, without sets)
+/// and points the link at it: for results appended line by line. Returns the folder.
+pub fn open_run_dir(link: &Path, run: &str) -> io::Result<PathBuf> {
+    let runs = Runs::new(link)?;
+    runs.tidy(Layout::Plain)?;
+    let dir = runs.run_dir(run);
+    fs::create_dir_all(&dir)?;
+    if runs.target() != runs.relative(&dir).ok() {
+        runs.point_at(&dir)?;
+    }
+    Ok(dir)
+}
+
+fn set_name(n: u64) -> String {
+    format!("set-{n}")
+}
+
+/// What a run's folder holds.
+#[derive(Debug, Default)]
+struct Scan {
+    complete: Vec<u64>,
+    /// Names of `*.partial` folders.
+    partial: Vec<String>,
+    /// Their numbers, when they are `set-N.partial`: never reused.
+    partial_numbers: Vec<u64>,
+}
+
+fn scan(run_dir: &Path) -> io::Result<Scan> {
+    let mut s = Scan::default();
+    for name in subdirs(run_dir)? {
+        if let Some(stem) = name.strip_suffix(".partial") {
+            if let Some(n) = stem.strip_prefix("set-").and_then(|n| n.parse().ok()) {
+                s.partial_numbers.push(n);
+            }
+            s.partial.push(name);
+        } else if let Some(n) = name.strip_prefix("set-").and_then(|n| n.parse().ok()) {
+            s.complete.push(n);
+        }
+    }
+    Ok(s)
+}
+
+/// Names of the real folders (not symlinks) in `dir`.
+fn subdirs(dir: &Path) -> io::Result<Vec<String>> {
+    let mut names = Vec::new();
+    for e in fs::read_dir(dir)? {
+        let e = e?;
+        if e.file_type()?.is_dir() {
+            if let Some(n) = e.file_name().to_str() {
+                names.push(n.to_string());
+            }
+        }
+    }
+    Ok(names)
+}
+
+/// Syncs every file under `dir`, then `dir`: the set is on disk before it is published,
+/// however `fill` wrote it (an image library, an encoder).
+fn sync_tree(dir: &Path) -> io::Result<()> {
+    for e in fs::read_dir(dir)? {
+        let e = e?;
+        let t = e.file_type()?;
+        if t.is_dir() {
+            sync_tree(&e.path())?;
+        } else if t.is_file() {
+            fs::File::open(e.path())?.sync_all()?;
+        }
+    }
+    fs::File::open(dir)?.sync_all()
+}
+
+/// Best effort, as `atomic::sync_parent`: not every file system can sync a folder.
+fn sync_dir(dir: &Path) {
+    if let Ok(d) = fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+fn remove_file_if_any(p: &Path) -> io::Result<()> {
+    match fs::remove_file(p) {
+        Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    fn write_set(sets: &ResultSets, text: &str) -> PathBuf {
+        sets.write(|d| {
+            fs::write(d.join("a.csv"), text)?;
+            fs::write(d.join("b.json"), text)
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn a_set_is_read_through_the_link_and_replaced_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        assert!(sets.current().is_none(), "a new run starts empty");
+        let first = write_set(&sets, "one");
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "one");
+        assert_eq!(fs::read_link(&link).unwrap(), Path::new("area.runs/r1/set-1"), "relative");
+        let second = write_set(&sets, "two");
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "two");
+        assert_eq!(fs::read_to_string(link.join("b.json")).unwrap(), "two");
+        assert_eq!(sets.current(), Some(second.clone()));
+        assert!(!first.exists(), "the previous set is removed");
+        assert_eq!(names(&sets.run_dir()), ["set-2"]);
+        assert_eq!(names(dir.path()), ["area", "area.runs"], "no temporary left");
+    }
+
+    #[test]
+    fn a_failed_fill_leaves_the_previous_set_current_and_nothing_behind() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        write_set(&sets, "old");
+        // The disk fills up after the first file of the new set.
+        let e = sets
+            .write(|d| {
+                fs::write(d.join("a.csv"), "new")?;
+                Err(io::Error::new(io::ErrorKind::StorageFull, "No space left on device"))
+            })
+            .unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::StorageFull);
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "old");
+        assert_eq!(fs::read_to_string(link.join("b.json")).unwrap(), "old", "one set, not a mix");
+        assert_eq!(names(&sets.run_dir()), ["set-1"], "no .partial left");
+        assert_eq!(names(dir.path()), ["area", "area.runs"], "no .tmp left");
+        // The next write works and takes the next number.
+        write_set(&sets, "new");
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "new");
+        assert_eq!(names(&sets.run_dir()), ["set-2"]);
+    }
+
+    #[test]
+    fn a_failed_switch_removes_the_new_set_and_keeps_the_old() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        write_set(&sets, "old");
+        // Something in the way of the temporary link: the switch itself fails.
+        fs::create_dir_all(dir.path().join(".area.tmp/x")).unwrap();
+        assert!(sets.write(|d| fs::write(d.join("a.csv"), "new")).is_err());
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "old");
+        assert_eq!(names(&sets.run_dir()), ["set-1"]);
+    }
+
+    #[test]
+    fn a_new_run_starts_empty_and_earlier_runs_keep_their_last_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let r1 = ResultSets::open(&link, "r1").unwrap();
+        write_set(&r1, "first run");
+        write_set(&r1, "first run, last");
+        let r2 = ResultSets::open(&link, "r2").unwrap();
+        assert!(r2.current().is_none());
+        // Until the new run writes, the link shows the last results there are.
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "first run, last");
+        write_set(&r2, "second run");
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "second run");
+        let kept = dir.path().join("area.runs/r1/set-2/a.csv");
+        assert_eq!(fs::read_to_string(kept).unwrap(), "first run, last");
+        // The same run opened again (a pipeline rebuilt in the same daemon) continues.
+        let again = ResultSets::open(&link, "r2").unwrap();
+        assert_eq!(again.current(), r2.current());
+    }
+
+    #[test]
+    fn start_up_removes_what_a_crash_left_and_keeps_the_newest_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        write_set(&sets, "one");
+        let run = sets.run_dir();
+        // A crash after set-2 was published but before the link moved and set-1 went, and
+        // another in the middle of writing set-3; a temporary link left behind.
+        fs::create_dir(run.join("set-2")).unwrap();
+        fs::write(run.join("set-2/a.csv"), "two").unwrap();
+        fs::create_dir(run.join("set-3.partial")).unwrap();
+        fs::write(run.join("set-3.partial/a.csv"), "thr").unwrap();
+        symlink("area.runs/r1/set-1", dir.path().join(".area.tmp")).unwrap();
+        let sets = ResultSets::open(&link, "r2").unwrap();
+        assert_eq!(names(&run), ["set-2"]);
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "two", "the link moved to the newest");
+        assert_eq!(names(dir.path()), ["area", "area.runs"]);
+        assert_eq!(names(sets.runs().root()), ["r1", "r2"]);
+    }
+
+    #[test]
+    fn a_folder_left_by_an_older_mavloc_becomes_a_legacy_run_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        fs::create_dir(&link).unwrap();
+        fs::write(link.join("landmarks.csv"), "old format").unwrap();
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        assert!(fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
+        assert_eq!(fs::read_to_string(link.join("landmarks.csv")).unwrap(), "old format");
+        let runs = names(sets.runs().root());
+        assert_eq!(runs.len(), 2, "{runs:?}");
+        assert!(runs[0].starts_with("legacy-") && runs[1] == "r1", "{runs:?}");
+        let legacy = sets.runs().root().join(&runs[0]);
+        assert_eq!(names(&legacy), ["set-0"]);
+        // Once: opening again adopts nothing more.
+        ResultSets::open(&link, "r1").unwrap();
+        assert_eq!(names(sets.runs().root()).len(), 2);
+        write_set(&sets, "new");
+        assert_eq!(fs::read_to_string(legacy.join("set-0/landmarks.csv")).unwrap(), "old format");
+    }
+
+    #[test]
+    fn a_plain_run_folder_is_linked_and_legacy_files_adopted() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("indoor");
+        fs::create_dir(&link).unwrap();
+        fs::write(link.join("trajectory.csv"), "old").unwrap();
+        let run = open_run_dir(&link, "r1").unwrap();
+        fs::write(run.join("trajectory.csv"), "new").unwrap();
+        assert_eq!(fs::read_to_string(link.join("trajectory.csv")).unwrap(), "new");
+        let runs = names(&dir.path().join("indoor.runs"));
+        assert!(runs[0].starts_with("legacy-") && runs[1] == "r1", "{runs:?}");
+        let old = dir.path().join("indoor.runs").join(&runs[0]).join("trajectory.csv");
+        assert_eq!(fs::read_to_string(old).unwrap(), "old");
+        assert_eq!(open_run_dir(&link, "r1").unwrap(), run, "the same run continues");
+    }
+
+    #[test]
+    fn run_ids_are_utc_start_times_made_unique() {
+        let t = SystemTime::UNIX_EPOCH + std::time::Duration::from_secs(1_700_000_000);
+        assert_eq!(new_run_id(t, |_| false), "20231114T221320Z");
+        assert_eq!(new_run_id(t, |n| n == "20231114T221320Z"), "20231114T221320Z-2");
+    }
+}
