@@ -39,7 +39,7 @@ pub struct Signer {
     key: [u8; 32],
     link_id: u8,
     timestamp: u64,
-    streams: HashMap<(u8, u8, u8), u64>,
+    streams: Streams,
     state_file: Option<PathBuf>,
     /// Something to save since the last save.
     dirty: bool,
@@ -52,10 +52,13 @@ const COMMANDING: [u32; 3] = [
     76, // COMMAND_LONG
 ];
 
+/// Each stream's last timestamp, by (link id, system id, component id).
+type Streams = HashMap<(u8, u8, u8), u64>;
+
 /// The state file: our timestamp on the first line, then one stream per line as
 /// `link system component timestamp`. Unparseable stream lines are skipped (each is one
 /// stream's memory, not a reason to refuse to start).
-fn parse_state(text: &str) -> Option<(u64, HashMap<(u8, u8, u8), u64>)> {
+fn parse_state(text: &str) -> Option<(u64, Streams)> {
     let mut lines = text.lines();
     let ts = lines.next()?.trim().parse::<u64>().ok()?;
     let mut streams = HashMap::new();

@@ -420,8 +420,7 @@ impl Link {
     /// False when the daemon has gone.
     async fn datagram(&mut self, endpoint: &mut Endpoint, bytes: &[u8], from: SocketAddr) -> bool {
         self.decoder.push(bytes);
-        loop {
-            let Some(f) = self.decoder.next_in_datagram(self.signer.as_mut()) else { break };
+        while let Some(f) = self.decoder.next_in_datagram(self.signer.as_mut()) {
             let rx = Instant::now();
             if let Endpoint::Udp { peers, fixed: None, .. } = endpoint {
                 if self.trust.vouches(&f) {
@@ -631,7 +630,7 @@ mod tests {
         attacker.send(&heartbeat(42, None)).await.unwrap();
         frames(&mut h, 1).await; // the foreign heartbeat is a valid frame: the daemon sees it
         assert_eq!(who_hears(&h, &[&autopilot, &attacker]).await, vec![true, false]);
-        assert_eq!(h.stats.skipped.lock().unwrap().garbage_bytes > 0, true);
+        assert!(h.stats.skipped.lock().unwrap().garbage_bytes > 0);
     }
 
     #[tokio::test]
