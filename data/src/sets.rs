@@ -411,6 +411,46 @@ mod tests {
         assert_eq!(names(&sets.run_dir()), ["set-2"]);
     }
 
+    /// A real full disk: a 64 KiB tmpfs (needs root and mount; skipped with a message
+    /// otherwise).
+    #[test]
+    fn a_full_disk_leaves_the_previous_set_current_and_nothing_behind() {
+        let dir = tempfile::tempdir().unwrap();
+        let mounted = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", "size=64k", "tmpfs"])
+            .arg(dir.path())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if !mounted {
+            eprintln!(
+                "skipped: cannot mount a tmpfs here (needs root); the injected-error test covers the logic"
+            );
+            return;
+        }
+        struct Unmount<'a>(&'a Path);
+        impl Drop for Unmount<'_> {
+            fn drop(&mut self) {
+                let _ = std::process::Command::new("umount").arg(self.0).status();
+            }
+        }
+        let _guard = Unmount(dir.path());
+        let link = dir.path().join("area");
+        let sets = ResultSets::open(&link, "r1").unwrap();
+        write_set(&sets, "old");
+        let e = sets
+            .write(|d| {
+                fs::write(d.join("a.csv"), "new")?;
+                fs::write(d.join("b.json"), vec![b'x'; 256 * 1024])
+            })
+            .unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::StorageFull, "{e}");
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "old");
+        assert_eq!(fs::read_to_string(link.join("b.json")).unwrap(), "old");
+        assert_eq!(names(&sets.run_dir()), ["set-1"], "no .partial left");
+        assert_eq!(names(dir.path()), ["area", "area.runs"], "no .tmp left");
+    }
+
     #[test]
     fn a_failed_switch_removes_the_new_set_and_keeps_the_old() {
         let dir = tempfile::tempdir().unwrap();
