@@ -3,27 +3,44 @@
 #   make test   every check CI runs (fmt, clippy, all tests)
 #   make check-long   the full-size runs the suite leaves out (minutes each)
 # Both first run `make deps`, which installs only what is missing.
+# `make install` needs only a Rust toolchain and the build packages (`make build-deps`).
 
-APT_PACKAGES := libopencv-dev clang libclang-dev fonts-dejavu-core
+BUILD_PACKAGES := libopencv-dev clang libclang-dev
+APT_PACKAGES := $(BUILD_PACKAGES) fonts-dejavu-core python3-venv
+# The interpreter the test tools' virtual environment is made from. Debian's own
+# (`/usr/bin/python3`) is "externally managed" and refuses `pip install`, so the tools go
+# into a project venv, never into the system interpreter.
 PYTHON ?= python3
+VENV := .venv
 PYMAVLINK_VERSION := 2.4.50
+# The tests run pymavlink from the venv (tests/it reads MAVLOC_PYTHON).
+export MAVLOC_PYTHON := $(abspath $(VENV))/bin/python
 CARGO ?= cargo
 SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 
-.PHONY: deps demo test check-long build release install uninstall clean
+.PHONY: deps build-deps demo test check-long build release install install-files uninstall clean
 
-deps:
-	@command -v $(CARGO) >/dev/null || { echo "make deps: cargo not found; install Rust with rustup first" >&2; exit 1; }
+# Debian packages, installed only when missing.
+define apt_install
 	@missing=""; \
-	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	for p in $(1); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
-	  echo "make deps: installing Debian packages:$$missing"; \
+	  echo "make: installing Debian packages:$$missing"; \
 	  $(SUDO) apt-get update -qq && \
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq $$missing >/dev/null || exit 1; \
 	fi
-	@$(PYTHON) -c "import pymavlink" 2>/dev/null || { \
-	  echo "make deps: installing pymavlink $(PYMAVLINK_VERSION) from PyPI"; \
-	  $(PYTHON) -m pip install --quiet "pymavlink==$(PYMAVLINK_VERSION)"; }
+endef
+
+build-deps:
+	@command -v $(CARGO) >/dev/null || { echo "make: cargo not found; install Rust with rustup first (under sudo: sudo env PATH=\"$$PATH\" make ...)" >&2; exit 1; }
+	$(call apt_install,$(BUILD_PACKAGES))
+
+deps: build-deps
+	$(call apt_install,$(APT_PACKAGES))
+	@$(VENV)/bin/python -c "import pymavlink" 2>/dev/null || { \
+	  echo "make deps: creating $(VENV) from $(PYTHON) with pymavlink $(PYMAVLINK_VERSION)"; \
+	  rm -rf $(VENV) && $(PYTHON) -m venv $(VENV) && \
+	  $(VENV)/bin/pip install --quiet --disable-pip-version-check "pymavlink==$(PYMAVLINK_VERSION)"; }
 	@$(CARGO) fmt --version >/dev/null 2>&1 && $(CARGO) clippy --version >/dev/null 2>&1 \
 	  && { rustup which clippy-driver >/dev/null 2>&1 || command -v clippy-driver >/dev/null; } || { \
 	  echo "make deps: rustfmt and clippy are needed: rustup component add rustfmt clippy" >&2; exit 1; }
@@ -49,21 +66,42 @@ check-long: deps
 	$(LINTED) $(CARGO) test --workspace -- --ignored
 	$(CARGO) run --release --quiet -- demo
 
-build: deps
+build: build-deps
 	$(CARGO) build --workspace
 
-release: deps
+release: build-deps
 	$(CARGO) build --release
 
-# Installs the binary, the systemd unit and the default configuration (kept if present).
+# Installs the binary, the systemd unit (ExecStart pointing at $(PREFIX)) and the
+# real-drone configuration. An existing configuration is never replaced, nor is a unit
+# someone edited: local changes belong in /etc/systemd/system/mavloc.service.d/*.conf
+# (README, "Running on a drone"). systemd is told when it is running (not in a DESTDIR).
 PREFIX ?= /usr/local
+UNIT := $(DESTDIR)/etc/systemd/system/mavloc.service
+# The unit as last installed, to tell an edited unit from an older release's.
+PRISTINE := $(DESTDIR)$(PREFIX)/share/mavloc/mavloc.service
+BIN ?= target/release/mavloc
 install: release
-	install -D -m 0755 target/release/mavloc $(DESTDIR)$(PREFIX)/bin/mavloc
-	install -D -m 0644 systemd/mavloc.service $(DESTDIR)/etc/systemd/system/mavloc.service
-	[ -e $(DESTDIR)/etc/mavloc/mavloc.toml ] || install -D -m 0644 config/mavloc.toml $(DESTDIR)/etc/mavloc/mavloc.toml
+	@$(MAKE) --no-print-directory install-files
+
+# The copying alone (tests/it/install.rs runs it on a debug binary into a DESTDIR).
+install-files:
+	install -D -m 0755 $(BIN) $(DESTDIR)$(PREFIX)/bin/mavloc
+	@mkdir -p $(dir $(UNIT)) $(dir $(PRISTINE))
+	@sed 's|/usr/local/bin/mavloc|$(PREFIX)/bin/mavloc|' systemd/mavloc.service > $(UNIT).new
+	@if [ -e $(UNIT) ] && ! cmp -s $(UNIT) $(UNIT).new && ! cmp -s $(UNIT) $(PRISTINE); then \
+	  echo "make install: $(UNIT) was edited, so it is kept; the new unit is $(UNIT).new (put local changes in mavloc.service.d/)"; \
+	else mv $(UNIT).new $(UNIT); fi
+	@sed 's|/usr/local/bin/mavloc|$(PREFIX)/bin/mavloc|' systemd/mavloc.service > $(PRISTINE)
+	[ -e $(DESTDIR)/etc/mavloc/mavloc.toml ] || install -D -m 0644 config/drone.toml $(DESTDIR)/etc/mavloc/mavloc.toml
+	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then systemctl daemon-reload; fi
 
 uninstall:
-	rm -f $(DESTDIR)$(PREFIX)/bin/mavloc $(DESTDIR)/etc/systemd/system/mavloc.service
+	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then \
+	  systemctl disable --now mavloc.service 2>/dev/null || true; fi
+	rm -f $(DESTDIR)$(PREFIX)/bin/mavloc $(UNIT) $(UNIT).new $(PRISTINE)
+	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then systemctl daemon-reload; fi
+	@echo "make uninstall: kept /etc/mavloc and /var/lib/mavloc (configuration, results)"
 
 clean:
 	$(CARGO) clean

@@ -10,8 +10,9 @@
 //!    sent.
 //! 2. Tuned parameters from `params.json` over the configuration.
 //! 3. Signing key (refused if others can read it) and timestamp.
-//! 4. The link task; READY goes to systemd when it is first up, so `systemctl start`
-//!    returns once mavloc can talk.
+//! 4. The link task. READY goes to systemd once 1-3 succeeded, before the link is up:
+//!    an autopilot that is off at boot or a serial device that is not there yet must not
+//!    get mavloc killed by the start timeout (the link's state is in `STATUS=`).
 //! 5. The main loop: link frames, camera frames and worker events -> core; the core's
 //!    deadlines drive heartbeat, stream requests, counters, `status.json` and the
 //!    watchdog pings, so a hung loop gets restarted by systemd.
@@ -480,7 +481,11 @@ async fn serve(
     shell: &mut Shell,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> anyhow::Result<()> {
-    let mut ready = false;
+    // READY as soon as the configuration, state directory and key are good (they are, to
+    // get here): the link and the camera come and go afterwards and are reported in
+    // STATUS=, STATUSTEXT and status.json. Waiting for the link would let systemd's start
+    // timeout kill a mavloc whose autopilot is off at boot, in a restart loop.
+    notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status("link opening")]);
     shell.flush(core);
     tokio::pin!(shutdown);
 
@@ -497,12 +502,12 @@ async fn serve(
                 }
                 Some(LinkEvent::Up(what)) => {
                     shell.link_state = format!("up: {what}");
-                    if !ready {
-                        ready = true;
-                        notify(&[sd_notify::NotifyState::Ready, sd_notify::NotifyState::Status(&shell.link_state)]);
-                    }
+                    notify(&[sd_notify::NotifyState::Status(&format!("link {}", shell.link_state))]);
                 }
-                Some(LinkEvent::Down(why)) => shell.link_state = format!("down: {why}"),
+                Some(LinkEvent::Down(why)) => {
+                    shell.link_state = format!("down: {why}");
+                    notify(&[sd_notify::NotifyState::Status(&format!("link {}", shell.link_state))]);
+                }
                 None => anyhow::bail!("the link task ended unexpectedly"),
             },
             ev = shell.live.camera_rx.recv(), if shell.live.camera_thread.is_some() => {

@@ -363,13 +363,39 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
         builder = builder.add_source(File::from_str(&doc.to_string(), FileFormat::Toml));
     }
     let merged = builder.build().map_err(|e| SettingsError::Merge(e.to_string()))?;
-    let settings: Settings = merged.try_deserialize().map_err(|e| merge_error(e, &origins))?;
+    let mut settings: Settings = merged.try_deserialize().map_err(|e| merge_error(e, &origins))?;
+    for path in layers.file.iter().chain(&layers.dataset) {
+        resolve_relative_paths(&mut settings, &origins, path);
+    }
 
     let problems = validate(&settings, &origins);
     if !problems.is_empty() {
         return Err(SettingsError::Invalid(problems));
     }
     Ok(Loaded { settings, origins, file: layers.file.clone() })
+}
+
+/// A relative path written in a configuration file means "beside this file", not "in
+/// whatever folder the process started in": under systemd that is `/`, so
+/// `indoor.model = "floor.model"` in /etc/mavloc/mavloc.toml must mean
+/// /etc/mavloc/floor.model. Paths from the environment or the command line keep the
+/// working directory, as a shell user expects.
+fn resolve_relative_paths(s: &mut Settings, origins: &BTreeMap<String, String>, file: &Path) {
+    let origin = file.display().to_string();
+    let Some(dir) = file.parent() else { return };
+    let from_file = |key: &str| origins.get(key).is_some_and(|o| *o == origin);
+    let resolve = |key: &str, value: &mut String| {
+        if from_file(key) && !value.is_empty() && Path::new(value.as_str()).is_relative() {
+            *value = dir.join(value.as_str()).display().to_string();
+        }
+    };
+    resolve("daemon.state_dir", &mut s.daemon.state_dir);
+    resolve("camera.path", &mut s.camera.path);
+    resolve("camera.device", &mut s.camera.device);
+    resolve("indoor.model", &mut s.indoor.model);
+    if !s.mavlink.signing_key.starts_with("credential:") {
+        resolve("mavlink.signing_key", &mut s.mavlink.signing_key);
+    }
 }
 
 /// Turns a deserialisation error (an enum value that is not one of the variants, an

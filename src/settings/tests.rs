@@ -235,3 +235,34 @@ fn enum_names_match_the_schema() {
         assert!(names.contains(&default.as_str()), "{key} default {default} not listed");
     }
 }
+
+#[test]
+fn relative_paths_in_a_file_are_beside_the_file_and_on_the_command_line_in_the_working_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("mavloc.toml");
+    std::fs::write(&file, "[indoor]\nmodel = \"floor.model\"\n[camera]\npath = \"/abs/frames\"\n").unwrap();
+    let loaded = load_file(&file).unwrap();
+    assert_eq!(Path::new(&loaded.settings.indoor.model), dir.path().join("floor.model"));
+    assert_eq!(loaded.settings.camera.path, "/abs/frames", "absolute paths stay");
+    let cli = load(&Layers {
+        file: Some(file.clone()),
+        overrides: vec!["indoor.model=here.model".into()],
+        ..Layers::default()
+    })
+    .unwrap();
+    assert_eq!(cli.settings.indoor.model, "here.model");
+}
+
+#[test]
+fn the_installed_drone_configuration_is_a_real_drone_one() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/drone.toml");
+    let loaded = load_file(&path).unwrap();
+    let s = &loaded.settings;
+    assert_eq!(s.camera.source, CameraSource::V4l2, "never the simulated camera on a drone");
+    assert!(s.mavlink.connection.starts_with("serial:") || s.mavlink.connection.starts_with("udpin:127.0.0.1"));
+    assert_ne!(s.area.segmenter, crate::settings::Segmenter::Masks, "a real camera gives no masks");
+    // The SITL configuration beside it loads too, and its state folder is beside it.
+    let sitl = load_file(&path.with_file_name("sitl.toml")).unwrap().settings;
+    assert_eq!(sitl.camera.source, CameraSource::Sim);
+    assert_eq!(Path::new(&sitl.daemon.state_dir), path.with_file_name("sitl-state"));
+}

@@ -16,14 +16,14 @@ use crate::fixtures::BIN;
 /// Runs the relay script and returns what it saw.
 fn closed_loop(mode: &str, seconds: f64, state: &Path, args: &[&str]) -> serde_json::Value {
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/e2e/closed_loop.py");
-    let mut child = Command::new("python3")
+    let mut child = Command::new(crate::fixtures::python())
         .arg(script)
         .args([BIN, mode, &seconds.to_string(), &state.display().to_string()])
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
-        .expect("python3 runs (make deps installs pymavlink)");
+        .expect("python runs (make deps creates .venv with pymavlink)");
     let limit = Duration::from_secs_f64(seconds + 30.0);
     let start = Instant::now();
     loop {

@@ -6,14 +6,14 @@ use std::time::{Duration, Instant};
 
 fn run_python(tests: &[&str], limit: Duration) {
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/e2e/daemon.py");
-    let mut child = Command::new("python3")
+    let mut child = Command::new(crate::fixtures::python())
         .arg(script)
         .arg(env!("CARGO_BIN_EXE_mavloc"))
         .args(tests)
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::inherit())
         .spawn()
-        .expect("python3 runs (make deps installs pymavlink)");
+        .expect("python runs (make deps creates .venv with pymavlink)");
     let start = Instant::now();
     loop {
         if let Some(status) = child.try_wait().unwrap() {

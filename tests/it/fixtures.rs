@@ -76,3 +76,17 @@ pub fn small_indoor_model() -> &'static Path {
         dir.join("floor.model")
     })
 }
+
+/// The Python with pymavlink: `$MAVLOC_PYTHON` (the Makefile points it at the venv `make
+/// deps` creates), else that venv if it exists, else `python3` on PATH.
+pub fn python() -> std::path::PathBuf {
+    if let Some(p) = std::env::var_os("MAVLOC_PYTHON").filter(|p| std::path::Path::new(p).exists()) {
+        return p.into();
+    }
+    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
+    if venv.exists() {
+        venv
+    } else {
+        "python3".into()
+    }
+}
