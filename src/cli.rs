@@ -55,6 +55,11 @@ pub enum Command {
         #[command(subcommand)]
         command: ConfigCommand,
     },
+    /// Values tuned over MAVLink (QGroundControl's parameter editor): list or reset them.
+    Params {
+        #[command(subcommand)]
+        command: ParamsCommand,
+    },
     /// Import real data into a dataset.
     Import {
         #[command(subcommand)]
@@ -370,6 +375,18 @@ pub enum ConfigCommand {
     },
     /// Print the configuration in force, each non-default value with where it came from.
     Show,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum ParamsCommand {
+    /// List the tuned values, their configuration keys and whether each is in force.
+    List,
+    /// Forget a tuned value (or all of them): the configuration's value applies again
+    /// from mavloc's next start.
+    Reset {
+        /// The parameter (e.g. IND_LAND_R); all of them when left out.
+        name: Option<String>,
+    },
 }
 
 /// Parses `a,b` into two numbers.

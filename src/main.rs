@@ -28,6 +28,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Indoor { command } => commands::indoor::run(command, global),
         Command::Eval { command } => commands::eval::run(command),
         Command::Config { command } => commands::config::run(command, global),
+        Command::Params { command } => commands::params::run(command, global),
         Command::Import { command } => commands::import::run(command),
     }
 }

@@ -1,9 +1,10 @@
-//! `mavloc config check FILE` and `mavloc config show`.
+//! `mavloc config check FILE` and `mavloc config show` (with the tuned-over-MAVLink layer).
 
 use std::process::ExitCode;
 
 use super::{load, Global};
 use crate::cli::ConfigCommand;
+use crate::link::params::Tuned;
 use crate::settings;
 
 pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
@@ -19,8 +20,14 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         ConfigCommand::Show => {
-            let loaded = global.load()?;
+            let mut loaded = global.load()?;
+            let (path, tuned) = super::params::tuned_layer(&mut loaded);
             print!("{}", settings::render_effective(&loaded));
+            for t in tuned {
+                if let Tuned::Pinned { name, key, value } = t {
+                    println!("# {name} = {value} is tuned in {} but --set {key} wins", path.display());
+                }
+            }
             Ok(ExitCode::SUCCESS)
         }
     }

@@ -11,6 +11,7 @@ pub mod demo;
 pub mod eval;
 pub mod import;
 pub mod indoor;
+pub mod params;
 pub mod run;
 pub mod sim;
 

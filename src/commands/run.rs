@@ -36,7 +36,8 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
                 _ = int.recv() => tracing::info!("SIGINT: shutting down"),
             }
         };
-        crate::daemon::run(loaded.settings, shutdown).await
+        let pinned = crate::link::params::pinned_keys(&loaded.origins);
+        crate::daemon::run(loaded.settings, pinned, shutdown).await
     });
     if let Err(e) = &result {
         if e.downcast_ref::<crate::daemon::Unusable>().is_some() {

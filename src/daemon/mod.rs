@@ -365,8 +365,11 @@ impl Shell {
 
 /// Runs the daemon until `shutdown` completes (SIGTERM or SIGINT in `mavloc run`).
 /// Returns after a clean shutdown.
+/// `pinned`: configuration keys set on the command line, which win over values tuned
+/// over MAVLink.
 pub async fn run(
     mut settings: Settings,
+    pinned: std::collections::BTreeSet<String>,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> anyhow::Result<()> {
     let started = tokio::time::Instant::now();
@@ -385,7 +388,7 @@ pub async fn run(
     let _ = std::fs::remove_file(&probe);
 
     // 2. Tuned parameters.
-    let (store, notes) = ParamStore::open(&dir.join("params.json"), &mut settings);
+    let (store, notes) = ParamStore::open(&dir.join("params.json"), &mut settings, &pinned);
     for n in notes {
         tracing::info!("{n}");
     }

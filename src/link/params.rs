@@ -10,7 +10,7 @@
 //! encoding. Keys that define a trained model or the hardware (texton size, camera,
 //! link) are not parameters: changing them in flight could not be applied honestly.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use mavlink::dialects::common::MavParamType;
@@ -203,6 +203,74 @@ pub fn set(settings: &Settings, name: &str, w: Wire) -> Result<(Settings, f64), 
     Ok((new, x))
 }
 
+/// Why `params.json` could not be read.
+#[derive(Debug)]
+pub enum Unreadable {
+    /// Not a parameter file (not text, not JSON, not a map of numbers).
+    Corrupt(String),
+    Io(std::io::Error),
+}
+
+/// Reads `params.json` without changing anything: `None` when there is none.
+pub fn read_tuned(path: &Path) -> Result<Option<BTreeMap<String, f64>>, Unreadable> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) if e.kind() == std::io::ErrorKind::InvalidData => {
+            return Err(Unreadable::Corrupt(format!("not text: {e}")))
+        }
+        Err(e) => return Err(Unreadable::Io(e)),
+    };
+    serde_json::from_str(&text).map(Some).map_err(|e| Unreadable::Corrupt(e.to_string()))
+}
+
+/// What became of one tuned value.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Tuned {
+    /// In force.
+    Applied { name: String, key: &'static str, value: f64 },
+    /// Kept, but the command line set the same key, and the command line wins.
+    Pinned { name: String, key: &'static str, value: f64 },
+    /// No longer a parameter, or no longer valid.
+    Dropped { name: String, why: String },
+}
+
+/// Applies tuned values over `settings`, except keys in `pinned`.
+pub fn apply_tuned(
+    settings: &mut Settings,
+    tuned: &BTreeMap<String, f64>,
+    pinned: &BTreeSet<String>,
+) -> Vec<Tuned> {
+    let mut out = Vec::new();
+    for (name, &x) in tuned {
+        let Some((_, def)) = find(name) else {
+            out.push(Tuned::Dropped { name: name.clone(), why: "no longer a parameter".into() });
+            continue;
+        };
+        if pinned.contains(def.key) {
+            out.push(Tuned::Pinned { name: name.clone(), key: def.key, value: x });
+            continue;
+        }
+        let w = match def.kind {
+            Float => Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 },
+            _ => Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 },
+        };
+        match set(settings, name, w) {
+            Ok((s, v)) => {
+                *settings = s;
+                out.push(Tuned::Applied { name: name.clone(), key: def.key, value: v });
+            }
+            Err(e) => out.push(Tuned::Dropped { name: name.clone(), why: e.to_string() }),
+        }
+    }
+    out
+}
+
+/// Configuration keys set on the command line (`--set`), which win over tuned values.
+pub fn pinned_keys(origins: &BTreeMap<String, String>) -> BTreeSet<String> {
+    origins.iter().filter(|(_, o)| o.starts_with("command line")).map(|(k, _)| k.clone()).collect()
+}
+
 /// Tuned values, kept in the state directory as `params.json` ({"NAME": value}).
 pub struct ParamStore {
     path: Option<PathBuf>,
@@ -214,20 +282,27 @@ impl ParamStore {
         ParamStore { path: None, tuned: BTreeMap::new() }
     }
 
-    /// Opens the store and applies what it holds to `settings`. Entries that no longer
-    /// name a parameter or no longer validate are reported and dropped, not fatal: a
-    /// config change must not stop a drone's companion from starting.
-    pub fn open(path: &Path, settings: &mut Settings) -> (ParamStore, Vec<String>) {
+    /// Opens the store and applies what it holds to `settings`, except keys in `pinned`
+    /// (set on the command line, which wins over tuned values: the precedence is
+    /// defaults < file < environment < tuned over MAVLink < `--set`). Entries that no
+    /// longer name a parameter or no longer validate are reported and dropped, not fatal:
+    /// a config change must not stop a drone's companion from starting. A pinned entry
+    /// stays in the file for later runs.
+    pub fn open(
+        path: &Path,
+        settings: &mut Settings,
+        pinned: &BTreeSet<String>,
+    ) -> (ParamStore, Vec<String>) {
         let mut notes = Vec::new();
         let mut store = ParamStore { path: Some(path.to_path_buf()), tuned: BTreeMap::new() };
-        let text = match std::fs::read_to_string(path) {
-            Ok(t) => t,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return (store, notes),
-            Err(e) if e.kind() == std::io::ErrorKind::InvalidData => {
-                move_aside(path, &format!("not text: {e}"));
+        let map = match read_tuned(path) {
+            Ok(Some(m)) => m,
+            Ok(None) => return (store, notes),
+            Err(Unreadable::Corrupt(why)) => {
+                move_aside(path, &why);
                 return (store, notes);
             }
-            Err(e) => {
+            Err(Unreadable::Io(e)) => {
                 notes.push(format!(
                     "{}: cannot read tuned parameters ({e}); using the configuration",
                     path.display()
@@ -235,33 +310,22 @@ impl ParamStore {
                 return (store, notes);
             }
         };
-        let map: BTreeMap<String, f64> = match serde_json::from_str(&text) {
-            Ok(m) => m,
-            Err(e) => {
-                move_aside(path, &e.to_string());
-                return (store, notes);
-            }
-        };
-        for (name, x) in map {
-            let w = match find(&name) {
-                Some((_, d)) if d.kind == Float => {
-                    Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 }
+        for t in apply_tuned(settings, &map, pinned) {
+            match t {
+                Tuned::Applied { name, value, .. } => {
+                    notes.push(format!("{name} = {value} (tuned over MAVLink, from {})", path.display()));
+                    store.tuned.insert(name, value);
                 }
-                Some(_) => {
-                    Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 }
+                Tuned::Pinned { name, key, value } => {
+                    notes.push(format!(
+                        "{name} = {value} tuned over MAVLink is not used this run: --set {key} wins (kept in {})",
+                        path.display()
+                    ));
+                    store.tuned.insert(name, value);
                 }
-                None => {
-                    notes.push(format!("{}: {name} is no longer a parameter; dropped", path.display()));
-                    continue;
+                Tuned::Dropped { name, why } => {
+                    notes.push(format!("{}: {name}: {why}; dropped", path.display()))
                 }
-            };
-            match set(settings, &name, w) {
-                Ok((s, v)) => {
-                    *settings = s;
-                    store.tuned.insert(name.clone(), v);
-                    notes.push(format!("{name} = {v} (tuned over MAVLink, from {})", path.display()));
-                }
-                Err(e) => notes.push(format!("{}: tuned value dropped: {e}", path.display())),
             }
         }
         (store, notes)
@@ -367,7 +431,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("params.json");
         let mut s = Settings::default();
-        let (mut store, _) = ParamStore::open(&path, &mut s);
+        let (mut store, _) = ParamStore::open(&path, &mut s, &BTreeSet::new());
         store.record("AREA_BAND_PX", 77.0).unwrap();
         let mut text: BTreeMap<String, f64> =
             serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
@@ -375,7 +439,7 @@ mod tests {
         text.insert("AREA_RATIO".into(), 9.0); // out of range
         std::fs::write(&path, serde_json::to_string(&text).unwrap()).unwrap();
         let mut s = Settings::default();
-        let (_, notes) = ParamStore::open(&path, &mut s);
+        let (_, notes) = ParamStore::open(&path, &mut s, &BTreeSet::new());
         assert_eq!(s.area.band_px, 77);
         assert_eq!(s.area.ratio_test, Settings::default().area.ratio_test);
         assert!(notes.iter().any(|n| n.contains("GONE_PARAM")));
@@ -388,7 +452,7 @@ mod tests {
         let path = dir.path().join("params.json");
         std::fs::write(&path, b"{\"AREA_BAND_PX\": 77, \"AREA_RA").unwrap(); // torn by a power cut
         let mut s = Settings::default();
-        let (mut store, _) = ParamStore::open(&path, &mut s);
+        let (mut store, _) = ParamStore::open(&path, &mut s, &BTreeSet::new());
         assert_eq!(s.area.band_px, Settings::default().area.band_px, "the configuration's values");
         assert!(store.tuned.is_empty());
         assert!(!path.exists());
@@ -403,7 +467,23 @@ mod tests {
         assert!(aside.starts_with(b"{\"AREA_BAND_PX\": 77"));
         // Bytes that are not even text go the same way.
         std::fs::write(&path, [0xff, 0xfe, 0x00]).unwrap();
-        ParamStore::open(&path, &mut Settings::default());
+        ParamStore::open(&path, &mut Settings::default(), &BTreeSet::new());
         assert!(!path.exists());
+    }
+
+    #[test]
+    fn the_command_line_wins_over_a_tuned_value_which_wins_over_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("params.json");
+        std::fs::write(&path, r#"{"IND_LAND_R": 1.0, "AREA_RATIO": 0.7}"#).unwrap();
+        let mut s = Settings::default();
+        s.indoor.landing_radius_m = 2.0; // as if --set indoor.landing_radius_m=2
+        let pinned: BTreeSet<String> = ["indoor.landing_radius_m".to_string()].into();
+        let (store, notes) = ParamStore::open(&path, &mut s, &pinned);
+        assert_eq!(s.indoor.landing_radius_m, 2.0, "--set wins");
+        assert!((s.area.ratio_test - 0.7).abs() < 1e-6, "the tuned value beats the file's");
+        assert!(notes.iter().any(|n| n.contains("--set indoor.landing_radius_m wins")), "{notes:?}");
+        // The pinned value stays in the store, so the next save does not lose it.
+        assert_eq!(store.into_tuned().get("IND_LAND_R"), Some(&1.0));
     }
 }

@@ -595,7 +595,9 @@ pub fn render_effective(loaded: &Loaded) -> String {
     if let Some(f) = &loaded.file {
         out.push_str(&format!(" < {}", f.display()));
     }
-    out.push_str(" < MAVLOC_* environment < --set\n");
+    out.push_str(
+        " < MAVLOC_* environment < tuned over MAVLink (params.json in the state directory) < --set\n",
+    );
     for (section, value) in &table {
         out.push_str(&format!("\n[{section}]\n"));
         if let toml::Value::Table(t) = value {

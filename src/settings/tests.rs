@@ -259,7 +259,9 @@ fn the_installed_drone_configuration_is_a_real_drone_one() {
     let loaded = load_file(&path).unwrap();
     let s = &loaded.settings;
     assert_eq!(s.camera.source, CameraSource::V4l2, "never the simulated camera on a drone");
-    assert!(s.mavlink.connection.starts_with("serial:") || s.mavlink.connection.starts_with("udpin:127.0.0.1"));
+    assert!(
+        s.mavlink.connection.starts_with("serial:") || s.mavlink.connection.starts_with("udpin:127.0.0.1")
+    );
     assert_ne!(s.area.segmenter, crate::settings::Segmenter::Masks, "a real camera gives no masks");
     // The SITL configuration beside it loads too, and its state folder is beside it.
     let sitl = load_file(&path.with_file_name("sitl.toml")).unwrap().settings;

@@ -181,3 +181,39 @@ fn indoor_map_eval_prints_the_global_loss_and_writes_the_heat_map() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("no-such.png"));
 }
+
+/// A value tuned over MAVLink is a visible layer: `config show` names it, `--set` beats
+/// it, `params list` lists it and `params reset` forgets it.
+#[test]
+fn tuned_values_are_a_visible_layer_below_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    std::fs::create_dir_all(&state).unwrap();
+    std::fs::write(state.join("params.json"), r#"{"IND_LAND_R": 1.0}"#).unwrap();
+    let mavloc = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_mavloc"))
+            .args(["--set", &format!("daemon.state_dir={}", state.display())])
+            .args(args)
+            .env_remove("STATE_DIRECTORY")
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let show = mavloc(&["config", "show"]);
+    assert!(show.contains("landing_radius_m = 1.0  # from tuned over MAVLink"), "{show}");
+    let show = mavloc(&["--set", "indoor.landing_radius_m=2", "config", "show"]);
+    assert!(show.contains("landing_radius_m = 2.0  # from command line"), "{show}");
+    assert!(
+        show.contains("IND_LAND_R = 1 is tuned in") && show.contains("--set indoor.landing_radius_m wins"),
+        "{show}"
+    );
+    let list = mavloc(&["params", "list"]);
+    assert!(
+        list.contains("IND_LAND_R") && list.contains("indoor.landing_radius_m") && list.contains("yes"),
+        "{list}"
+    );
+    mavloc(&["params", "reset", "IND_LAND_R"]);
+    assert!(mavloc(&["params", "list"]).contains("no values tuned"));
+    assert!(!mavloc(&["config", "show"]).contains("# from tuned over MAVLink"));
+}
