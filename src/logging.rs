@@ -3,6 +3,7 @@
 //! which is what journald stores under systemd.
 
 use std::io::IsTerminal;
+use std::io::Write;
 
 use tracing_subscriber::EnvFilter;
 
@@ -11,7 +12,7 @@ use tracing_subscriber::EnvFilter;
 pub fn init(fallback: &str) {
     let filter = match std::env::var("RUST_LOG") {
         Ok(v) if !v.trim().is_empty() => EnvFilter::try_new(&v).unwrap_or_else(|e| {
-            eprintln!("mavloc: ignoring RUST_LOG={v:?}: {e}");
+            let _ = writeln!(std::io::stderr(), "mavloc: ignoring RUST_LOG={v:?}: {e}");
             EnvFilter::new(fallback)
         }),
         _ => EnvFilter::try_new(fallback).unwrap_or_else(|_| EnvFilter::new("info")),

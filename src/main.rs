@@ -1,6 +1,7 @@
 //! The `mavloc` binary: parse the command line and dispatch to [`mavloc::commands`]; an
 //! error is printed and exits 1.
 
+use std::io::Write;
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -9,10 +10,18 @@ use mavloc::commands::{self, Global};
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    if !matches!(cli.command, Command::Run(_)) {
+        // `mavloc eval ... | head`: a reader that leaves ends the command quietly, as
+        // it does any Unix tool, instead of a panic in println!. Not for the daemon: its
+        // log reader going away must not stop it (its log writes ignore the error).
+        // SAFETY: restoring a signal's default disposition, before any thread starts.
+        unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
+    }
     match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("mavloc: {e:#}");
+            // A closed stderr is no reason to panic on the way out.
+            let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");
             ExitCode::FAILURE
         }
     }

@@ -3,6 +3,7 @@
 //! run (bad file or key, unusable state directory: a restart would fail the same way, so
 //! the unit lists it in `RestartPreventExitStatus=`); 1 for anything else.
 
+use std::io::Write;
 use std::process::ExitCode;
 
 use super::Global;
@@ -16,7 +17,7 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     let loaded = match global.load() {
         Ok(l) => l,
         Err(e) => {
-            eprintln!("mavloc: {e:#}");
+            let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");
             return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
         }
     };
@@ -42,7 +43,7 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     if let Err(e) = &result {
         if e.downcast_ref::<crate::daemon::Unusable>().is_some() {
             tracing::error!("{e:#}");
-            eprintln!("mavloc: {e:#}");
+            let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");
             return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
         }
     }

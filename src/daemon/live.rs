@@ -65,6 +65,8 @@ pub fn new_run(results: &Path) -> String {
 
 /// The area pipeline, live.
 pub struct AreaLive {
+    /// Stopped cleanly: the last write says the results are complete.
+    finished: bool,
     pipeline: AreaPipeline,
     k_full: Intrinsics,
     downscale: u32,
@@ -109,6 +111,7 @@ impl AreaLive {
         let id_offset = results.iter().map(|l| l.id + 1).max().unwrap_or(0);
         tracing::info!("area: run {run}, results in {} (a link to its newest set)", link.display());
         Ok(AreaLive {
+            finished: false,
             pipeline,
             k_full,
             downscale,
@@ -147,6 +150,7 @@ impl AreaLive {
             frames: self.frames,
             elapsed_s: elapsed,
             frames_per_s: if elapsed > 0.0 { self.frames as f64 / elapsed } else { 0.0 },
+            complete: self.finished,
             ..RunSummary::default()
         };
         let frame = LocalFrame::new(self.origin);
@@ -284,6 +288,11 @@ impl LivePipeline for AreaLive {
     fn write_results(&self) -> io::Result<Vec<PathBuf>> {
         self.write().map(|(files, _)| files)
     }
+
+    fn finish(&mut self) -> io::Result<Vec<PathBuf>> {
+        self.finished = true;
+        self.write_results()
+    }
 }
 
 /// Earth-frame bearing (yaw, pitch) of the centroid of the mask's border pixels: where
@@ -325,6 +334,8 @@ fn border_bearing(
 
 /// The indoor pipeline, live.
 pub struct IndoorLive {
+    /// Stopped cleanly (see [`AreaLive`]).
+    finished: bool,
     model: Model,
     settings: Settings,
     pre: Preprocessor,
@@ -373,6 +384,7 @@ impl IndoorLive {
         let trajectory =
             Appender::append(&path).map_err(|e| format!("cannot open {}: {e}", path.display()))?;
         Ok(IndoorLive {
+            finished: false,
             trigger: LandingTrigger::new(zone(&settings)),
             model,
             settings,
@@ -461,6 +473,7 @@ impl LivePipeline for IndoorLive {
 
     fn write_results(&self) -> io::Result<Vec<PathBuf>> {
         let summary = serde_json::json!({
+            "complete": self.finished,
             "frames": self.frames,
             "landing_fired": self.trigger.fired(),
             "last_hold": self.last_hold.map(|h| format!("{h:?}")),
@@ -468,6 +481,11 @@ impl LivePipeline for IndoorLive {
         let path = self.dir.join("summary.json");
         crate::output::write_atomic(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
         Ok(vec![self.dir.join("trajectory.csv"), path])
+    }
+
+    fn finish(&mut self) -> io::Result<Vec<PathBuf>> {
+        self.finished = true;
+        self.write_results()
     }
 }
 

@@ -39,6 +39,11 @@ pub trait LivePipeline: Send {
     /// [`super::live`]); returns the files written. On an error the results on disk are
     /// those of the last good write.
     fn write_results(&self) -> std::io::Result<Vec<PathBuf>>;
+    /// The last write, at a clean stop: the results then say they are complete
+    /// (`summary.json` `"complete": true`), which a checkpoint or a crash never does.
+    fn finish(&mut self) -> std::io::Result<Vec<PathBuf>> {
+        self.write_results()
+    }
 }
 
 /// Builds a fresh pipeline (at start, reset, and after a panic).
@@ -189,7 +194,7 @@ fn run(
                     let _ = reply.send(pipeline.write_results().map_err(|e| e.to_string()));
                 }
                 Request::Stop => {
-                    let files = pipeline.write_results().unwrap_or_else(|e| {
+                    let files = pipeline.finish().unwrap_or_else(|e| {
                         // Logged here too: at shutdown nobody reads the event.
                         let line = format!("cannot write the pipeline's results at stop: {e}");
                         tracing::warn!("{line}");

@@ -217,3 +217,23 @@ fn tuned_values_are_a_visible_layer_below_the_command_line() {
     assert!(mavloc(&["params", "list"]).contains("no values tuned"));
     assert!(!mavloc(&["config", "show"]).contains("# from tuned over MAVLink"));
 }
+
+/// `mavloc ... | head`: a reader that goes away ends the command quietly (SIGPIPE, as any
+/// Unix tool), never a Rust panic (exit 101).
+#[test]
+fn a_closed_output_pipe_ends_quietly_not_in_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .args(["config", "show"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The reader goes away before mavloc has printed: every line meets a closed pipe.
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_ne!(out.status.code(), Some(101), "{stderr}");
+    assert!(out.status.success() || out.status.signal() == Some(libc::SIGPIPE), "{:?}", out.status);
+}

@@ -94,6 +94,10 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
     let e = evaluate(&landmarks, &world.ground_truth, &[], 6.0);
     println!("live coastline: {} landmarks, mean {:.2} m, max {:.2} m", e.landmarks, e.mean_m, e.max_m);
     assert!(state.join("results/area/area.kml").exists());
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(state.join("results/area/summary.json")).unwrap())
+            .unwrap();
+    assert_eq!(summary["complete"], true, "a clean stop says the results are complete: {summary}");
 }
 
 #[test]
