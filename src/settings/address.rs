@@ -48,9 +48,14 @@ impl LinkAddress {
             "tcpin" => Some(|host, port| LinkAddress::TcpIn { host, port }),
             "tcpout" => Some(|host, port| LinkAddress::TcpOut { host, port }),
             other => {
+                let hint = match other {
+                    "udp" => "; did you mean udpin (listen, e.g. for mavlink-router) or udpout (send to a fixed peer)?",
+                    "tcp" => "; did you mean tcpin (listen) or tcpout (connect)?",
+                    _ => "",
+                };
                 return Err(format!(
-                    "`{s}`: unknown scheme `{other}`; expected serial, udpin, udpout, tcpin or tcpout"
-                ))
+                    "`{s}`: unknown scheme `{other}`; expected serial, udpin, udpout, tcpin or tcpout{hint}"
+                ));
             }
         };
         // The port or baud rate is after the last colon, so IPv6-free hosts and device
@@ -65,12 +70,34 @@ impl LinkAddress {
                 Ok(baud) if baud > 0 => Ok(LinkAddress::Serial { device: head.to_string(), baud }),
                 _ => Err(format!("`{s}`: baud rate `{tail}` is not a positive integer")),
             },
-            Some(make) => match tail.parse::<u16>() {
-                Ok(port) if port > 0 => Ok(make(head.to_string(), port)),
-                _ => Err(format!("`{s}`: port `{tail}` is not in 1..=65535")),
-            },
+            Some(make) => {
+                let port = match tail.parse::<u16>() {
+                    Ok(port) if port > 0 => port,
+                    _ => return Err(format!("`{s}`: port `{tail}` is not in 1..=65535")),
+                };
+                check_host(s, head, matches!(scheme, "udpin" | "tcpin"))?;
+                Ok(make(head.to_string(), port))
+            }
         }
     }
+}
+
+/// A host mavloc can use: a listening link binds to an address of this machine (an IP
+/// address or `localhost`); one that connects may name a host, but not something shaped
+/// like an IPv4 address that is none (`999.1.1.1` would be looked up by DNS forever).
+fn check_host(s: &str, host: &str, listening: bool) -> Result<(), String> {
+    let ip = host.parse::<std::net::IpAddr>().is_ok();
+    let looks_ipv4 = host.split('.').count() == 4
+        && host.split('.').all(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()));
+    if looks_ipv4 && !ip {
+        return Err(format!("`{s}`: `{host}` is not an IPv4 address (each part 0..=255)"));
+    }
+    if listening && !ip && host != "localhost" {
+        return Err(format!(
+            "`{s}`: a listening link binds to an address of this machine: an IP address (0.0.0.0 for all, 127.0.0.1 for loopback) or localhost, not `{host}`"
+        ));
+    }
+    Ok(())
 }
 
 impl fmt::Display for LinkAddress {
@@ -123,5 +150,17 @@ mod tests {
         assert!(LinkAddress::parse("serial:/dev/ttyS0:fast").unwrap_err().contains("baud"));
         assert!(LinkAddress::parse("14540").unwrap_err().contains("scheme"));
         assert!(LinkAddress::parse("tcpout::5760").unwrap_err().contains("empty"));
+    }
+
+    #[test]
+    fn hosts_that_cannot_work_are_refused_with_a_hint() {
+        let e = LinkAddress::parse("udpin:999.1.1.1:14540").unwrap_err();
+        assert!(e.contains("not an IPv4 address"), "{e}");
+        let e = LinkAddress::parse("udpin:example.com:14540").unwrap_err();
+        assert!(e.contains("binds to an address of this machine"), "{e}");
+        assert!(LinkAddress::parse("udpin:localhost:14540").is_ok());
+        assert!(LinkAddress::parse("tcpout:px4.local:5760").is_ok());
+        let e = LinkAddress::parse("udp:127.0.0.1:14540").unwrap_err();
+        assert!(e.contains("did you mean udpin"), "{e}");
     }
 }

@@ -298,7 +298,10 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
         let Some(rest) = var.strip_prefix(ENV_PREFIX) else {
             continue;
         };
-        if var == ENV_CONFIG_FILE {
+        // Only MAVLOC_<SECTION>__<KEY> is configuration; other MAVLOC_* variables
+        // (MAVLOC_CONFIG, the test tools' MAVLOC_PYTHON, a user's own) are not ours to
+        // refuse, and refusing them would stop every command.
+        if var == ENV_CONFIG_FILE || !rest.contains("__") {
             continue;
         }
         let key = rest.to_lowercase().replacen("__", ".", 1);

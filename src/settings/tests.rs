@@ -178,6 +178,14 @@ fn unknown_environment_key_names_the_variable() {
 }
 
 #[test]
+fn other_mavloc_variables_are_not_configuration() {
+    let mut env = BTreeMap::new();
+    env.insert("MAVLOC_FOO".to_string(), "1".to_string());
+    env.insert("MAVLOC_PYTHON".to_string(), "/x/python".to_string());
+    assert!(load(&Layers { env, ..Layers::default() }).is_ok());
+}
+
+#[test]
 fn bad_command_line_override_is_refused() {
     let p = problems(load(&Layers { overrides: vec!["area.downscale=16".into()], ..Layers::default() }));
     assert!(p[0].to_string().contains("command line") && p[0].to_string().contains("1 ..= 8"), "{}", p[0]);
