@@ -116,6 +116,7 @@ const DEFAULT_RATES: &[(u32, f64)] = &[
     (245, 2.0),  // EXTENDED_SYS_STATE
     (2, 1.0),    // SYSTEM_TIME
     (285, 20.0), // GIMBAL_DEVICE_ATTITUDE_STATUS
+    (115, 0.0),  // HIL_STATE_QUATERNION: the ground truth, off until asked for (as PX4 SITL)
 ];
 
 fn px4_mode(main: u32, sub: u32) -> u32 {
@@ -298,6 +299,23 @@ impl Vehicle {
                 vz: (s.velocity.z * 100.0) as i16,
                 hdg: (s.attitude[2].to_degrees().rem_euclid(360.0) * 100.0) as u16,
             }),
+            // The ground truth, as PX4 SITL sends SIH's: time_usec 0. This vehicle's
+            // telemetry is its truth too, so a camera rendering from either sees the same.
+            115 => {
+                let q =
+                    nalgebra::UnitQuaternion::from_euler_angles(s.attitude[0], s.attitude[1], s.attitude[2]);
+                MavMessage::HIL_STATE_QUATERNION(HIL_STATE_QUATERNION_DATA {
+                    time_usec: 0,
+                    attitude_quaternion: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
+                    lat: (geo.lat_deg * 1e7).round() as i32,
+                    lon: (geo.lon_deg * 1e7).round() as i32,
+                    alt: (geo.alt_m * 1e3).round() as i32,
+                    vx: (s.velocity.x * 100.0) as i16,
+                    vy: (s.velocity.y * 100.0) as i16,
+                    vz: (s.velocity.z * 100.0) as i16,
+                    ..Default::default()
+                })
+            }
             242 => MavMessage::HOME_POSITION(HOME_POSITION_DATA {
                 latitude: (home.lat_deg * 1e7).round() as i32,
                 longitude: (home.lon_deg * 1e7).round() as i32,

@@ -55,7 +55,9 @@ impl SimCamera {
         let k = super::intrinsics(s).map_err(SourceError::Fatal)?;
         Ok(SimCamera {
             renderer: Renderer::new(world),
-            noise: s.camera.sim_noise.then(|| scenario.noise.clone()),
+            // The truth is already the true pose: no noise to take off it.
+            noise: (s.camera.sim_noise && s.camera.sim_pose == crate::settings::SimPose::Telemetry)
+                .then(|| scenario.noise.clone()),
             rng: rand::rngs::StdRng::seed_from_u64(noise_seed(scenario.seed)),
             scenario,
             k,

@@ -554,6 +554,9 @@ async fn serve(
 /// not wait for it to pass the old one), and a stamp from the future (a bad clock, a
 /// spoofed frame) is not taken, so it cannot hold back every true pose after it.
 fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
+    if core.settings().camera.sim_pose == crate::settings::SimPose::Truth {
+        return feed_truth(core, live, now);
+    }
     let now = now.secs();
     let Some((t, _)) = core.aligner().vehicle.newest() else { return };
     let Some(local) = core.aligner().clock.to_local(t) else { return };
@@ -564,6 +567,33 @@ fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
         live.fed_pose_local = local;
         *live.ctx.latest_pose.lock().expect("pose") = Some((local, p.camera));
     }
+}
+
+/// The sim camera's pose from the simulator's ground truth (HIL_STATE_QUATERNION): the
+/// vehicle where it truly is, in the scenario's world (the geodetic truth in the
+/// scenario's local frame), with the camera turned on the body as the telemetry says the
+/// gimbal is (mount or gimbal attitude relative to the estimated body). No truth, no
+/// picture: rendering from the estimate instead would let mavloc confirm whatever the
+/// autopilot believes.
+fn feed_truth(core: &Core, live: &mut Live, now: Mono) {
+    let Some((rx, h)) = core.truth() else { return };
+    let local = rx.secs();
+    if local <= live.fed_pose_local || now.secs() - local > MAX_POSE_LEAD_S {
+        return;
+    }
+    let Some(origin) = camera::origin(core.settings()) else { return };
+    let Ok(est) = core.aligner().align(local, now.secs()) else { return };
+    let [w, x, y, z] = h.attitude_quaternion.map(f64::from);
+    let body = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+    // Camera relative to the body, as the telemetry has it; put on the true body.
+    let body_to_camera = est.vehicle.attitude.to_rotation_matrix().inverse() * est.camera.attitude;
+    let geo = Geodetic::new(h.lat as f64 * 1e-7, h.lon as f64 * 1e-7, h.alt as f64 * 1e-3);
+    let pose = crate::geometry::CameraPose {
+        position: crate::geometry::LocalFrame::new(origin).to_ned(&geo),
+        attitude: body.to_rotation_matrix() * body_to_camera,
+    };
+    live.fed_pose_local = local;
+    *live.ctx.latest_pose.lock().expect("pose") = Some((local, pose));
 }
 
 /// Gives waiting frames their pose and the worker the newest that has one. A frame
@@ -716,6 +746,12 @@ mod shell_tests {
     }
 
     fn start() -> Harness {
+        let mut settings = Settings::default();
+        settings.daemon.pipeline = PipelineKind::None;
+        start_with(settings)
+    }
+
+    fn start_with(settings: Settings) -> Harness {
         let dir = tempfile::tempdir().unwrap();
         let (out_tx, out_rx) = mpsc::channel(256);
         let (ev_tx, ev_rx) = mpsc::channel(1024);
@@ -733,8 +769,6 @@ mod shell_tests {
             credits: None,
         };
         let latest_pose = ctx.latest_pose.clone();
-        let mut settings = Settings::default();
-        settings.daemon.pipeline = PipelineKind::None;
         let live = Live::new(dir.path().join("results"), ctx, camera_rx, None);
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
         let path = dir.path().to_path_buf();
@@ -842,6 +876,50 @@ mod shell_tests {
             after_future > after_reboot + 1.5,
             "fed after the future stamp: {after_reboot} -> {after_future}"
         );
+        h.stop().await;
+    }
+
+    /// With `sim_pose = "truth"` the sim camera renders from the simulator's ground truth
+    /// (HIL_STATE_QUATERNION), never from the estimate the autopilot reports: with PX4 the
+    /// estimate is partly mavloc's own output, and rendering from it would only confirm it.
+    #[tokio::test(start_paused = true)]
+    async fn the_sim_camera_renders_from_the_truth_not_the_estimate() {
+        let mut settings = Settings::default();
+        settings.daemon.pipeline = PipelineKind::None;
+        settings.camera.source = crate::settings::CameraSource::Sim;
+        settings.camera.sim_pose = crate::settings::SimPose::Truth;
+        let origin = camera::origin(&settings).unwrap();
+        let mut h = start_with(settings);
+        // The estimate says 10 m up over the origin; no truth yet: no picture.
+        let mut boot_ms = 600_000;
+        fly(&mut h, &mut boot_ms, 1000).await;
+        assert!(h.latest_pose.lock().unwrap().is_none(), "rendered from the estimate");
+        // The truth: 5 m north, 20 m up, yawed 90 degrees.
+        let truth = crate::geometry::LocalFrame::new(origin)
+            .to_geodetic(&crate::geometry::Vec3::new(5.0, 0.0, -20.0));
+        let q = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, std::f64::consts::FRAC_PI_2);
+        // PX4 SIH sends w < 0: the same rotation.
+        let hil = HIL_STATE_QUATERNION_DATA {
+            attitude_quaternion: [-q.w as f32, -q.i as f32, -q.j as f32, -q.k as f32],
+            lat: (truth.lat_deg * 1e7).round() as i32,
+            lon: (truth.lon_deg * 1e7).round() as i32,
+            alt: (truth.alt_m * 1e3).round() as i32,
+            ..Default::default()
+        };
+        h.send(1, 1, MavMessage::HIL_STATE_QUATERNION(hil)).await;
+        fly(&mut h, &mut boot_ms, 100).await;
+        let (_, pose) = h.latest_pose.lock().unwrap().expect("a pose from the truth");
+        assert!(
+            (pose.position - crate::geometry::Vec3::new(5.0, 0.0, -20.0)).norm() < 0.05,
+            "{:?}",
+            pose.position
+        );
+        // The camera (straight down on the default mount) turned with the true body: its
+        // right (FRD y) points south now, as the truth's 90 degrees of yaw say; from the
+        // estimate (yaw 0) it would point east.
+        assert!((pose.attitude * crate::geometry::Vec3::x()).z > 0.99, "still looking down");
+        let right = pose.attitude * crate::geometry::Vec3::y();
+        assert!(right.x < -0.99, "camera y axis {right:?}");
         h.stop().await;
     }
 

@@ -118,6 +118,21 @@ pub struct Camera {
     pub realtime: bool,
     /// `sim`: render from the received pose perturbed by the scenario's noise.
     pub sim_noise: bool,
+    /// `sim`: the pose frames are rendered from.
+    pub sim_pose: SimPose,
+}
+
+/// Where the sim camera takes its pose from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SimPose {
+    /// The telemetry mavloc receives (perturbed by the scenario's noise with `sim_noise`):
+    /// what the built-in vehicle's tests fly.
+    Telemetry,
+    /// The simulator's ground truth (HIL_STATE_QUATERNION, which PX4 SITL streams when
+    /// asked): the camera sees where the vehicle *is*, not where its estimator believes it
+    /// is, so mavloc cannot merely confirm the estimate. For PX4 SITL.
+    Truth,
 }
 
 impl Default for Camera {
@@ -139,6 +154,7 @@ impl Default for Camera {
             distortion: vec![0.0; 5],
             realtime: true,
             sim_noise: true,
+            sim_pose: SimPose::Telemetry,
         }
     }
 }

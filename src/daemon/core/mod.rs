@@ -249,6 +249,12 @@ pub struct Counters {
 /// the rest are counted, and the next warning says how many.
 const WRITE_WARNING_PERIOD: Duration = Duration::from_secs(10);
 
+/// The sim camera renders from the simulator's ground truth: ask for it.
+fn wants_truth(s: &Settings) -> bool {
+    s.camera.source == crate::settings::CameraSource::Sim
+        && s.camera.sim_pose == crate::settings::SimPose::Truth
+}
+
 /// Why the shell owes a `Done`.
 #[derive(Debug)]
 enum Job {
@@ -313,7 +319,7 @@ impl Core {
             signing,
             autopilot: Autopilot::new(Duration::from_secs_f64(m.autopilot_timeout_s)),
             telemetry: Telemetry::new(&settings),
-            streams: Streams::default(),
+            streams: Streams::new(wants_truth(&settings)),
             timesync: TimeSync::default(),
             params: ParamPacer::new(param_table::PARAMS.len()),
             gimbal: Gimbal::default(),
@@ -369,6 +375,11 @@ impl Core {
 
     pub fn aligner(&self) -> &Aligner {
         &self.telemetry.aligner
+    }
+
+    /// The newest ground truth from the simulator (HIL_STATE_QUATERNION) and its arrival.
+    pub fn truth(&self) -> Option<&(Mono, HIL_STATE_QUATERNION_DATA)> {
+        self.telemetry.truth.as_ref()
     }
 
     /// The WGS84 origin of the autopilot's local frame, once HOME_POSITION arrived.

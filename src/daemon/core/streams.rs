@@ -19,6 +19,11 @@ pub const STREAMS: &[(u32, &str, i32)] = &[
     (245, "EXTENDED_SYS_STATE", 200_000),
 ];
 
+/// The simulator's ground truth (PX4 SITL streams SIH's true state as
+/// HIL_STATE_QUATERNION when asked): asked for only when the sim camera renders from the
+/// truth (`camera.sim_pose = "truth"`), at the camera's need, 30 Hz.
+pub const TRUTH_STREAM: (u32, &str, i32) = (115, "HIL_STATE_QUATERNION", 33_333);
+
 const TRIES: u32 = 5;
 const RETRY: Duration = Duration::from_secs(1);
 
@@ -35,6 +40,8 @@ pub enum StreamState {
 
 #[derive(Debug)]
 pub struct Streams {
+    /// What is asked for: [`STREAMS`], and [`TRUTH_STREAM`] when wanted.
+    list: Vec<(u32, &'static str, i32)>,
     states: Vec<StreamState>,
     /// Whether requests may go out (the autopilot is present).
     active: bool,
@@ -44,22 +51,32 @@ pub struct Streams {
 
 impl Default for Streams {
     fn default() -> Self {
-        Streams {
-            states: vec![StreamState::Pending { tries: 0, next: Mono::ZERO }; STREAMS.len()],
-            active: false,
-            reported: false,
-        }
+        Streams::new(false)
     }
 }
 
 impl Streams {
+    /// `truth`: also ask for the simulator's ground truth.
+    pub fn new(truth: bool) -> Streams {
+        let mut list = STREAMS.to_vec();
+        if truth {
+            list.push(TRUTH_STREAM);
+        }
+        Streams {
+            states: vec![StreamState::Pending { tries: 0, next: Mono::ZERO }; list.len()],
+            list,
+            active: false,
+            reported: false,
+        }
+    }
+
     pub fn states(&self) -> &[StreamState] {
         &self.states
     }
 
     /// Starts (or restarts, after a reboot) the requests.
     pub fn start(&mut self) {
-        *self = Streams { active: true, ..Streams::default() };
+        *self = Streams { active: true, ..Streams::new(self.list.len() > STREAMS.len()) };
     }
 
     pub fn stop(&mut self) {
@@ -87,7 +104,7 @@ impl Streams {
             return self.poll_transmit(now, target);
         }
         self.states[i] = StreamState::Pending { tries: tries + 1, next: now + RETRY };
-        let (id, _, interval) = STREAMS[i];
+        let (id, _, interval) = self.list[i];
         Some(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
             param1: id as f32,
             param2: interval as f32,
@@ -133,9 +150,9 @@ impl Streams {
             return None;
         }
         self.reported = true;
-        let failed: Vec<&str> = (0..STREAMS.len())
+        let failed: Vec<&str> = (0..self.list.len())
             .filter(|&i| self.states[i] == StreamState::Refused)
-            .map(|i| STREAMS[i].1)
+            .map(|i| self.list[i].1)
             .collect();
         (!failed.is_empty()).then(|| {
             format!("autopilot refused or did not acknowledge these stream requests: {}", failed.join(", "))

@@ -45,6 +45,9 @@ pub struct Telemetry {
     latest_attitude: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
     pub home: Option<HOME_POSITION_DATA>,
     pub global: Option<GLOBAL_POSITION_INT_DATA>,
+    /// The simulator's ground truth and when it arrived (PX4 SITL leaves its `time_usec`
+    /// at 0, so arrival is the only time it has).
+    pub truth: Option<(Mono, HIL_STATE_QUATERNION_DATA)>,
 }
 
 /// Stamps on a new timeline needed to believe a reboot...
@@ -75,6 +78,7 @@ impl Telemetry {
             latest_attitude: None,
             home: None,
             global: None,
+            truth: None,
         }
     }
 
@@ -184,6 +188,10 @@ impl Telemetry {
                 let r = self.stamp(g.time_boot_ms as f64 * 1e-3, rx);
                 self.global = Some(g.clone());
                 r
+            }
+            MavMessage::HIL_STATE_QUATERNION(h) if flight_controller => {
+                self.truth = Some((rx, h.clone()));
+                None
             }
             MavMessage::HOME_POSITION(h) if flight_controller => {
                 self.home = Some(h.clone());
