@@ -18,7 +18,7 @@ export MAVLOC_PYTHON := $(abspath $(VENV))/bin/python
 CARGO ?= cargo
 SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 
-.PHONY: deps build-deps demo test check-long build release install install-files uninstall clean
+.PHONY: deps build-deps demo test check-long sitl build release install install-files uninstall clean
 
 # Debian packages, installed only when missing.
 define apt_install
@@ -69,6 +69,17 @@ test: deps
 check-long: deps
 	$(LINTED) $(CARGO) test --workspace -- --ignored
 	$(CARGO) run --release --quiet -- demo
+
+# mavloc against PX4 SITL (SIH, no Gazebo), built by you outside this project:
+#   MAVLOC_PX4_DIR=/path/to/PX4-Autopilot/build/px4_sitl_default make sitl
+# Results in results/sitl/<scenario>/ (report.json, PX4's .ulg, logs). Skipped without it.
+sitl: deps
+	@if [ -z "$(MAVLOC_PX4_DIR)" ]; then \
+	  echo "make sitl: skipped: set MAVLOC_PX4_DIR to a PX4 v1.16 SITL build folder (build/px4_sitl_default), built outside this project (README, Against PX4 SITL)"; \
+	else \
+	  $(CARGO) build && \
+	  $(MAVLOC_PYTHON) tools/sitl.py --px4 "$(MAVLOC_PX4_DIR)" --mavloc target/debug/mavloc --out results/sitl; \
+	fi
 
 build: build-deps
 	$(CARGO) build --workspace

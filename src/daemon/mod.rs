@@ -582,7 +582,11 @@ fn feed_truth(core: &Core, live: &mut Live, now: Mono) {
         return;
     }
     let Some(origin) = camera::origin(core.settings()) else { return };
-    let Ok(est) = core.aligner().align(local, now.secs()) else { return };
+    // The camera's turn on the body from the newest telemetry up to the truth's time (the
+    // truth often arrives before the telemetry of the same instant).
+    let newest = core.aligner().vehicle.newest().and_then(|(t, _)| core.aligner().clock.to_local(t));
+    let Some(at) = newest.map(|n| n.min(local)) else { return };
+    let Ok(est) = core.aligner().align(at, now.secs()) else { return };
     let [w, x, y, z] = h.attitude_quaternion.map(f64::from);
     let body = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
     // Camera relative to the body, as the telemetry has it; put on the true body.

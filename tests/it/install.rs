@@ -41,3 +41,18 @@ fn install_honours_prefix_and_keeps_what_the_user_edited() {
     assert!(d.join("etc/systemd/system/mavloc.service.new").exists());
     assert_eq!(std::fs::read_to_string(d.join("etc/mavloc/mavloc.toml")).unwrap(), "# mine\n");
 }
+
+/// `make sitl` without a PX4 build says what is missing and is skipped (exit 0): PX4 is
+/// never part of this project.
+#[test]
+fn make_sitl_without_px4_is_skipped_with_a_message() {
+    let out = Command::new("make")
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["--no-print-directory", "-s", "sitl"])
+        .env_remove("MAVLOC_PX4_DIR")
+        .output()
+        .expect("make runs");
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{said}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(said.contains("skipped") && said.contains("MAVLOC_PX4_DIR"), "{said}");
+}
