@@ -7,11 +7,13 @@ exits 0 (skipped). Everything runs on loopback: as root the harness enters a pri
 network namespace (only `lo`), since PX4 listens on all interfaces.
 
 Scenario `coastline-mission` (GPS on): PX4 flies the committed mission/coastline.plan
-around the lake; mavloc runs the area pipeline on frames rendered from PX4's ground truth
-(HIL_STATE_QUATERNION). Writes results/sitl/coastline-mission/: report.json, PX4's flight
-log (.ulg), mavloc's and PX4's logs and mavloc's state folder.
+around the lake, its ROI items pointing the gimbal; mavloc runs the area pipeline on
+frames rendered from PX4's ground truth (HIL_STATE_QUATERNION). `--aim border`
+(`coastline-border`): mavloc points the gimbal at the border it segments. Writes
+results/sitl/<scenario>/: report.json, PX4's flight log (.ulg), mavloc's and PX4's logs
+and mavloc's state folder.
 
-Usage: sitl.py --px4 DIR --mavloc BIN [--out DIR] [--max-s S]
+Usage: sitl.py --px4 DIR --mavloc BIN [--out DIR] [--max-s S] [--aim mission|border]
 """
 
 import argparse
@@ -167,12 +169,14 @@ def main():
     ap.add_argument("--mavloc", required=True)
     ap.add_argument("--out", default=os.path.join(ROOT, "results", "sitl"))
     ap.add_argument("--max-s", type=float, default=600)
+    ap.add_argument("--aim", choices=["mission", "border"], default="mission",
+                    help="who points the gimbal: the mission's ROI items, or mavloc (gimbal.aim = border)")
     a = ap.parse_args()
     reexec_in_netns()
     os.environ["MAVLINK20"] = "1"
     from pymavlink import mavutil
 
-    name = "coastline-mission"
+    name = f"coastline-{a.aim}"
     out = os.path.join(os.path.abspath(a.out), name)
     shutil.rmtree(out, ignore_errors=True)
     os.makedirs(out)
@@ -182,7 +186,8 @@ def main():
     state = os.path.join(out, "state")
     mlog = open(os.path.join(out, "mavloc.log"), "w")
     mavloc = subprocess.Popen([a.mavloc, "--config", os.path.join(ROOT, "config", "sitl.toml"), "run",
-                               "--set", f"daemon.state_dir={state}", "--set", "camera.scenario=coastline"],
+                               "--set", f"daemon.state_dir={state}", "--set", "camera.scenario=coastline",
+                               "--set", f"gimbal.aim={a.aim}"],
                               stdout=mlog, stderr=subprocess.STDOUT, env=dict(os.environ, RUST_LOG="mavloc=info"))
     try:
         # The pilot is a ground station on PX4's GCS link (PX4 sends to 14550).

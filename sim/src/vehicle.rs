@@ -434,7 +434,11 @@ impl Vehicle {
                         } else {
                             let (pitch, yaw) =
                                 ((c.param1 as f64).to_radians(), (c.param2 as f64).to_radians());
-                            let earth = (c.param5 as u32) & 64 != 0;
+                            // As PX4 v1.16's gimbal manager (measured on SITL): the yaw is
+                            // earth-fixed only with GIMBAL_MANAGER_FLAGS_YAW_LOCK (16);
+                            // YAW_IN_EARTH_FRAME (64) alone is ignored, the yaw then
+                            // taken relative to the vehicle.
+                            let earth = (c.param5 as u32) & 16 != 0;
                             let yaw = if earth { yaw } else { yaw + self.state.attitude[2] };
                             let r = mavloc_geometry::GimbalChain::YawPitchRoll
                                 .rotation(mavloc_geometry::GimbalAngles { yaw, pitch, roll: 0.0 });
@@ -692,7 +696,7 @@ mod tests {
         );
         v.handle(
             mavloc,
-            &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, [-30.0, 45.0, f32::NAN, f32::NAN, 64.0]),
+            &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, [-30.0, 45.0, f32::NAN, f32::NAN, 16.0]),
             1.0,
         );
         v.handle(
@@ -718,5 +722,17 @@ mod tests {
             (a.pitch.to_degrees() + 30.0).abs() < 1e-4 && (a.yaw.to_degrees() - 45.0).abs() < 1e-4,
             "{a:?}"
         );
+        // As PX4 v1.16: YAW_IN_EARTH_FRAME alone is ignored; the yaw is the vehicle's + 45.
+        v.handle(
+            mavloc,
+            &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, [-30.0, 45.0, f32::NAN, f32::NAN, 64.0]),
+            1.2,
+        );
+        let a =
+            mavloc_geometry::GimbalChain::YawPitchRoll.angles(&v.gimbal_attitude(1.5).to_rotation_matrix());
+        let want = (45.0 + v.state.attitude[2].to_degrees()).rem_euclid(360.0);
+        let got = a.yaw.to_degrees().rem_euclid(360.0);
+        assert!((got - want).abs() < 1e-3 || (got - want).abs() > 359.999, "{got} vs {want}");
+        assert!(v.state.attitude[2].to_degrees().abs() > 1.0, "the test needs a vehicle not facing north");
     }
 }
