@@ -78,6 +78,7 @@ sitl: deps
 	  echo "make sitl: skipped: set MAVLOC_PX4_DIR to a PX4 v1.16 SITL build folder (build/px4_sitl_default), built outside this project (README, Against PX4 SITL)"; \
 	else \
 	  $(CARGO) build && \
+	  { $(MAVLOC_PYTHON) -c "import pyulog" 2>/dev/null || $(VENV)/bin/pip install --quiet --disable-pip-version-check "pyulog==1.3.0"; } && \
 	  $(MAVLOC_PYTHON) tools/sitl.py --px4 "$(MAVLOC_PX4_DIR)" --mavloc target/debug/mavloc --out results/sitl; \
 	fi
 

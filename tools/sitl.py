@@ -163,6 +163,28 @@ def fly_coastline(m, max_s, events):
     events.append("not disarmed within 120 s of RTL")
 
 
+def estimate_vs_truth(ulg):
+    """EKF2's local position against SIH's truth over the airborne time (truth more than
+    1 m above its start), from PX4's own flight log: RMS and max, horizontal and vertical."""
+    import numpy as np
+    from pyulog import ULog
+    u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth"])
+    d = {x.name: x.data for x in u.data_list}
+    est, gt = d["vehicle_local_position"], d["vehicle_local_position_groundtruth"]
+    t = gt["timestamp"]
+    air = -(gt["z"] - gt["z"][0]) > 1.0
+    err = {k: np.interp(t, est["timestamp"], est[k])[air] - gt[k][air] for k in "xyz"}
+    h = np.hypot(err["x"], err["y"])
+    v = np.abs(err["z"])
+    return {
+        "airborne_s": round(float(air.sum()) / max(1, len(t)) * float(t[-1] - t[0]) * 1e-6, 1),
+        "horizontal_rms_m": round(float(np.sqrt((h ** 2).mean())), 3),
+        "horizontal_max_m": round(float(h.max()), 3),
+        "vertical_rms_m": round(float(np.sqrt((v ** 2).mean())), 3),
+        "vertical_max_m": round(float(v.max()), 3),
+    }
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--px4", required=True)
@@ -213,6 +235,11 @@ def main():
     if logs and os.path.getmtime(logs[-1]) >= px4_started:
         shutil.copy(logs[-1], os.path.join(out, "px4.ulg"))
         report["ulg"] = "px4.ulg"
+    if report.get("ulg"):
+        try:
+            report["px4_estimate_vs_truth"] = estimate_vs_truth(os.path.join(out, "px4.ulg"))
+        except Exception as e:  # a log without the topics: say so, keep the rest
+            report["px4_estimate_vs_truth"] = f"not computed: {type(e).__name__}: {e}"
     status = os.path.join(state, "status.json")
     if os.path.exists(status):
         report["mavloc_counters"] = json.load(open(status))["counters"]

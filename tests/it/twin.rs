@@ -198,6 +198,10 @@ fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated
     assert_eq!(commands(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE), 1);
     let setpoints = commands(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW);
     assert!(setpoints > 20 && setpoints <= 5 * 35 + 1, "{setpoints} setpoints");
+    // The gimbal went where it was told (the vehicle's manager, like PX4's, needs YAW_LOCK).
+    let pointing = flight.core.gimbal_error_median_deg().expect("gimbal reports compared");
+    println!("gimbal pointing error, median: {pointing:.2} deg");
+    assert!(pointing < 2.0, "median pointing error {pointing:.2} deg");
     // Accuracy: the live test's bounds, on every frame of the flight.
     let files = flight.frames.len();
     println!(

@@ -25,9 +25,16 @@ pub enum Control {
     InControl,
 }
 
+/// A setpoint is given this long to be reached before the gimbal's report is compared.
+pub const SETTLE: Duration = Duration::from_millis(500);
+
 #[derive(Debug)]
 pub struct Gimbal {
     control: Control,
+    /// The recent setpoints: when sent, and the direction each asks for (unit, NED).
+    pub sent: std::collections::VecDeque<(Mono, [f64; 3])>,
+    /// Pointing errors (degrees) of reports against settled setpoints, the newest last.
+    pub errors: std::collections::VecDeque<f64>,
     /// (yaw, pitch) radians, newest aim not yet sent.
     pending: Option<(f64, f64)>,
     next: Mono,
@@ -36,7 +43,14 @@ pub struct Gimbal {
 
 impl Default for Gimbal {
     fn default() -> Self {
-        Gimbal { control: Control::Released, pending: None, next: Mono::ZERO, refused_once: false }
+        Gimbal {
+            control: Control::Released,
+            sent: Default::default(),
+            errors: Default::default(),
+            pending: None,
+            next: Mono::ZERO,
+            refused_once: false,
+        }
     }
 }
 
@@ -49,9 +63,31 @@ impl Gimbal {
         self.pending = Some((yaw, pitch));
     }
 
+    /// A gimbal report (optical axis, NED, unit) at `now`: its angle to the newest
+    /// setpoint sent at least [`SETTLE`] before is kept (the last 600, a minute at 10 Hz).
+    pub fn on_report(&mut self, now: Mono, axis: [f64; 3]) {
+        let Some(&(_, want)) = self.sent.iter().rev().find(|(t, _)| *t + SETTLE <= now) else { return };
+        let dot: f64 = (0..3).map(|i| axis[i] * want[i]).sum();
+        self.errors.push_back(dot.clamp(-1.0, 1.0).acos().to_degrees());
+        if self.errors.len() > 600 {
+            self.errors.pop_front();
+        }
+    }
+
+    /// Median pointing error over the kept reports, degrees.
+    pub fn median_error_deg(&self) -> Option<f64> {
+        let mut v: Vec<f64> = self.errors.iter().copied().collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        Some(v[v.len() / 2])
+    }
+
     pub fn release(&mut self) {
         self.control = Control::Released;
         self.pending = None;
+        self.sent.clear();
     }
 
     pub fn deadline(&self) -> Option<Mono> {
@@ -89,6 +125,11 @@ impl Gimbal {
         }
         self.pending = None;
         self.next = now + MIN_INTERVAL;
+        let (cp, sp) = (pitch.cos(), pitch.sin());
+        self.sent.push_back((now, [cp * yaw.cos(), cp * yaw.sin(), -sp]));
+        while self.sent.len() > 16 {
+            self.sent.pop_front();
+        }
         // Rates NaN: angles only.
         Some(command(
             MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,

@@ -238,6 +238,9 @@ pub struct Counters {
     /// Backwards steps of the autopilot's clock that its old timeline then disproved
     /// (a spoofed or garbled reboot; see `telemetry`).
     pub reboot_claims_rejected: u64,
+    /// `gimbal.aim = "border"`: median angle between where mavloc pointed the gimbal and
+    /// where the gimbal reports it looks, over the last minute of reports (degrees).
+    pub gimbal_error_median_deg: Option<f64>,
     pub statustext_dropped: u64,
     pub results_dropped: u64,
     /// Result writes that failed: checkpoints, snapshots, the write at stop. The results
@@ -375,6 +378,12 @@ impl Core {
 
     pub fn aligner(&self) -> &Aligner {
         &self.telemetry.aligner
+    }
+
+    /// `gimbal.aim = "border"`: the median angle between mavloc's setpoints and the
+    /// gimbal's reports over the last minute (degrees).
+    pub fn gimbal_error_median_deg(&self) -> Option<f64> {
+        self.gimbal.median_error_deg()
     }
 
     /// The newest ground truth from the simulator (HIL_STATE_QUATERNION) and its arrival.
@@ -650,6 +659,11 @@ impl Core {
             let fc = self.is_autopilot(&f);
             if self.telemetry.on_message(rx, &f.message, fc).is_some() {
                 self.on_reboot(rx);
+            }
+            if let (MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(_), Some((_, axis))) =
+                (&f.message, self.telemetry.gimbal_pointing)
+            {
+                self.gimbal.on_report(rx, [axis.x, axis.y, axis.z]);
             }
         }
         match &f.message {
@@ -1035,6 +1049,7 @@ impl Core {
         self.counters.peer_lines_suppressed = self.peer_lines.suppressed;
         self.counters.telemetry_from_the_future = self.telemetry.implausible;
         self.counters.reboot_claims_rejected = self.telemetry.reboot_claims_rejected;
+        self.counters.gimbal_error_median_deg = self.gimbal.median_error_deg();
         self.counters.statustext_dropped = self.notes.dropped;
         let ms = (now.0 / 1000) as u32;
         let values: [(&str, f32); 5] = [

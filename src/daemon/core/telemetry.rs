@@ -48,6 +48,8 @@ pub struct Telemetry {
     /// The simulator's ground truth and when it arrived (PX4 SITL leaves its `time_usec`
     /// at 0, so arrival is the only time it has).
     pub truth: Option<(Mono, HIL_STATE_QUATERNION_DATA)>,
+    /// Where the gimbal reports the camera looks (unit vector, NED) and when.
+    pub gimbal_pointing: Option<(Mono, Vec3)>,
 }
 
 /// Stamps on a new timeline needed to believe a reboot...
@@ -79,6 +81,7 @@ impl Telemetry {
             home: None,
             global: None,
             truth: None,
+            gimbal_pointing: None,
         }
     }
 
@@ -95,6 +98,20 @@ impl Telemetry {
             Geodetic::new(h.latitude as f64 * 1e-7, h.longitude as f64 * 1e-7, h.altitude as f64 * 1e-3);
         home.validate().ok()?;
         Some(LocalFrame::new(home).to_geodetic(&-Vec3::new(h.x as f64, h.y as f64, h.z as f64)))
+    }
+
+    /// The camera's optical axis (gimbal FRD x) in NED, from a gimbal report; a yaw
+    /// relative to the vehicle is turned by the vehicle's latest heading.
+    fn earth_direction(&self, s: &GimbalSample) -> Option<Vec3> {
+        let forward = s.q * Vec3::x();
+        match s.frame {
+            crate::align::YawFrame::Earth => Some(forward),
+            crate::align::YawFrame::Vehicle => {
+                let (_, q) = self.latest_attitude?;
+                let yaw = q.euler_angles().2;
+                Some(nalgebra::UnitQuaternion::from_axis_angle(&Vec3::z_axis(), yaw) * forward)
+            }
+        }
     }
 
     /// Screens a stamp for a reboot claim: false while a backwards step waits for
@@ -200,6 +217,7 @@ impl Telemetry {
             MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g) => {
                 if let Some(s) = GimbalSample::from_status(g.q, g.flags.bits()) {
                     self.aligner.push_gimbal(g.time_boot_ms as f64 * 1e-3, s, rx.secs());
+                    self.gimbal_pointing = self.earth_direction(&s).map(|d| (rx, d));
                 }
                 None
             }
