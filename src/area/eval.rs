@@ -77,17 +77,26 @@ pub fn evaluate(
 
 impl std::fmt::Display for AreaEvaluation {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        writeln!(f, "landmarks  d < 10 m  10-20 m  d > 20 m  mean d to GT  median  max")?;
-        writeln!(
-            f,
-            "{:>9}  {:>8}  {:>7}  {:>8}  {:>10.2} m  {:>4.2} m  {:.2} m",
-            self.landmarks, self.lt10, self.from10to20, self.gt20, self.mean_m, self.median_m, self.max_m
-        )?;
-        writeln!(
-            f,
-            "border line: mean {:.2} m, max {:.2} m from the ground truth",
-            self.border_mean_m, self.border_max_m
-        )?;
+        if self.landmarks == 0 {
+            // No distances to average: say so rather than print a table of NaN.
+            writeln!(f, "no landmarks: nothing to compare with the ground truth")?;
+        } else {
+            writeln!(f, "landmarks  d < 10 m  10-20 m  d > 20 m  mean d to GT  median  max")?;
+            writeln!(
+                f,
+                "{:>9}  {:>8}  {:>7}  {:>8}  {:>10.2} m  {:>4.2} m  {:.2} m",
+                self.landmarks, self.lt10, self.from10to20, self.gt20, self.mean_m, self.median_m, self.max_m
+            )?;
+        }
+        if self.border_mean_m.is_finite() {
+            writeln!(
+                f,
+                "border line: mean {:.2} m, max {:.2} m from the ground truth",
+                self.border_mean_m, self.border_max_m
+            )?;
+        } else {
+            writeln!(f, "border line: none fitted")?;
+        }
         writeln!(f, "speed: {:.1} frames/s", self.frames_per_s)
     }
 }
@@ -118,5 +127,12 @@ mod tests {
         let border = vec![vec![Vec3::new(0.0, 1.0, 0.0), Vec3::new(100.0, 1.0, 0.0)]];
         let e = evaluate(&l, &truth, &border, 12.0);
         assert!((e.border_mean_m - 1.0).abs() < 1e-12 && (e.border_max_m - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn no_landmarks_print_words_not_nan() {
+        let e = evaluate(&[], &[vec![Vec3::new(0.0, 0.0, 0.0), Vec3::new(10.0, 0.0, 0.0)]], &[], 6.0);
+        let text = e.to_string();
+        assert!(text.contains("no landmarks") && !text.contains("NaN"), "{text}");
     }
 }
