@@ -86,10 +86,17 @@ def stop_px4(px4_dir, proc):
         proc.wait(timeout=10)
 
 
-def upload_plan(m, plan_path):
+# Mission items that point the gimbal (DO_SET_ROI_LOCATION, DO_SET_ROI_NONE,
+# DO_GIMBAL_MANAGER_PITCHYAW): left out when mavloc points it (PX4's navigator would take
+# the gimbal back at each one).
+GIMBAL_ITEMS = {195, 197, 1000}
+
+
+def upload_plan(m, plan_path, keep_gimbal_items=True):
     """QGC .plan items -> MISSION_ITEM_INT, by the mission protocol."""
-    from pymavlink import mavutil
     items = json.load(open(plan_path))["mission"]["items"]
+    if not keep_gimbal_items:
+        items = [it for it in items if it["command"] not in GIMBAL_ITEMS]
     msgs = []
     for seq, it in enumerate(items):
         p = [0 if v is None else v for v in it["params"]]
@@ -125,9 +132,9 @@ def command(m, cmd, *params, timeout=3.0):
     return None
 
 
-def fly_coastline(m, max_s, events):
+def fly_coastline(m, max_s, events, aim):
     from pymavlink import mavutil
-    n = upload_plan(m, os.path.join(ROOT, "mission", "coastline.plan"))
+    n = upload_plan(m, os.path.join(ROOT, "mission", "coastline.plan"), keep_gimbal_items=aim == "mission")
     events.append(f"mission uploaded: {n} items")
     # Arm once PX4's pre-arm checks pass (it says so by accepting).
     t0 = time.time()
@@ -218,7 +225,7 @@ def main():
         if hb is None:
             raise RuntimeError("no heartbeat from PX4 within 30 s")
         report["events"].append(f"PX4 heartbeat after {time.time() - px4_started:.1f} s")
-        fly_coastline(m, a.max_s, report["events"])
+        fly_coastline(m, a.max_s, report["events"], a.aim)
         report["ok"] = True
     except Exception as e:  # the report says what failed; the logs are kept
         report["ok"] = False
