@@ -11,6 +11,11 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
     match command {
         ConfigCommand::Check { file } => {
             let loaded = load(Some(file.clone()), global.overrides)?;
+            // What `run` needs besides valid values (files it names): refused here too.
+            let missing = settings::preflight(&loaded);
+            if !missing.is_empty() {
+                return Err(settings::SettingsError::Invalid(missing).into());
+            }
             println!(
                 "{}: valid ({} key{} set in the file or overridden)",
                 file.display(),

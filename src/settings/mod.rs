@@ -416,6 +416,51 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
     }
 }
 
+/// What `mavloc run` needs beyond valid values: the files the settings name, readable.
+/// `config check` and `run` both call it, so `run` refuses to start on what `check`
+/// refuses (before, `check` passed a missing model and `run` then ran without a pipeline).
+/// The signing key's contents and permissions are checked by the link when it loads it.
+pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
+    let s = &loaded.settings;
+    let origin =
+        |key: &str| loaded.origins.get(key).cloned().unwrap_or_else(|| "the built-in default".into());
+    let mut problems = Vec::new();
+    let mut need_file = |key: &str, path: &str, what: &str| {
+        let p = Path::new(path);
+        let why = if path.is_empty() {
+            Some(format!("{what} is needed and none is set"))
+        } else {
+            match std::fs::metadata(p) {
+                Ok(_) => None,
+                Err(e) => Some(format!("{what}: cannot read {}: {e}", p.display())),
+            }
+        };
+        if let Some(expected) = why {
+            problems.push(Problem {
+                key: key.into(),
+                value: Some(quote(path)),
+                expected,
+                origin: origin(key),
+            });
+        }
+    };
+    if s.daemon.pipeline == PipelineKind::Indoor {
+        need_file(
+            "indoor.model",
+            &s.indoor.model,
+            "a floor model (mavloc indoor train) for daemon.pipeline = \"indoor\"",
+        );
+    }
+    if matches!(s.camera.source, CameraSource::File | CameraSource::Dataset) {
+        need_file("camera.path", &s.camera.path, "a video, image folder or dataset for this camera source");
+    }
+    let key = &s.mavlink.signing_key;
+    if !key.is_empty() && !key.starts_with("credential:") {
+        need_file("mavlink.signing_key", key, "the signing key file");
+    }
+    problems
+}
+
 /// Range and consistency checks on merged settings.
 pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem> {
     let mut v = Validator { origins, problems: Vec::new() };

@@ -237,3 +237,45 @@ fn a_closed_output_pipe_ends_quietly_not_in_a_panic() {
     assert_ne!(out.status.code(), Some(101), "{stderr}");
     assert!(out.status.success() || out.status.signal() == Some(libc::SIGPIPE), "{:?}", out.status);
 }
+
+/// `config check` refuses what `run` cannot use (a missing model, a camera with no path),
+/// and `run` refuses the same with exit 78 instead of running without a pipeline.
+#[test]
+fn config_check_and_run_refuse_the_files_run_needs() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("mavloc.toml");
+    std::fs::write(
+        &file,
+        "[daemon]\npipeline = \"indoor\"\n[indoor]\nmodel = \"floor.model\"\n[camera]\nsource = \"file\"\n",
+    )
+    .unwrap();
+    let mavloc = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_mavloc"))
+            .args(args)
+            .env_remove("STATE_DIRECTORY")
+            .output()
+            .unwrap()
+    };
+    let check = mavloc(&["config", "check", file.to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&check.stderr);
+    assert!(!check.status.success(), "{said}");
+    // Both problems in one report; the model is looked for beside the file.
+    assert!(
+        said.contains("2 problems") && said.contains("indoor.model") && said.contains("camera.path"),
+        "{said}"
+    );
+    assert!(said.contains(&dir.path().join("floor.model").display().to_string()), "{said}");
+    let state = dir.path().join("state");
+    let run = mavloc(&[
+        "--config",
+        file.to_str().unwrap(),
+        "--set",
+        &format!("daemon.state_dir={}", state.display()),
+        "run",
+    ]);
+    assert_eq!(run.status.code(), Some(78), "{}", String::from_utf8_lossy(&run.stderr));
+    std::fs::write(dir.path().join("floor.model"), b"").unwrap();
+    let check = mavloc(&["config", "check", file.to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&check.stderr);
+    assert!(said.contains("1 problem") && !said.contains("indoor.model"), "{said}");
+}
