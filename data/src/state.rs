@@ -57,6 +57,19 @@ pub fn move_aside_corrupt(path: &Path, into: &Path) -> io::Result<PathBuf> {
     Ok(aside)
 }
 
+/// [`move_aside_corrupt`] into `into` (`None`: the file's own folder), and the sentence
+/// for the caller's WARN line: "`PATH`: not a valid WHAT (ERROR); moved aside to `ASIDE`",
+/// or why it could not be. The caller adds what happens next.
+pub fn set_aside(path: &Path, into: Option<&Path>, what: &str, error: &str) -> String {
+    let beside = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    match move_aside_corrupt(path, into.unwrap_or(beside)) {
+        Ok(aside) => {
+            format!("{}: not a valid {what} ({error}); moved aside to {}", path.display(), aside.display())
+        }
+        Err(e) => format!("{}: not a valid {what} ({error}) and cannot be moved aside ({e})", path.display()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

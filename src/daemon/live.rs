@@ -185,17 +185,9 @@ fn resume(path: &Path, run_dir: &Path) -> Vec<LandmarkRecord> {
             results
         }
         Err(e) => {
-            match mavloc_data::state::move_aside_corrupt(path, run_dir) {
-                Ok(aside) => tracing::warn!(
-                    "area: {} does not parse ({e}); moved aside to {}, the run goes on without it",
-                    path.display(),
-                    aside.display()
-                ),
-                Err(m) => tracing::warn!(
-                    "area: {} does not parse ({e}) and cannot be moved aside ({m}); the run goes on without it",
-                    path.display()
-                ),
-            }
+            // Into the run's folder: it outlives the set it came from.
+            let said = mavloc_data::state::set_aside(path, Some(run_dir), "landmark file", &e.to_string());
+            tracing::warn!("area: {said}; the run goes on without it");
             Vec::new()
         }
     }

@@ -353,18 +353,8 @@ impl ParamStore {
 /// would overwrite it and the tuned values it still holds would be lost unseen. mavloc
 /// starts with the configuration's values.
 fn move_aside(path: &Path, why: &str) {
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    match mavloc_data::state::move_aside_corrupt(path, dir) {
-        Ok(aside) => tracing::warn!(
-            "{}: not a parameter file ({why}); moved aside to {}; starting with the configuration's values",
-            path.display(),
-            aside.display()
-        ),
-        Err(e) => tracing::warn!(
-            "{}: not a parameter file ({why}) and cannot be moved aside ({e}); starting with the configuration's values",
-            path.display()
-        ),
-    }
+    let said = mavloc_data::state::set_aside(path, None, "parameter file", why);
+    tracing::warn!("{said}; starting with the configuration's values");
 }
 
 #[cfg(test)]

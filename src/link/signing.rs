@@ -78,25 +78,6 @@ fn now_units() -> u64 {
     (unix.as_micros() as u64 / 10).saturating_sub(EPOCH_2015_UNIX_S * 100_000)
 }
 
-/// Renames an unreadable state file to `NAME.corrupt-UNIXSECONDS`, with a warning.
-fn move_aside(p: &Path) {
-    let secs = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_secs();
-    let aside = p.with_file_name(format!(
-        "{}.corrupt-{secs}",
-        p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
-    ));
-    match std::fs::rename(p, &aside) {
-        Ok(()) => tracing::warn!(
-            "signing state {} does not parse; moved aside to {}; starting with none",
-            p.display(),
-            aside.display()
-        ),
-        Err(e) => {
-            tracing::warn!("signing state {} does not parse and cannot be moved aside: {e}", p.display())
-        }
-    }
-}
-
 /// Reads a key file: 64 hexadecimal characters (surrounding whitespace allowed), the form
 /// `mavproxy` and pymavlink users keep keys in. Refuses a file others can read.
 pub fn load_key(path: &Path) -> Result<[u8; 32], String> {
@@ -146,7 +127,8 @@ impl Signer {
             Some((p, Ok(text))) => match parse_state(&text) {
                 Some((t, streams)) => (t + SAVE_INTERVAL_S * 100_000, streams),
                 None => {
-                    move_aside(p);
+                    let said = mavloc_data::state::set_aside(p, None, "signing state", "does not parse");
+                    tracing::warn!("{said}; starting with no stream remembered");
                     (0, HashMap::new())
                 }
             },
