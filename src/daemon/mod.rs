@@ -338,19 +338,7 @@ impl Shell {
     fn on_worker(&mut self, core: &mut Core, ev: WorkerEvent) {
         let now = self.now();
         let event = match ev {
-            WorkerEvent::Report { capture_s, attitude, report, .. } => {
-                self.live.give_credit();
-                PipelineEvent::Report { capture: capture_s, attitude, report }
-            }
-            WorkerEvent::Panicked { frame, message } => {
-                self.live.give_credit();
-                PipelineEvent::Panicked { frame, message }
-            }
-            WorkerEvent::Failed(e) => {
-                self.live.worker = None;
-                PipelineEvent::Failed(e)
-            }
-            WorkerEvent::WriteFailed(e) => PipelineEvent::WriteFailed(e),
+            WorkerEvent::Pipeline(e) => e,
             WorkerEvent::Stopped { files } => {
                 tracing::info!(
                     "pipeline results: {}",
@@ -359,6 +347,12 @@ impl Shell {
                 return;
             }
         };
+        match &event {
+            // The frame is done: the camera may deliver the next (lossless replay).
+            PipelineEvent::Report { .. } | PipelineEvent::Panicked { .. } => self.live.give_credit(),
+            PipelineEvent::Failed(_) => self.live.worker = None,
+            PipelineEvent::WriteFailed(_) => {}
+        }
         core.handle(Input::Pipeline { now, event });
     }
 }

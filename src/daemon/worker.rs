@@ -28,7 +28,7 @@ pub struct LiveFrame {
     pub truth: Option<[f64; 3]>,
 }
 
-pub use super::core::{PositionEstimate, Report};
+pub use super::core::{PipelineEvent, PositionEstimate, Report};
 
 /// A live pipeline: plain synchronous code, no tokio, no MAVLink.
 pub trait LivePipeline: Send {
@@ -57,28 +57,15 @@ pub enum Request {
     Stop,
 }
 
-/// What the worker tells the daemon.
+/// What the worker tells the daemon: the core's pipeline events as they are, and the
+/// end of the worker.
 // A report is a few hundred bytes, one per frame through a bounded channel: boxing it
 // would cost an allocation per frame to save a few kilobytes of channel.
 #[allow(clippy::large_enum_variant)]
 #[derive(Debug)]
 pub enum Event {
-    /// `capture_s`: the frame's local capture time; `attitude`: the vehicle's roll, pitch,
-    /// yaw then (radians), for the messages the report becomes.
-    Report {
-        frame: u64,
-        capture_s: f64,
-        attitude: (f64, f64, f64),
-        report: Report,
-    },
-    Panicked {
-        frame: u64,
-        message: String,
-    },
-    Failed(String),
-    /// The results could not be written when the pipeline stopped (sent before
-    /// `Stopped`); the files on disk are those of the last good write.
-    WriteFailed(String),
+    Pipeline(PipelineEvent),
+    /// The worker has ended after a stop; the files its last write left.
     Stopped {
         files: Vec<PathBuf>,
     },
@@ -164,7 +151,7 @@ fn run(
     let mut pipeline = match build(&settings) {
         Ok(p) => p,
         Err(e) => {
-            let _ = events.try_send(Event::Failed(e));
+            let _ = events.try_send(Event::Pipeline(PipelineEvent::Failed(e)));
             return;
         }
     };
@@ -186,7 +173,7 @@ fn run(
                 Request::Reset => match build(&settings) {
                     Ok(p) => pipeline = p,
                     Err(e) => {
-                        let _ = events.try_send(Event::Failed(e));
+                        let _ = events.try_send(Event::Pipeline(PipelineEvent::Failed(e)));
                         return;
                     }
                 },
@@ -198,7 +185,7 @@ fn run(
                         // Logged here too: at shutdown nobody reads the event.
                         let line = format!("cannot write the pipeline's results at stop: {e}");
                         tracing::warn!("{line}");
-                        let _ = events.try_send(Event::WriteFailed(line));
+                        let _ = events.try_send(Event::Pipeline(PipelineEvent::WriteFailed(line)));
                         Vec::new()
                     });
                     let _ = events.try_send(Event::Stopped { files });
@@ -210,22 +197,19 @@ fn run(
             match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
                 Ok(report) => {
                     let attitude = f.pose.vehicle.attitude.euler_angles();
-                    let _ = events.try_send(Event::Report {
-                        frame: f.index,
-                        capture_s: f.capture_s,
-                        attitude,
-                        report,
-                    });
+                    let event = PipelineEvent::Report { capture: f.capture_s, attitude, report };
+                    let _ = events.try_send(Event::Pipeline(event));
                 }
                 Err(p) => {
                     let message = panic_message(&*p);
-                    let _ = events.try_send(Event::Panicked { frame: f.index, message });
+                    let _ =
+                        events.try_send(Event::Pipeline(PipelineEvent::Panicked { frame: f.index, message }));
                     // The pipeline's state may be half-updated: rebuild it. Results
                     // written so far stay on disk.
                     match build(&settings) {
                         Ok(p) => pipeline = p,
                         Err(e) => {
-                            let _ = events.try_send(Event::Failed(e));
+                            let _ = events.try_send(Event::Pipeline(PipelineEvent::Failed(e)));
                             return;
                         }
                     }
@@ -253,7 +237,10 @@ mod tests {
                 panic!("bad frame");
             }
             self.seen += 1;
-            Report { counters: vec![("SEEN", self.seen as f32)], ..Report::default() }
+            Report {
+                counters: vec![("SEEN", self.seen as f32), ("FRAME", f.index as f32)],
+                ..Report::default()
+            }
         }
         fn apply(&mut self, _: &Settings) {}
         fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
@@ -300,9 +287,12 @@ mod tests {
         }
         w.stop();
         events.push(rx.blocking_recv().unwrap());
-        assert!(matches!(&events[3], Event::Panicked { frame: 3, message } if message == "bad frame"));
+        assert!(
+            matches!(&events[3], Event::Pipeline(PipelineEvent::Panicked { frame: 3, message }) if message == "bad frame")
+        );
         // After the restart the count starts again: frames 4 and 5.
-        assert!(matches!(&events[5], Event::Report { frame: 5, report, .. } if report.counters[0].1 == 2.0));
+        assert!(matches!(&events[5], Event::Pipeline(PipelineEvent::Report { report, .. })
+            if report.counters == [("SEEN", 2.0), ("FRAME", 5.0)]));
         assert!(matches!(&events[6], Event::Stopped { files } if files.len() == 1));
         assert_eq!(std::fs::read_to_string(dir.path().join("seen.txt")).unwrap(), "2");
     }
@@ -319,7 +309,7 @@ mod tests {
         w.stop();
         let failed = rx.blocking_recv().unwrap();
         assert!(
-            matches!(&failed, Event::WriteFailed(e) if e.contains("cannot write the pipeline's results")),
+            matches!(&failed, Event::Pipeline(PipelineEvent::WriteFailed(e)) if e.contains("cannot write the pipeline's results")),
             "{failed:?}"
         );
         assert!(matches!(rx.blocking_recv().unwrap(), Event::Stopped { files } if files.is_empty()));
