@@ -283,6 +283,18 @@ mod tests {
         assert!(matches!(e, SourceError::Gone(_)), "a camera may come back: retried");
     }
 
+    /// A `file` camera on a folder of 32x24 images, as fast as it is read.
+    fn folder_camera(dir: &std::path::Path) -> Video {
+        let c = Camera {
+            path: dir.to_string_lossy().into(),
+            width: 32,
+            height: 24,
+            realtime: false,
+            ..Camera::default()
+        };
+        Video::open_file(&c, ctx()).unwrap()
+    }
+
     #[test]
     fn an_image_folder_plays_in_name_order_and_ends() {
         let dir = tempfile::tempdir().unwrap();
@@ -290,14 +302,7 @@ mod tests {
             let m = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
             imgcodecs::imwrite(dir.path().join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
         }
-        let c = Camera {
-            path: dir.path().to_string_lossy().into(),
-            width: 32,
-            height: 24,
-            realtime: false,
-            ..Camera::default()
-        };
-        let mut v = Video::open_file(&c, ctx()).unwrap();
+        let mut v = folder_camera(dir.path());
         let a = v.next().unwrap().unwrap();
         assert_eq!(*a.image.at_2d::<core::Vec3b>(0, 0).unwrap(), core::Vec3b::from([200, 200, 200]));
         assert_eq!(v.next().unwrap().unwrap().index, 1);
@@ -315,14 +320,7 @@ mod tests {
         let mut jpeg = core::Vector::<u8>::new();
         imgcodecs::imencode(".jpg", &shade(100.0), &mut jpeg, &core::Vector::new()).unwrap();
         std::fs::write(dir.path().join("2.jpg"), &jpeg.to_vec()[..20]).unwrap();
-        let c = Camera {
-            path: dir.path().to_string_lossy().into(),
-            width: 32,
-            height: 24,
-            realtime: false,
-            ..Camera::default()
-        };
-        let mut v = Video::open_file(&c, ctx()).unwrap();
+        let mut v = folder_camera(dir.path());
         let shade_of = |f: &Captured| f.image.at_2d::<core::Vec3b>(0, 0).unwrap()[0];
         let first = v.next().unwrap().unwrap();
         assert_eq!(shade_of(&first), 10);
