@@ -231,14 +231,18 @@ def test_link_params_commands_garbage_and_peer_loss():
     assert code == 0, f"exit status {code}"
 
 
+def key_file(key):
+    """A signing key file as mavloc wants it: 64 hex characters, mode 0600."""
+    path = os.path.join(tempfile.mkdtemp(prefix="mavloc-key-"), "key")
+    with open(path, "w") as f:
+        f.write(key.hex() + "\n")
+    os.chmod(path, 0o600)
+    return path
+
+
 def test_signing():
     key = bytes(range(32))
-    d0 = tempfile.mkdtemp(prefix="mavloc-key-")
-    keyfile = os.path.join(d0, "key")
-    with open(keyfile, "w") as f:
-        f.write(key.hex() + "\n")
-    os.chmod(keyfile, 0o600)
-    d = Daemon(f'signing_key = "{keyfile}"')
+    d = Daemon(f'signing_key = "{key_file(key)}"')
     try:
         c = d.connect()
         # With signing on, only a signed frame makes us a peer: unsigned, mavloc is silent.
@@ -382,12 +386,7 @@ def test_hostile_peers_on_udpin():
 
 def test_signed_replay_after_a_crash_is_refused():
     key = bytes(range(1, 33))
-    d0 = tempfile.mkdtemp(prefix="mavloc-key-")
-    keyfile = os.path.join(d0, "key")
-    with open(keyfile, "w") as f:
-        f.write(key.hex() + "\n")
-    os.chmod(keyfile, 0o600)
-    d = Daemon(f'signing_key = "{keyfile}"')
+    d = Daemon(f'signing_key = "{key_file(key)}"')
     c = d.connect()
     c.setup_signing(key, sign_outgoing=True, link_id=2, allow_unsigned_callback=lambda *a: False)
     hello(c)
