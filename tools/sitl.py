@@ -104,7 +104,6 @@ def upload_plan(m, plan_path, keep_gimbal_items=True):
         msgs.append((seq, frame, it["command"], p))
     m.mav.mission_count_send(1, 1, len(msgs), 0)
     deadline = time.time() + 30
-    sent = set()
     while time.time() < deadline:
         r = m.recv_match(type=["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK"], blocking=True, timeout=2)
         if r is None:
@@ -117,7 +116,6 @@ def upload_plan(m, plan_path, keep_gimbal_items=True):
         m.mav.mission_item_int_send(1, 1, seq, frame, cmd, 0, 1, p[0], p[1], p[2], p[3],
                                     int(round(p[4] * 1e7)) if frame != 2 else int(p[4]),
                                     int(round(p[5] * 1e7)) if frame != 2 else int(p[5]), p[6], 0)
-        sent.add(seq)
     raise RuntimeError("mission upload timed out")
 
 

@@ -84,6 +84,8 @@ struct Live {
     last_align_error: Option<String>,
     /// Newest vehicle sample handed to the sim camera (mavloc's clock, seconds).
     fed_pose_local: f64,
+    /// The sim camera's scenario origin, read once (the truth is placed in its world).
+    sim_origin: std::cell::OnceCell<Option<Geodetic>>,
     next_drop_log: Mono,
     dropped_logged: u64,
 }
@@ -110,6 +112,7 @@ impl Live {
             dropped_before: 0,
             last_align_error: None,
             fed_pose_local: f64::NEG_INFINITY,
+            sim_origin: std::cell::OnceCell::new(),
             next_drop_log: Mono::ZERO + Duration::from_secs(10),
             dropped_logged: 0,
         }
@@ -575,7 +578,8 @@ fn feed_truth(core: &Core, live: &mut Live, now: Mono) {
     if local <= live.fed_pose_local || now.secs() - local > MAX_POSE_LEAD_S {
         return;
     }
-    let Some(origin) = camera::origin(core.settings()) else { return };
+    // Not on every truth message: it reads the scenario's file.
+    let Some(origin) = *live.sim_origin.get_or_init(|| camera::origin(core.settings())) else { return };
     // The camera's turn on the body from the newest telemetry up to the truth's time (the
     // truth often arrives before the telemetry of the same instant).
     let newest = core.aligner().vehicle.newest().and_then(|(t, _)| core.aligner().clock.to_local(t));

@@ -484,11 +484,9 @@ impl Link {
         let mut sent = false;
         match endpoint {
             Endpoint::Udp { socket, fixed, peers } => {
-                let targets: Vec<SocketAddr> = match fixed {
-                    Some(p) => vec![*p],
-                    None => peers.addresses().collect(),
-                };
-                for p in targets {
+                // The fixed peer (`udpout`), else the vouched ones (`udpin`).
+                let learnt = peers.addresses().filter(|_| fixed.is_none());
+                for p in fixed.iter().copied().chain(learnt) {
                     match socket.try_send_to(&bytes, p) {
                         Ok(_) => sent = true,
                         Err(_) => {

@@ -76,7 +76,7 @@ impl Streams {
 
     /// Starts (or restarts, after a reboot) the requests.
     pub fn start(&mut self) {
-        *self = Streams { active: true, ..Streams::new(self.list.len() > STREAMS.len()) };
+        *self = Streams { active: true, ..Streams::new(self.list.contains(&TRUTH_STREAM)) };
     }
 
     pub fn stop(&mut self) {
