@@ -111,7 +111,8 @@ def upload_plan(m, plan_path, keep_gimbal_items=True):
         if r.get_type() == "MISSION_ACK":
             if r.type != 0:
                 raise RuntimeError(f"mission refused: MISSION_ACK type {r.type}")
-            return len(msgs)
+            # The last navigation item (ids below 100): DO items after it are never "reached".
+            return len(msgs), max(seq for seq, _, cmd, _ in msgs if cmd < 100)
         seq, frame, cmd, p = msgs[r.seq]
         m.mav.mission_item_int_send(1, 1, seq, frame, cmd, 0, 1, p[0], p[1], p[2], p[3],
                                     int(round(p[4] * 1e7)) if frame != 2 else int(p[4]),
@@ -132,7 +133,7 @@ def command(m, cmd, *params, timeout=3.0):
 
 def fly_coastline(m, max_s, events, aim):
     from pymavlink import mavutil
-    n = upload_plan(m, os.path.join(ROOT, "mission", "coastline.plan"), keep_gimbal_items=aim == "mission")
+    n, last_nav = upload_plan(m, os.path.join(ROOT, "mission", "coastline.plan"), keep_gimbal_items=aim == "mission")
     events.append(f"mission uploaded: {n} items")
     # Arm once PX4's pre-arm checks pass (it says so by accepting).
     t0 = time.time()
@@ -148,21 +149,33 @@ def fly_coastline(m, max_s, events, aim):
         raise RuntimeError("MISSION_START refused")
     start = time.time()
     last = -1
+
+    def disarmed(hb):
+        return hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1 \
+            and not hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+
+    # Until the mission's last navigation item is reached, or it lands the vehicle itself
+    # (a closing RETURN_TO_LAUNCH is never "reached": PX4 lands and disarms).
     while time.time() - start < max_s:
-        r = m.recv_match(type=["MISSION_ITEM_REACHED", "STATUSTEXT"], blocking=True, timeout=1)
-        if r is not None and r.get_type() == "MISSION_ITEM_REACHED":
+        r = m.recv_match(type=["MISSION_ITEM_REACHED", "STATUSTEXT", "HEARTBEAT"], blocking=True, timeout=1)
+        if r is None:
+            continue
+        if r.get_type() == "MISSION_ITEM_REACHED":
             last = r.seq
-            if last >= n - 1:
+            if last >= last_nav:
                 break
-        elif r is not None:
+        elif r.get_type() == "HEARTBEAT":
+            if time.time() - start > 10 and disarmed(r):
+                events.append(f"mission: landed and disarmed after {time.time() - start:.0f} s (item {last} reached)")
+                return
+        else:
             events.append(f"PX4: {r.text}")
-    events.append(f"mission: last item reached {last} of {n - 1} after {time.time() - start:.0f} s")
+    events.append(f"mission: item {last} reached (last navigation item {last_nav}) after {time.time() - start:.0f} s")
     command(m, mavutil.mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH)
     t = time.time()
     while time.time() - t < 120:
         hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=1)
-        if hb is not None and hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1 \
-                and not hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
+        if hb is not None and disarmed(hb):
             events.append(f"disarmed {time.time() - t:.0f} s after RTL")
             return
     events.append("not disarmed within 120 s of RTL")
