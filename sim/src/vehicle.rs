@@ -54,6 +54,11 @@ const SETPOINT_HOLD_S: f64 = 2.0;
 const DESCENT_FAST_M_S: f64 = 1.5;
 const DESCENT_M_S: f64 = 0.7;
 const SLOW_BELOW_M: f64 = 5.0;
+/// A precision landing's horizontal approach speed (PX4's precland flies at cruise speed,
+/// slowing near the target; one figure is enough here).
+const APPROACH_M_S: f64 = 1.0;
+/// PX4's PLD_BTOUT: a target older than this is lost.
+const TARGET_TIMEOUT_S: f64 = 5.0;
 
 /// How to run the vehicle.
 #[derive(Clone, Debug)]
@@ -89,6 +94,10 @@ pub struct Vehicle {
     start_s: f64,
     /// The state the descent started from, and when.
     descent: Option<(State, f64)>,
+    /// A precision landing's target (north, east), flown to before the descent.
+    descent_target: Option<(f64, f64)>,
+    /// The newest LANDING_TARGET (local NED, position valid): when, north, east.
+    landing_target: Option<(f64, f64, f64)>,
     /// Current true state.
     pub state: State,
     rates: Vec<Stream>,
@@ -144,6 +153,8 @@ impl Vehicle {
             phase: Phase::Mission,
             start_s,
             descent: None,
+            descent_target: None,
+            landing_target: None,
             state,
             rates,
             setpoint: None,
@@ -162,7 +173,26 @@ impl Vehicle {
         let Some((from, since)) = self.descent else {
             return self.mission.state(self.start_s + t);
         };
-        let p = from.position;
+        let mut p = from.position;
+        let mut since = since;
+        // A precision landing first flies over the target at its height, then descends.
+        if let Some((n, e)) = self.descent_target {
+            let d = ((n - p.x).powi(2) + (e - p.y).powi(2)).sqrt();
+            let approach_s = d / APPROACH_M_S;
+            if t - since < approach_s {
+                let f = ((t - since) / approach_s).max(0.0);
+                let v = Vec3::new(n - p.x, e - p.y, 0.0) / approach_s;
+                return State {
+                    t,
+                    position: Vec3::new(p.x + f * (n - p.x), p.y + f * (e - p.y), p.z),
+                    velocity: v,
+                    attitude: [0.0, 0.0, from.attitude[2]],
+                    gimbal: from.gimbal,
+                };
+            }
+            p = Vec3::new(n, e, p.z);
+            since += approach_s;
+        }
         let ground = self.world.surface_height(p.x, p.y);
         // Fast down to SLOW_BELOW_M above the ground, then slowly.
         let dt = (t - since).max(0.0);
@@ -199,7 +229,8 @@ impl Vehicle {
     pub fn step(&mut self, t: f64) {
         self.state = self.true_state(t);
         if let Phase::Landing = self.phase {
-            if self.state.velocity.z == 0.0 {
+            // Still: on the ground (the approach of a precision landing moves level).
+            if self.state.velocity == Vec3::zeros() {
                 self.phase = Phase::Landed;
             }
         }
@@ -450,6 +481,19 @@ impl Vehicle {
                         self.land(t);
                         MavResult::MAV_RESULT_ACCEPTED
                     }
+                    // PX4 v1.16 takes command 23 as NAV_PRECLAND: over the newest
+                    // LANDING_TARGET, then down; with no recent target it lands in place
+                    // (PX4 would search first).
+                    MavCmd::MAV_CMD_NAV_LAND_LOCAL => {
+                        if self.phase == Phase::Mission {
+                            self.descent_target = self
+                                .landing_target
+                                .filter(|(at, _, _)| t - at <= TARGET_TIMEOUT_S)
+                                .map(|(_, n, e)| (n, e));
+                        }
+                        self.land(t);
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
                     _ => MavResult::MAV_RESULT_UNSUPPORTED,
                 };
                 self.ack(c.command, result, from);
@@ -470,6 +514,14 @@ impl Vehicle {
                     };
                     self.setpoint = Some((t, q));
                 }
+            }
+            MavMessage::LANDING_TARGET(l)
+                if l.position_valid == MavBool::MAV_BOOL_TRUE
+                    && l.frame == MavFrame::MAV_FRAME_LOCAL_NED
+                    && l.x.is_finite()
+                    && l.y.is_finite() =>
+            {
+                self.landing_target = Some((t, l.x as f64, l.y as f64));
             }
             MavMessage::TIMESYNC(ts) if ts.tc1 == 0 => {
                 self.send(
@@ -607,6 +659,46 @@ mod tests {
             attitude += v.out.drain(..).filter(|(_, m)| matches!(m, MavMessage::ATTITUDE(_))).count();
         }
         assert_eq!(attitude, 10, "10 Hz over one second");
+    }
+
+    #[test]
+    fn a_precision_landing_flies_over_the_landing_target_then_descends() {
+        let mut v = vehicle("indoor-floor");
+        v.step(1.0);
+        let before = v.state.position;
+        let target = (before.x + 2.0, before.y - 1.0);
+        v.handle(
+            (1, 191),
+            &MavMessage::LANDING_TARGET(LANDING_TARGET_DATA {
+                frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                x: target.0 as f32,
+                y: target.1 as f32,
+                position_valid: MavBool::MAV_BOOL_TRUE,
+                ..Default::default()
+            }),
+            1.0,
+        );
+        v.handle(
+            (1, 191),
+            &MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_NAV_LAND_LOCAL,
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            }),
+            1.0,
+        );
+        assert!(v.out.iter().any(|(_, m)| matches!(m, MavMessage::COMMAND_ACK(a)
+            if a.command == MavCmd::MAV_CMD_NAV_LAND_LOCAL && a.result == MavResult::MAV_RESULT_ACCEPTED)));
+        v.step(2.0);
+        assert_eq!(v.phase, Phase::Landing, "flying over the target is not landed");
+        assert!((v.state.position.z - before.z).abs() < 1e-9, "level while approaching");
+        for i in 0..200 {
+            v.step(2.0 + i as f64 * 0.05);
+        }
+        assert_eq!(v.phase, Phase::Landed);
+        let off = ((v.state.position.x - target.0).powi(2) + (v.state.position.y - target.1).powi(2)).sqrt();
+        assert!(off < 1e-6, "touched down {off} m from the target");
     }
 
     #[test]

@@ -340,6 +340,9 @@ pub struct IndoorLive {
     last_hold: Option<Hold>,
 }
 
+/// Where the particles start around the pad in a GPS-denied take-off (m).
+const PAD_START_SD_M: f64 = 0.1;
+
 fn zone(s: &Settings) -> LandingZone {
     let i = &s.indoor;
     LandingZone {
@@ -368,7 +371,11 @@ impl IndoorLive {
                 rel * 100.0
             );
         }
-        let localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
+        let mut localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
+        if i.gps_denied {
+            // The vehicle takes off from the pad mavloc reported while it stood there.
+            localizer.start_at(Vector2::new(i.pad_x_m, i.pad_y_m), PAD_START_SD_M);
+        }
         let dir = sets::open_run_dir(link, run)
             .map_err(|e| format!("cannot open results {}: {e}", link.display()))?;
         tracing::info!("indoor: run {run}, results in {} (a link to {})", link.display(), dir.display());

@@ -182,6 +182,12 @@ struct Status<'a> {
     skipped: SkippedJson,
     clock_source: String,
     clock_offset_s: Option<f64>,
+    /// The autopilot's pre-arm checks (SYS_STATUS); null until it said.
+    autopilot_prearm_ok: Option<bool>,
+    /// `indoor.gps_denied`: where the origin stands (waiting, sent, confirmed, ...).
+    gps_denied_origin: Option<String>,
+    /// The newest autopilot EVENTs in words (PX4's refusals).
+    autopilot_events: Vec<String>,
 }
 
 #[derive(serde::Serialize)]
@@ -451,7 +457,21 @@ pub async fn run(
     let mut watchdog_usec = 0u64;
     let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec)
         .then(|| Duration::from_micros(watchdog_usec / 3));
+    let events_path = settings.mavlink.px4_events.clone();
     let mut core = Core::new(settings, store.into_tuned(), signing, watchdog);
+    if !events_path.is_empty() {
+        // Read once at start; a bad file costs the words, never the start.
+        match std::fs::read_to_string(&events_path)
+            .map_err(|e| e.to_string())
+            .and_then(|t| core::events::EventMetadata::parse(&t))
+        {
+            Ok(m) => {
+                tracing::info!("autopilot events: {} definitions from {events_path}", m.len());
+                core.set_event_metadata(m);
+            }
+            Err(e) => tracing::warn!("mavlink.px4_events = {events_path}: {e}; events shown by number"),
+        }
+    }
     let mut shell = Shell { started, dir, link, link_state: String::from("opening"), live, link_full: false };
     serve(&mut core, &mut shell, shutdown).await?;
 
@@ -720,6 +740,12 @@ fn write_status(
         },
         clock_source: format!("{source:?}"),
         clock_offset_s: offset,
+        autopilot_prearm_ok: core.prearm_ok(),
+        gps_denied_origin: core
+            .gps_denied()
+            .enabled()
+            .then(|| format!("{:?}", core.gps_denied().origin_state())),
+        autopilot_events: core.autopilot_events().recent().map(|e| e.text.clone()).collect(),
     };
     let json = serde_json::to_string_pretty(&status).expect("status serialises");
     crate::output::write_atomic(&dir.join("status.json"), json.as_bytes())

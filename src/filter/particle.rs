@@ -118,6 +118,20 @@ impl ParticleFilter {
         &self.particles
     }
 
+    /// All particles drawn around a known position (tracking from a known start instead
+    /// of global localisation), equal weights.
+    pub fn reset_around(&mut self, centre: Vector2<f64>, sd_m: f64) {
+        let g = Gaussian2::new(&(Matrix2::identity() * (sd_m * sd_m).max(1e-12)))
+            .expect("a positive diagonal is positive definite");
+        for p in &mut self.particles {
+            *p = centre + g.sample(&mut self.rng);
+        }
+        let w = 1.0 / self.particles.len() as f64;
+        self.weights.iter_mut().for_each(|x| *x = w);
+        self.previous = self.particles.clone();
+        self.previous_weights = self.weights.clone();
+    }
+
     /// Motion step: every particle moves by `displacement` plus process noise.
     pub fn predict(&mut self, displacement: Vector2<f64>, process: &Gaussian2) {
         self.previous.clone_from(&self.particles);

@@ -233,6 +233,14 @@ impl Localizer {
     pub fn particles(&self) -> &[Vector2<f64>] {
         self.pf.particles()
     }
+
+    /// Starts tracking from a known position (a GPS-denied take-off from a known pad)
+    /// instead of searching the whole floor.
+    pub fn start_at(&mut self, centre: Vector2<f64>, sd_m: f64) {
+        self.pf.reset_around(centre, sd_m);
+        self.history.clear();
+        self.last_t = None;
+    }
 }
 
 #[cfg(test)]

@@ -84,6 +84,7 @@ pub const PARAMS: &[ParamDef] = &[
     p("IND_LAND_R", "indoor.landing_radius_m", Float),
     p("IND_LAND_SIG", "indoor.landing_sigma_gate_m", Float),
     p("IND_LAND_FRAMES", "indoor.landing_frames", Int),
+    p("IND_LAND_PREC", "indoor.landing_precision", Bool),
 ];
 
 /// A value as MAVLink carries it.

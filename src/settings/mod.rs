@@ -588,6 +588,25 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range("indoor.landing_sigma_gate_m", i.landing_sigma_gate_m, 0.01, 100.0);
     // At least two frames: the trigger never fires on a single frame.
     v.range_int("indoor.landing_frames", i.landing_frames.into(), 2, 1000);
+    v.range("indoor.pad_x_m", i.pad_x_m, -1000.0, 1000.0);
+    v.range("indoor.pad_y_m", i.pad_y_m, -1000.0, 1000.0);
+    // Without an origin PX4 refuses to arm on vision alone (../shared/data/px4-sitl).
+    let ok = match i.origin.as_slice() {
+        [] => !i.gps_denied,
+        [lat, lon, alt] => {
+            (-90.0..=90.0).contains(lat)
+                && (-180.0..=180.0).contains(lon)
+                && (-1000.0..=10000.0).contains(alt)
+        }
+        _ => false,
+    };
+    if !ok {
+        v.problem(
+            "indoor.origin",
+            format!("{:?}", i.origin),
+            "[latitude, longitude, altitude]: the WGS84 point of the floor's (0, 0) (degrees -90..=90, -180..=180, metres -1000..=10000); needed when indoor.gps_denied = true",
+        );
+    }
 
     v.problems
 }

@@ -67,6 +67,9 @@ pub struct Mavlink {
     pub autopilot_timeout_s: f64,
     pub signing_key: String,
     pub accept_unsigned_telemetry: bool,
+    /// PX4's event metadata (`all_events.json` from its build's `events/` folder): the
+    /// autopilot's EVENTs (arming refusals) in words. Empty: a few known by heart.
+    pub px4_events: String,
 }
 
 impl Default for Mavlink {
@@ -79,6 +82,7 @@ impl Default for Mavlink {
             gcs_system_id: 255,
             heartbeat_hz: 1.0,
             autopilot_timeout_s: 3.0,
+            px4_events: String::new(),
             signing_key: String::new(),
             accept_unsigned_telemetry: true,
         }
@@ -342,6 +346,19 @@ pub struct Indoor {
     pub landing_radius_m: f64,
     pub landing_sigma_gate_m: f64,
     pub landing_frames: u32,
+    /// Land on the zone's centre with the autopilot's precision landing (PX4: the
+    /// zone streamed as LANDING_TARGET) rather than where the vehicle is when the
+    /// trigger fires.
+    pub landing_precision: bool,
+    /// The autopilot has no other position source (no GPS): send vision estimates from
+    /// power-on (the pad while standing), then the origin, so it can arm.
+    pub gps_denied: bool,
+    /// Where the vehicle stands before its first fix in the air, in the floor's frame.
+    pub pad_x_m: f64,
+    pub pad_y_m: f64,
+    /// The WGS84 point of the floor's (0, 0): latitude, longitude (degrees), altitude
+    /// (m), sent as SET_GPS_GLOBAL_ORIGIN when `gps_denied`. Empty: not set.
+    pub origin: Vec<f64>,
 }
 
 impl Default for Indoor {
@@ -368,6 +385,11 @@ impl Default for Indoor {
             landing_radius_m: 0.6,
             landing_sigma_gate_m: 0.6,
             landing_frames: 5,
+            landing_precision: true,
+            gps_denied: false,
+            pad_x_m: 0.0,
+            pad_y_m: 0.0,
+            origin: Vec::new(),
         }
     }
 }

@@ -13,7 +13,10 @@
 //! * [`commands`]: inbound COMMAND_LONG decisions and the final ACKs owed.
 //! * [`timesync`]: TIMESYNC both ways.
 //! * [`gimbal`]: gimbal-manager control and rate-limited setpoints.
-//! * [`landing`]: MAV_CMD_NAV_LAND until acknowledged.
+//! * [`landing`]: MAV_CMD_NAV_LAND (or PX4's precision landing on the zone) until
+//!   acknowledged.
+//! * [`gpsdenied`]: with no GPS, vision estimates from power-on and then the origin.
+//! * [`events`]: the autopilot's EVENT messages (PX4's refusals) in words.
 //! * [`health`]: heartbeat, once-a-second report, watchdog.
 //! * [`notes`]: STATUSTEXT, chunked and bounded.
 //!
@@ -22,7 +25,9 @@
 
 pub mod autopilot;
 pub mod commands;
+pub mod events;
 pub mod gimbal;
+pub mod gpsdenied;
 pub mod health;
 pub mod landing;
 pub mod notes;
@@ -44,7 +49,9 @@ use mavlink::dialects::common::*;
 
 use self::autopilot::{ApNotice, Autopilot};
 use self::commands::{Decision, Owed, PipelineRequest};
+use self::events::EventLog;
 use self::gimbal::Gimbal;
+use self::gpsdenied::GpsDenied;
 use self::health::Health;
 use self::landing::{Landing, LandingNotice};
 use self::notes::{Notes, SenderLimit};
@@ -246,6 +253,10 @@ pub struct Counters {
     /// Result writes that failed: checkpoints, snapshots, the write at stop. The results
     /// on disk are then older than the pipeline's.
     pub result_writes_failed: u64,
+    /// `indoor.gps_denied`: estimates sent for the vehicle standing on the ground.
+    pub standing_estimates_sent: u64,
+    /// EVENT messages from the autopilot (PX4's arming refusals and health reports).
+    pub autopilot_events: u64,
 }
 
 /// A failing result write is said at most this often (a full disk fails every write):
@@ -253,6 +264,14 @@ pub struct Counters {
 const WRITE_WARNING_PERIOD: Duration = Duration::from_secs(10);
 
 /// The sim camera renders from the simulator's ground truth: ask for it.
+/// The origin mavloc gives an autopilot with no GPS (`indoor.gps_denied`).
+fn gps_origin(s: &Settings) -> Option<Geodetic> {
+    match s.indoor.origin.as_slice() {
+        [lat, lon, alt] if s.indoor.gps_denied => Some(Geodetic::new(*lat, *lon, *alt)),
+        _ => None,
+    }
+}
+
 fn wants_truth(s: &Settings) -> bool {
     s.camera.source == crate::settings::CameraSource::Sim
         && s.camera.sim_pose == crate::settings::SimPose::Truth
@@ -279,6 +298,10 @@ pub struct Core {
     params: ParamPacer,
     gimbal: Gimbal,
     landing: Landing,
+    gps: GpsDenied,
+    events: EventLog,
+    /// The autopilot's pre-arm checks pass (SYS_STATUS), once it said.
+    prearm_ok: Option<bool>,
     health: Health,
     notes: Notes,
     /// Lines written on a peer's behalf, rate-limited per sender.
@@ -327,6 +350,9 @@ impl Core {
             params: ParamPacer::new(param_table::PARAMS.len()),
             gimbal: Gimbal::default(),
             landing: Landing::default(),
+            gps: GpsDenied::new(gps_origin(&settings), (settings.indoor.pad_x_m, settings.indoor.pad_y_m)),
+            events: EventLog::default(),
+            prearm_ok: None,
             health: Health::new(m.heartbeat_hz, watchdog),
             notes: Notes::default(),
             peer_lines: SenderLimit::default(),
@@ -412,6 +438,24 @@ impl Core {
         &self.gimbal
     }
 
+    pub fn set_event_metadata(&mut self, m: events::EventMetadata) {
+        self.events.set_metadata(m);
+    }
+
+    pub fn gps_denied(&self) -> &GpsDenied {
+        &self.gps
+    }
+
+    /// The newest EVENTs from the autopilot, in words where its metadata is at hand.
+    pub fn autopilot_events(&self) -> &EventLog {
+        &self.events
+    }
+
+    /// The autopilot's pre-arm checks (SYS_STATUS): None until it said.
+    pub fn prearm_ok(&self) -> Option<bool> {
+        self.prearm_ok
+    }
+
     pub fn landing(&self) -> &Landing {
         &self.landing
     }
@@ -485,9 +529,13 @@ impl Core {
             self.timesync.stop();
             self.gimbal.release();
             self.landing.cancel();
+            self.gps.restart();
+            self.prearm_ok = None;
         }
+        self.gps.set_on_ground(self.standing());
         if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
-            self.notes.error(&format!("autopilot did not acknowledge MAV_CMD_NAV_LAND after {tries} tries"));
+            let command = self.landing.command();
+            self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
         }
         self.health.on_timeout(now);
         if self.health.take_report() {
@@ -506,6 +554,7 @@ impl Core {
             self.streams.deadline(),
             self.timesync.deadline(),
             self.landing.deadline(),
+            self.gps.deadline(),
             self.gimbal.deadline(),
             self.params.deadline(),
         ])
@@ -535,6 +584,15 @@ impl Core {
                 self.notes.pop()
             })
             .or_else(|| self.results.pop_front())
+            .or_else(|| {
+                let present = self.autopilot.present();
+                let m = self.gps.poll_transmit(now, present, target);
+                if m.as_ref().is_some_and(|m| matches!(m, MavMessage::VISION_POSITION_ESTIMATE(_))) {
+                    self.counters.standing_estimates_sent += 1;
+                }
+                self.say_gps_notices();
+                m
+            })
             .or_else(|| self.streams.poll_transmit(now, target))
             .or_else(|| self.timesync.poll_transmit(now, target))
             .or_else(|| self.landing.poll_transmit(now, target))
@@ -679,10 +737,57 @@ impl Core {
                     self.notes.info(&format!("autopilot found: system {sys} ({what})"));
                     self.streams.start();
                     self.timesync.start(rx);
+                    if self.gps.enabled() {
+                        let (n, e, _) = self.gps.standing();
+                        self.notes.info(&format!(
+                            "no GPS: vision estimates from now on, the pad (x {n:.2}, y {e:.2} m) while standing; the origin after {} s",
+                            gpsdenied::ORIGIN_AFTER.as_secs()
+                        ));
+                    }
                 }
+                self.gps.set_on_ground(self.standing());
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
-                self.autopilot.on_landed_state(e.landed_state)
+                self.autopilot.on_landed_state(e.landed_state);
+                self.gps.set_on_ground(self.standing());
+                if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
+                    self.landing.landed();
+                }
+            }
+            MavMessage::SYS_STATUS(st) if self.is_autopilot(&f) => {
+                let bit = MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK;
+                if st.onboard_control_sensors_present.contains(bit) {
+                    let ok = st.onboard_control_sensors_health.contains(bit);
+                    if self.prearm_ok != Some(ok) && (ok || self.prearm_ok.is_some()) {
+                        let line = if ok {
+                            "autopilot: pre-arm checks pass"
+                        } else {
+                            "autopilot: pre-arm checks fail"
+                        };
+                        self.notes.info(line);
+                    }
+                    self.prearm_ok = Some(ok);
+                }
+            }
+            MavMessage::GPS_GLOBAL_ORIGIN(o) if self.is_autopilot_system(&f) => {
+                let geo = Geodetic::new(
+                    o.latitude as f64 * 1e-7,
+                    o.longitude as f64 * 1e-7,
+                    o.altitude as f64 * 1e-3,
+                );
+                if let Some(n) = self.gps.on_autopilot_origin(geo) {
+                    self.say_gps_notice(n);
+                }
+            }
+            MavMessage::EVENT(e) if self.is_autopilot_system(&f) => {
+                self.counters.autopilot_events += 1;
+                if let Some((level, line)) = self.events.on_event(rx, e) {
+                    if level <= events::WARNING {
+                        tracing::warn!("{line}");
+                    } else {
+                        tracing::info!("{line}");
+                    }
+                }
             }
             MavMessage::COMMAND_ACK(a) if self.is_autopilot(&f) => self.on_autopilot_ack(rx, a),
             MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
@@ -762,20 +867,64 @@ impl Core {
         }
         self.gimbal.release();
         self.landing.cancel();
+        self.gps.restart();
+        self.prearm_ok = None;
+    }
+
+    /// Standing on the ground, as far as the autopilot says: its landed state, or
+    /// disarmed when it has not said one yet.
+    fn standing(&self) -> bool {
+        match self.autopilot.landed_state() {
+            Some(s) => s == MavLandedState::MAV_LANDED_STATE_ON_GROUND,
+            None => !self.autopilot.armed(),
+        }
+    }
+
+    fn say_gps_notices(&mut self) {
+        while let Some(n) = self.gps.take_notice() {
+            self.say_gps_notice(n);
+        }
+    }
+
+    fn say_gps_notice(&mut self, n: gpsdenied::Notice) {
+        use gpsdenied::Notice;
+        match n {
+            Notice::OriginSent(o) => self.notes.info(&format!(
+                "no GPS: sent the origin {:.7} {:.7} {:.2} m after {} s of vision",
+                o.lat_deg,
+                o.lon_deg,
+                o.alt_m,
+                gpsdenied::ORIGIN_AFTER.as_secs()
+            )),
+            Notice::OriginConfirmed => self.notes.info("no GPS: the autopilot took the origin"),
+            Notice::OriginForeign(o, d) => self.notes.warn(&format!(
+                "no GPS: the autopilot has another origin ({:.7} {:.7} {:.2} m, {d:.1} m from indoor.origin); not replacing it",
+                o.lat_deg, o.lon_deg, o.alt_m
+            )),
+            Notice::OriginGaveUp => self.notes.error(&format!(
+                "no GPS: the autopilot did not echo the origin after {} tries (GPS_GLOBAL_ORIGIN); it cannot arm without one",
+                gpsdenied::ORIGIN_TRIES
+            )),
+        }
     }
 
     fn on_autopilot_ack(&mut self, now: Mono, a: &COMMAND_ACK_DATA) {
         match a.command {
             MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => self.streams.on_ack(a.result),
-            MavCmd::MAV_CMD_NAV_LAND => match self.landing.on_ack(now, a.result) {
-                Some(LandingNotice::Accepted) => {
-                    self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, "autopilot accepted the landing")
+            MavCmd::MAV_CMD_NAV_LAND | MavCmd::MAV_CMD_NAV_LAND_LOCAL => {
+                match self.landing.on_ack(now, a.command, a.result) {
+                    Some(LandingNotice::Accepted) => {
+                        self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, "autopilot accepted the landing")
+                    }
+                    Some(LandingNotice::PlainInstead(r)) => self.notes.warn(&format!(
+                        "autopilot refused the precision landing ({r:?}); landing where the vehicle is"
+                    )),
+                    Some(LandingNotice::Refused(r)) => {
+                        self.notes.error(&format!("autopilot refused the landing: {r:?}"))
+                    }
+                    _ => {}
                 }
-                Some(LandingNotice::Refused(r)) => {
-                    self.notes.error(&format!("autopilot refused the landing: {r:?}"))
-                }
-                _ => {}
-            },
+            }
             MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
                 if let Some(line) = self.gimbal.on_ack(a.command, a.result) {
                     self.notes.warn(&line);
@@ -1097,6 +1246,7 @@ impl Core {
         }
         if let Some(e) = &report.position {
             self.result(vision_position_estimate(e, usec, attitude));
+            self.gps.on_pipeline_estimate(now, e);
         }
         let ms = (capture.max(0.0) * 1e3) as u32;
         for &(name, value) in &report.counters {
@@ -1142,8 +1292,15 @@ impl Core {
             self.notes.warn(&line);
             return;
         }
-        if self.landing.request(now) {
-            self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, "landing requested: sending MAV_CMD_NAV_LAND");
+        let i = &self.settings.indoor;
+        // The floor is the local frame's z = 0 (its origin is on the floor).
+        let target = i.landing_precision.then_some([i.landing_x_m, i.landing_y_m, 0.0]);
+        if self.landing.request(now, target) {
+            let line = match target {
+                Some(t) => format!("landing requested: precision landing on x {:.2} y {:.2} m", t[0], t[1]),
+                None => "landing requested: sending MAV_CMD_NAV_LAND".into(),
+            };
+            self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, &line);
         }
     }
 }

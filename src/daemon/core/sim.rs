@@ -37,7 +37,24 @@ pub struct FakeAutopilot {
     pub in_air: bool,
     pub streams: StreamAnswer,
     pub land_answer: Option<MavResult>,
+    /// Landing commands of either kind (NAV_LAND, NAV_LAND_LOCAL).
     pub land_commands: u32,
+    pub precision_commands: u32,
+    /// LANDING_TARGETs received: north, east.
+    pub landing_targets: Vec<(f32, f32)>,
+    /// With GPS (an origin from boot). Without, as PX4 v1.16 with EKF2_GPS_CTRL 0: a
+    /// position only from vision, an origin only from SET_GPS_GLOBAL_ORIGIN, and
+    /// pre-arm checks that pass 4.5 s after the origin while vision keeps coming.
+    pub gps: bool,
+    /// Where the vehicle truly is (north, east): vision farther than the gate is
+    /// rejected, as EKF2's innovation gate does.
+    pub truth: (f32, f32),
+    pub vision: u32,
+    pub vision_rejected: u32,
+    pub last_vision: Option<(Mono, f32, f32)>,
+    pub origin: Option<(Mono, i32, i32, i32)>,
+    next_status: Mono,
+    event_sequence: u16,
     pub gimbal_commands: Vec<(Mono, COMMAND_LONG_DATA)>,
     streaming: bool,
     next_heartbeat: Mono,
@@ -54,6 +71,16 @@ impl FakeAutopilot {
             streams: StreamAnswer::Accept,
             land_answer: Some(MavResult::MAV_RESULT_ACCEPTED),
             land_commands: 0,
+            precision_commands: 0,
+            landing_targets: Vec::new(),
+            gps: true,
+            truth: (0.0, 0.0),
+            vision: 0,
+            vision_rejected: 0,
+            last_vision: None,
+            origin: None,
+            next_status: boot,
+            event_sequence: 0,
             gimbal_commands: Vec::new(),
             streaming: false,
             next_heartbeat: boot,
@@ -63,7 +90,44 @@ impl FakeAutopilot {
 
     pub fn reboot(&mut self, now: Mono) {
         // PX4 streams its default set again after a reboot, before anyone asks.
-        *self = FakeAutopilot { streams: self.streams, streaming: self.streaming, ..FakeAutopilot::new(now) };
+        *self = FakeAutopilot {
+            streams: self.streams,
+            streaming: self.streaming,
+            gps: self.gps,
+            truth: self.truth,
+            ..FakeAutopilot::new(now)
+        };
+    }
+
+    /// PX4's pre-arm verdict: with GPS always; without, fresh vision and an origin
+    /// given at least 4.5 s ago (measured on SITL: 4.23-4.46 s).
+    pub fn prearm_ok(&self, now: Mono) -> bool {
+        if self.gps {
+            return true;
+        }
+        let vision =
+            self.last_vision.is_some_and(|(t, _, _)| now.saturating_sub(t) < Duration::from_millis(500));
+        let origin = self.origin.is_some_and(|(t, ..)| now.saturating_sub(t) >= Duration::from_millis(4500));
+        vision && origin
+    }
+
+    /// A ground station asks to arm: PX4's answer, and its EVENT when refused.
+    pub fn arm(&mut self, now: Mono) -> (MavResult, Option<MavMessage>) {
+        if self.prearm_ok(now) {
+            self.armed = true;
+            return (MavResult::MAV_RESULT_ACCEPTED, None);
+        }
+        self.event_sequence += 1;
+        let event = MavMessage::EVENT(EVENT_DATA {
+            id: 0x0102_089d,
+            event_time_boot_ms: self.boot_ms(now),
+            sequence: self.event_sequence,
+            destination_component: 0,
+            destination_system: 0,
+            log_levels: 0x62,
+            arguments: [0; 40],
+        });
+        (MavResult::MAV_RESULT_TEMPORARILY_REJECTED, Some(event))
     }
 
     fn boot_ms(&self, now: Mono) -> u32 {
@@ -72,10 +136,11 @@ impl FakeAutopilot {
 
     pub fn next_event(&self) -> Option<Mono> {
         self.alive.then(|| {
+            let next = self.next_heartbeat.min(self.next_status);
             if self.streaming {
-                self.next_heartbeat.min(self.next_telemetry)
+                next.min(self.next_telemetry)
             } else {
-                self.next_heartbeat
+                next
             }
         })
     }
@@ -107,6 +172,20 @@ impl FakeAutopilot {
                 } else {
                     MavLandedState::MAV_LANDED_STATE_ON_GROUND
                 },
+            }));
+        }
+        if self.next_status <= now {
+            self.next_status = now + Duration::from_secs(1);
+            let bit = MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK;
+            out.push(MavMessage::SYS_STATUS(SYS_STATUS_DATA {
+                onboard_control_sensors_present: bit,
+                onboard_control_sensors_enabled: bit,
+                onboard_control_sensors_health: if self.prearm_ok(now) {
+                    bit
+                } else {
+                    MavSysStatusSensor::empty()
+                },
+                ..Default::default()
             }));
         }
         if self.streaming && self.next_telemetry <= now {
@@ -146,8 +225,9 @@ impl FakeAutopilot {
                     StreamAnswer::Refuse => vec![ack(c.command, MavResult::MAV_RESULT_DENIED)],
                     StreamAnswer::Ignore => vec![],
                 },
-                MavCmd::MAV_CMD_NAV_LAND => {
+                MavCmd::MAV_CMD_NAV_LAND | MavCmd::MAV_CMD_NAV_LAND_LOCAL => {
                     self.land_commands += 1;
+                    self.precision_commands += (c.command == MavCmd::MAV_CMD_NAV_LAND_LOCAL) as u32;
                     self.land_answer.map(|r| vec![ack(c.command, r)]).unwrap_or_default()
                 }
                 MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
@@ -156,6 +236,34 @@ impl FakeAutopilot {
                 }
                 _ => vec![],
             },
+            MavMessage::LANDING_TARGET(l) => {
+                self.landing_targets.push((l.x, l.y));
+                vec![]
+            }
+            MavMessage::VISION_POSITION_ESTIMATE(v) => {
+                self.vision += 1;
+                // EKF2_EVP_GATE: 5 SD of the reported variance (or EKF2_EVP_NOISE 0.1 m).
+                let var = if v.covariance[0].is_finite() { v.covariance[0].max(0.01) } else { 0.01 };
+                let d = ((v.x - self.truth.0).powi(2) + (v.y - self.truth.1).powi(2)).sqrt();
+                if d > 5.0 * var.sqrt() {
+                    self.vision_rejected += 1;
+                } else {
+                    self.last_vision = Some((now, v.x, v.y));
+                }
+                vec![]
+            }
+            #[allow(deprecated)]
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(o) if !self.gps && o.target_system == 1 => {
+                self.origin = Some((now, o.latitude, o.longitude, o.altitude));
+                #[allow(deprecated)]
+                let echo = MavMessage::GPS_GLOBAL_ORIGIN(GPS_GLOBAL_ORIGIN_DATA {
+                    latitude: o.latitude,
+                    longitude: o.longitude,
+                    altitude: o.altitude,
+                    time_usec: 0,
+                });
+                vec![echo]
+            }
             MavMessage::TIMESYNC(t) if t.tc1 == 0 => vec![MavMessage::TIMESYNC(TIMESYNC_DATA {
                 tc1: self.boot_ms(now) as i64 * 1_000_000,
                 ts1: t.ts1,

@@ -693,3 +693,178 @@ fn a_failed_result_write_is_a_counted_warning_and_a_full_disk_no_flood() {
     sim.run_for(Duration::from_millis(100));
     assert!(warnings(&sim).contains("model and camera disagree"));
 }
+
+// ---- GPS-denied start-up (issue #18), against a fake autopilot that behaves as PX4
+// v1.16 with EKF2_GPS_CTRL 0 (../shared/data/px4-sitl) ----
+
+fn gps_denied_settings() -> Settings {
+    let mut s = settings();
+    s.indoor.gps_denied = true;
+    s.indoor.origin = vec![52.0, 4.37, 0.0];
+    s.indoor.pad_x_m = -2.5;
+    s.indoor.pad_y_m = -2.5;
+    s
+}
+
+fn px4_without_gps(sim: &mut Sim) {
+    sim.ap = FakeAutopilot::new(sim.now);
+    sim.ap.gps = false;
+    sim.ap.truth = (-2.5, -2.5);
+}
+
+fn vision(sim: &Sim, from: Mono, to: Mono) -> Vec<VISION_POSITION_ESTIMATE_DATA> {
+    sim.sent_between(from, to)
+        .filter_map(|m| match m {
+            MavMessage::VISION_POSITION_ESTIMATE(v) => Some(v.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+#[allow(deprecated)]
+fn origins_sent(sim: &Sim) -> Vec<(Mono, SET_GPS_GLOBAL_ORIGIN_DATA)> {
+    sim.sent
+        .iter()
+        .filter_map(|(t, m)| match m {
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(o) => Some((*t, o.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn without_gps_the_pad_goes_out_from_power_on_then_the_origin_and_px4_lets_the_vehicle_arm() {
+    let mut sim = Sim::new(gps_denied_settings());
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(3));
+    let v = vision(&sim, secs(1), secs(2));
+    assert!(v.len() >= 28, "about 30 Hz while standing, got {}", v.len());
+    assert!(
+        v.iter().all(|v| v.x == -2.5 && v.y == -2.5 && v.covariance[0] > 0.0),
+        "the pad, with its variance"
+    );
+    assert!(origins_sent(&sim).is_empty(), "no origin before 5 s of vision");
+    assert_eq!(sim.ap.arm(sim.now).0, MavResult::MAV_RESULT_TEMPORARILY_REJECTED, "PX4 cannot arm yet");
+
+    sim.run_until(secs(20));
+    let origins = origins_sent(&sim);
+    assert_eq!(origins.len(), 1, "sent once, echoed, not resent");
+    let (at, o) = &origins[0];
+    #[allow(deprecated)]
+    let (lat, lon) = (o.latitude, o.longitude);
+    assert_eq!((lat, lon), (520_000_000, 43_700_000));
+    let first_vision =
+        sim.sent.iter().find(|(_, m)| matches!(m, MavMessage::VISION_POSITION_ESTIMATE(_))).unwrap().0;
+    let after = at.saturating_sub(first_vision).as_secs_f64();
+    assert!((5.0..5.2).contains(&after), "origin {after} s after the first estimate");
+    assert_eq!(sim.core.gps_denied().origin_state(), gpsdenied::OriginState::Confirmed);
+    assert_eq!(sim.ap.vision_rejected, 0, "the pad is where the vehicle is");
+    assert_eq!(sim.core.prearm_ok(), Some(true));
+    assert!(sim.statustexts().iter().any(|t| t.contains("pre-arm checks pass")));
+    assert_eq!(sim.ap.arm(sim.now).0, MavResult::MAV_RESULT_ACCEPTED);
+    assert!(sim.core.counters().standing_estimates_sent > 500);
+}
+
+#[test]
+fn with_gps_nothing_is_sent_for_the_standing_vehicle_and_px4s_refusal_is_shown_in_words() {
+    let mut sim = Sim::new(settings());
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(10));
+    assert!(vision(&sim, Mono::ZERO, secs(10)).is_empty());
+    assert!(origins_sent(&sim).is_empty());
+    // The ground station's arming attempt is refused; PX4 says why in an EVENT only.
+    let (result, event) = sim.ap.arm(sim.now);
+    assert_eq!(result, MavResult::MAV_RESULT_TEMPORARILY_REJECTED);
+    sim.deliver(frame(1, 1, event.unwrap()));
+    sim.run_for(Duration::from_secs(1));
+    let events: Vec<_> = sim.core.autopilot_events().recent().map(|e| e.text.clone()).collect();
+    assert_eq!(events.len(), 1);
+    assert!(events[0].contains("Arming denied: Resolve system health failures first"), "{events:?}");
+    assert_eq!(sim.core.counters().autopilot_events, 1);
+    assert_eq!(sim.core.prearm_ok(), Some(false));
+}
+
+fn estimate(now: Mono, north: f64, east: f64) -> Input {
+    Input::Pipeline {
+        now,
+        event: PipelineEvent::Report {
+            capture: now.secs(),
+            attitude: (0.0, 0.0, 0.0),
+            report: Report {
+                processed: true,
+                position: Some(PositionEstimate {
+                    autopilot_time: now.secs(),
+                    north,
+                    east,
+                    down: -1.0,
+                    cov: [[0.01, 0.0], [0.0, 0.01]],
+                }),
+                ..Report::default()
+            },
+        },
+    }
+}
+
+#[test]
+fn in_the_air_the_pipeline_speaks_and_after_touchdown_the_vehicle_stands_where_it_was_last_seen() {
+    let mut sim = Sim::new(gps_denied_settings());
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(12));
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    sim.run_until(secs(14));
+    let standing = sim.core.counters().standing_estimates_sent;
+    // Flying: the pipeline's estimates at 15 Hz, none for the standing vehicle.
+    for i in 0..30 {
+        let t = secs(14) + Duration::from_millis(66 * i);
+        sim.run_until(t);
+        sim.input(estimate(t, 2.4 + 0.001 * i as f64, 1.0));
+    }
+    assert_eq!(sim.core.counters().standing_estimates_sent, standing, "none while flying");
+    sim.ap.in_air = false;
+    sim.ap.armed = false;
+    sim.run_for(Duration::from_secs(3));
+    let v = vision(&sim, sim.now - Duration::from_secs(1), sim.now);
+    assert!(v.len() >= 28, "standing again: {}", v.len());
+    assert!(
+        v.iter().all(|v| (v.x - 2.429).abs() < 1e-3 && v.y == 1.0),
+        "the last estimate in the air: {:?}",
+        v[0]
+    );
+}
+
+#[test]
+fn after_an_autopilot_reboot_the_origin_is_given_again() {
+    let mut sim = Sim::new(gps_denied_settings());
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(10));
+    assert_eq!(origins_sent(&sim).len(), 1);
+    sim.ap.reboot(sim.now);
+    sim.run_until(secs(30));
+    assert_eq!(origins_sent(&sim).len(), 2, "once per boot");
+    assert_eq!(sim.core.gps_denied().origin_state(), gpsdenied::OriginState::Confirmed);
+}
+
+#[test]
+fn a_precision_landing_streams_the_zone_until_the_vehicle_is_down() {
+    let mut s = settings();
+    s.indoor.landing_enabled = true;
+    s.indoor.landing_x_m = 2.5;
+    s.indoor.landing_y_m = 1.0;
+    let mut sim = Sim::new(s);
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    sim.run_until(secs(3));
+    sim.input(landing_report());
+    sim.run_for(Duration::from_secs(3));
+    assert_eq!(sim.ap.precision_commands, 1, "NAV_LAND_LOCAL (PX4: precision landing), acknowledged");
+    let n = sim.ap.landing_targets.len();
+    assert!((29..=32).contains(&n), "10 Hz: {n}");
+    assert!(sim.ap.landing_targets.iter().all(|t| *t == (2.5, 1.0)));
+    sim.ap.in_air = false;
+    sim.run_for(Duration::from_secs(2));
+    let n = sim.ap.landing_targets.len();
+    sim.run_for(Duration::from_secs(2));
+    assert_eq!(sim.ap.landing_targets.len(), n, "none once on the ground");
+}

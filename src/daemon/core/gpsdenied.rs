@@ -1,0 +1,237 @@
+//! GPS-denied start-up (`indoor.gps_denied`): an autopilot with no GPS has no position
+//! until an external one arrives and no global origin until one is given, and refuses to
+//! arm without both. The order PX4 v1.16 needs (measured, `../shared/data/px4-sitl`):
+//! vision estimates from power-on, then SET_GPS_GLOBAL_ORIGIN after about 5 s of them,
+//! then arming once its pre-arm checks pass (about 4.5 s after the origin).
+//!
+//! Standing on the ground the downward camera sees a hand's width of floor the texton
+//! model was never trained on, so while the autopilot says the vehicle is on the ground
+//! mavloc sends where it stands: the pad (`indoor.pad_x_m/y_m`) until its first estimate
+//! in the air, then the last estimate before touchdown. In the air the pipeline's
+//! estimates go out and these stop.
+
+use std::time::Duration;
+
+use mavlink::dialects::common::*;
+
+use super::time::Mono;
+use super::{vision_position_estimate, PositionEstimate};
+use crate::geometry::Geodetic;
+
+/// Standing estimates go out at this rate (PX4's EKF2 wants vision at 30 Hz or so; a
+/// gap of more than its timeout drops the position).
+pub const GROUND_PERIOD: Duration = Duration::from_micros(33_333);
+/// Vision this long before the origin: PX4 takes an origin only once its local position
+/// from vision is up.
+pub const ORIGIN_AFTER: Duration = Duration::from_secs(5);
+/// The origin is resent this often until the autopilot echoes it (GPS_GLOBAL_ORIGIN).
+const ORIGIN_RETRY: Duration = Duration::from_secs(3);
+pub const ORIGIN_TRIES: u32 = 3;
+/// The pad is placed by hand: a few centimetres.
+const PAD_SD_M: f64 = 0.05;
+/// A pipeline estimate this recent makes a standing one unnecessary.
+const PIPELINE_FRESH: Duration = Duration::from_millis(200);
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum OriginState {
+    /// Waiting for `ORIGIN_AFTER` of vision.
+    Waiting,
+    Sent {
+        tries: u32,
+        next: Mono,
+    },
+    /// The autopilot echoed ours.
+    Confirmed,
+    /// The autopilot had one already (GPS or an earlier peer): left alone.
+    Autopilot(Geodetic),
+    GaveUp,
+}
+
+/// What the core should say.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Notice {
+    OriginSent(Geodetic),
+    OriginConfirmed,
+    /// The autopilot reported an origin mavloc did not send; the distance to ours, m.
+    OriginForeign(Geodetic, f64),
+    OriginGaveUp,
+}
+
+#[derive(Debug)]
+pub struct GpsDenied {
+    origin: Option<Geodetic>,
+    /// Where the vehicle stands: north, east, and the SD of each.
+    standing: (f64, f64, f64),
+    state: OriginState,
+    vision_since: Option<Mono>,
+    last_pipeline: Option<Mono>,
+    next_ground: Mono,
+    on_ground: bool,
+    sent_ground: u64,
+    notices: Vec<Notice>,
+}
+
+impl GpsDenied {
+    /// `origin` None: disabled (the autopilot has its own position).
+    pub fn new(origin: Option<Geodetic>, pad: (f64, f64)) -> GpsDenied {
+        GpsDenied {
+            origin,
+            standing: (pad.0, pad.1, PAD_SD_M),
+            state: OriginState::Waiting,
+            vision_since: None,
+            last_pipeline: None,
+            next_ground: Mono::ZERO,
+            on_ground: false,
+            sent_ground: 0,
+            notices: Vec::new(),
+        }
+    }
+
+    pub fn enabled(&self) -> bool {
+        self.origin.is_some()
+    }
+
+    pub fn origin_state(&self) -> OriginState {
+        self.state
+    }
+
+    /// Standing estimates sent so far.
+    pub fn sent_ground(&self) -> u64 {
+        self.sent_ground
+    }
+
+    /// Where the vehicle is taken to stand: north, east, SD (m).
+    pub fn standing(&self) -> (f64, f64, f64) {
+        self.standing
+    }
+
+    /// The autopilot says on the ground (true) or not (landed state, or disarmed with no
+    /// landed state yet).
+    pub fn set_on_ground(&mut self, on_ground: bool) {
+        self.on_ground = on_ground;
+    }
+
+    /// The pipeline published an estimate from the air: it is where the vehicle will
+    /// stand if it lands now.
+    pub fn on_pipeline_estimate(&mut self, now: Mono, e: &PositionEstimate) {
+        if !self.enabled() {
+            return;
+        }
+        self.vision_since.get_or_insert(now);
+        self.last_pipeline = Some(now);
+        if !self.on_ground {
+            let sd = e.cov[0][0].max(e.cov[1][1]).max(0.0).sqrt().max(PAD_SD_M);
+            self.standing = (e.north, e.east, sd);
+        }
+    }
+
+    /// GPS_GLOBAL_ORIGIN from the autopilot.
+    pub fn on_autopilot_origin(&mut self, o: Geodetic) -> Option<Notice> {
+        let ours = self.origin?;
+        let d = distance_m(&ours, &o);
+        match self.state {
+            // PX4 keeps float32 degrees: centimetres of rounding.
+            OriginState::Waiting | OriginState::Sent { .. } | OriginState::GaveUp if d < 0.5 => {
+                self.state = OriginState::Confirmed;
+                Some(Notice::OriginConfirmed)
+            }
+            OriginState::Confirmed if d < 0.5 => None,
+            OriginState::Autopilot(prev) if distance_m(&prev, &o) < 0.5 => None,
+            _ => {
+                self.state = OriginState::Autopilot(o);
+                Some(Notice::OriginForeign(o, d))
+            }
+        }
+    }
+
+    /// The autopilot rebooted or came back: its estimator starts over.
+    pub fn restart(&mut self) {
+        self.state = OriginState::Waiting;
+        self.vision_since = None;
+    }
+
+    fn ground_due(&self, now: Mono) -> bool {
+        self.enabled()
+            && self.on_ground
+            && self.last_pipeline.is_none_or(|t| now.saturating_sub(t) > PIPELINE_FRESH)
+    }
+
+    pub fn deadline(&self) -> Option<Mono> {
+        if !self.enabled() {
+            return None;
+        }
+        let ground = self.on_ground.then_some(self.next_ground);
+        let origin = match self.state {
+            OriginState::Waiting => self.vision_since.map(|t| t + ORIGIN_AFTER),
+            OriginState::Sent { next, .. } => Some(next),
+            _ => None,
+        };
+        super::time::earliest([ground, origin])
+    }
+
+    /// What happened that the core should say, oldest first.
+    pub fn take_notice(&mut self) -> Option<Notice> {
+        (!self.notices.is_empty()).then(|| self.notices.remove(0))
+    }
+
+    /// The next message, if due; `present`: the autopilot is there to hear it.
+    pub fn poll_transmit(&mut self, now: Mono, present: bool, target: u8) -> Option<MavMessage> {
+        let origin = self.origin?;
+        if !present {
+            return None;
+        }
+        match self.state {
+            OriginState::Waiting if self.vision_since.is_some_and(|t| t + ORIGIN_AFTER <= now) => {
+                self.state = OriginState::Sent { tries: 1, next: now + ORIGIN_RETRY };
+                self.notices.push(Notice::OriginSent(origin));
+                return Some(set_origin(&origin, target, now));
+            }
+            OriginState::Sent { tries, next } if next <= now && tries >= ORIGIN_TRIES => {
+                self.state = OriginState::GaveUp;
+                self.notices.push(Notice::OriginGaveUp);
+            }
+            OriginState::Sent { tries, next } if next <= now => {
+                self.state = OriginState::Sent { tries: tries + 1, next: now + ORIGIN_RETRY };
+                return Some(set_origin(&origin, target, now));
+            }
+            _ => {}
+        }
+        if self.ground_due(now) && self.next_ground <= now {
+            self.next_ground = now + GROUND_PERIOD;
+            self.vision_since.get_or_insert(now);
+            self.sent_ground += 1;
+            let (north, east, sd) = self.standing;
+            let e = PositionEstimate {
+                autopilot_time: f64::NAN,
+                north,
+                east,
+                down: 0.0,
+                cov: [[sd * sd, 0.0], [0.0, sd * sd]],
+            };
+            return Some(vision_position_estimate(&e, now.0, (0.0, 0.0, 0.0)));
+        }
+        None
+    }
+}
+
+// The message MAVLink now marks superseded by MAV_CMD_DO_SET_GLOBAL_ORIGIN: PX4 v1.16
+// handles the message and not the command.
+#[allow(deprecated)]
+fn set_origin(o: &Geodetic, target: u8, now: Mono) -> MavMessage {
+    MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA {
+        latitude: (o.lat_deg * 1e7).round() as i32,
+        longitude: (o.lon_deg * 1e7).round() as i32,
+        altitude: (o.alt_m * 1e3).round() as i32,
+        target_system: target,
+        time_usec: now.0,
+    })
+}
+
+/// Flat-earth distance: the two points are metres apart at most for it to matter.
+fn distance_m(a: &Geodetic, b: &Geodetic) -> f64 {
+    let r = 6_371_000.0;
+    let dn = (a.lat_deg - b.lat_deg).to_radians() * r;
+    let de = (a.lon_deg - b.lon_deg).to_radians() * r * a.lat_deg.to_radians().cos();
+    let du = a.alt_m - b.alt_m;
+    (dn * dn + de * de + du * du).sqrt()
+}
