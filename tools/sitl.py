@@ -181,54 +181,209 @@ def fly_coastline(m, max_s, events, aim):
     events.append("not disarmed within 120 s of RTL")
 
 
+# PX4 custom modes (main mode << 16): OFFBOARD.
+PX4_OFFBOARD = 6
+
+
+def wait_prearm(m, timeout, events, t0):
+    """Until PX4's SYS_STATUS says its pre-arm checks pass (MAV_SYS_STATUS_PREARM_CHECK)."""
+    bit = 1 << 28
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        st = m.recv_match(type="SYS_STATUS", blocking=True, timeout=1)
+        if st is not None and st.get_srcSystem() == 1 and st.onboard_control_sensors_present & bit \
+                and st.onboard_control_sensors_health & bit:
+            events.append(f"PX4 pre-arm checks pass {time.time() - t0:.1f} s after PX4 started")
+            return
+    raise RuntimeError(f"PX4's pre-arm checks did not pass within {timeout} s")
+
+
+def local_position(m, timeout=1.0):
+    p = m.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=timeout)
+    return None if p is None else (p.x, p.y, p.z)
+
+
+def fly_indoor(m, zone, max_s, events, t0):
+    """Arm once PX4 is ready, take off, fly (offboard, ramped at 0.5 m/s) to the zone and
+    hold there: mavloc's landing trigger is what lands the vehicle. Ends at disarm."""
+    from pymavlink import mavutil
+    wait_prearm(m, 90, events, t0)
+    for _ in range(10):
+        if command(m, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0:
+            break
+        time.sleep(1)
+    else:
+        raise RuntimeError("PX4 refused to arm 10 times after its pre-arm checks passed")
+    events.append(f"armed {time.time() - t0:.1f} s after PX4 started")
+    nan = float("nan")
+    if command(m, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, nan, nan, nan, nan) != 0:
+        raise RuntimeError("NAV_TAKEOFF refused")
+    start = time.time()
+    pos = None
+    while time.time() - start < 30:
+        pos = local_position(m) or pos
+        if pos is not None and pos[2] < -0.85:
+            break
+    else:
+        raise RuntimeError(f"no take-off to 1 m within 30 s (last position {pos})")
+    events.append(f"took off: at {pos[0]:.2f} {pos[1]:.2f} {pos[2]:.2f} m (PX4's estimate)")
+    time.sleep(3)  # the take-off settles
+    pos = local_position(m, 2) or pos
+    x, y, z = pos[0], pos[1], -1.0
+    mask = 0b0000_1111_1111_1000  # position only (velocity, acceleration, yaw ignored)
+
+    def setpoint(x, y):
+        m.mav.set_position_target_local_ned_send(0, 1, 1, mavutil.mavlink.MAV_FRAME_LOCAL_NED, mask,
+                                                 x, y, z, 0, 0, 0, 0, 0, 0, 0, 0)
+
+    for _ in range(20):  # PX4 wants the offboard signal before the switch
+        setpoint(x, y)
+        time.sleep(0.05)
+    if command(m, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 1, PX4_OFFBOARD, 0) != 0:
+        raise RuntimeError("OFFBOARD refused")
+    events.append("offboard: flying to the zone at 0.5 m/s")
+    dx, dy = zone[0] - x, zone[1] - y
+    dist = (dx * dx + dy * dy) ** 0.5
+    fly_start = time.time()
+    offboard = True
+    landing_seen = None
+    while time.time() - fly_start < max_s:
+        f = min(1.0, 0.5 * (time.time() - fly_start) / max(dist, 1e-6))
+        if offboard:
+            setpoint(x + f * dx, y + f * dy)
+        hb = m.recv_match(type="HEARTBEAT", blocking=False)
+        if hb is not None and hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1:
+            main_mode = (hb.custom_mode >> 16) & 0xff
+            if offboard and main_mode != PX4_OFFBOARD:
+                offboard = False
+                landing_seen = time.time()
+                sub = (hb.custom_mode >> 24) & 0xff
+                events.append(f"PX4 left offboard for mode {main_mode}.{sub} {time.time() - fly_start:.1f} s "
+                              f"after setting off (mavloc's landing)")
+            if not hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
+                events.append(f"disarmed {time.time() - fly_start:.1f} s after setting off")
+                return
+        st = m.recv_match(type="STATUSTEXT", blocking=False)
+        if st is not None:
+            events.append(f"STATUSTEXT {st.get_srcSystem()}/{st.get_srcComponent()}: {st.text}")
+        time.sleep(0.05)
+    raise RuntimeError("not disarmed within --max-s" + ("" if landing_seen else " (mavloc never took over)"))
+
+
+def float32(v):
+    import struct
+    return struct.unpack("f", struct.pack("f", v))[0]
+
+
+def sih_origin(origin, pad):
+    """SIH's origin (float32 parameters) for a vehicle starting at `pad` (north, east m)
+    in the floor's frame about `origin`, and where it then truly starts (float32 rounds
+    degrees to about 0.4 m at 52 deg north)."""
+    import math
+    r = 6371000.0
+    lat = float32(origin[0] + math.degrees(pad[0] / r))
+    lon = float32(origin[1] + math.degrees(pad[1] / (r * math.cos(math.radians(origin[0])))))
+    north = math.radians(lat - origin[0]) * r
+    east = math.radians(lon - origin[1]) * r * math.cos(math.radians(origin[0]))
+    return lat, lon, (north, east)
+
+
+def airborne_mask(u, t):
+    """True where PX4's land detector says airborne (vehicle_land_detected.landed false)."""
+    import numpy as np
+    d = {x.name: x.data for x in u.data_list}
+    ld = d.get("vehicle_land_detected")
+    if ld is None:
+        return None
+    i = np.searchsorted(ld["timestamp"], t, side="right") - 1
+    return (i >= 0) & (ld["landed"][np.clip(i, 0, None)] == 0)
+
+
 def estimate_vs_truth(ulg):
-    """EKF2's local position against SIH's truth over the airborne time (truth more than
-    1 m above its start), from PX4's own flight log: RMS and max, horizontal and vertical."""
+    """EKF2's local position against SIH's truth over the airborne time (PX4's land
+    detector), from PX4's own flight log: RMS and max, horizontal and vertical, and the
+    share of that time vision position was fused. The truth is re-projected into the EKF's
+    origin (SIH's origin and the one mavloc gives differ in the GPS-denied flight)."""
     import numpy as np
     from pyulog import ULog
-    u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth"])
+    u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_land_detected",
+                   "estimator_status_flags"])
     d = {x.name: x.data for x in u.data_list}
     est, gt = d["vehicle_local_position"], d["vehicle_local_position_groundtruth"]
     t = gt["timestamp"]
-    air = -(gt["z"] - gt["z"][0]) > 1.0
-    err = {k: np.interp(t, est["timestamp"], est[k])[air] - gt[k][air] for k in "xyz"}
+    air = airborne_mask(u, t)
+    if air is None:
+        air = -(gt["z"] - gt["z"][0]) > 0.5
+    # Both frames are azimuthal-equidistant about their refs; over metres a flat offset.
+    r = 6371000.0
+    ok = est["xy_global"] > 0 if "xy_global" in est else np.ones(len(est["timestamp"]), bool)
+    k = int(np.argmax(ok)) if ok.any() else -1
+    lat_e, lon_e = est["ref_lat"][k], est["ref_lon"][k]
+    dn = np.radians(gt["ref_lat"][-1] - lat_e) * r
+    de = np.radians(gt["ref_lon"][-1] - lon_e) * r * np.cos(np.radians(lat_e))
+    truth = {"x": gt["x"] + dn, "y": gt["y"] + de, "z": gt["z"]}
+    err = {c: np.interp(t, est["timestamp"], est[c])[air] - truth[c][air] for c in "xyz"}
+    # Vertical: against the truth's own zero (EKF heights start at the ground too).
+    err["z"] = err["z"] - (np.interp(t, est["timestamp"], est["z"])[~air][:1].mean() - truth["z"][~air][:1].mean()
+                           if (~air).any() else 0.0)
     h = np.hypot(err["x"], err["y"])
     v = np.abs(err["z"])
-    return {
+    out = {
         "airborne_s": round(float(air.sum()) / max(1, len(t)) * float(t[-1] - t[0]) * 1e-6, 1),
         "horizontal_rms_m": round(float(np.sqrt((h ** 2).mean())), 3),
         "horizontal_max_m": round(float(h.max()), 3),
         "vertical_rms_m": round(float(np.sqrt((v ** 2).mean())), 3),
         "vertical_max_m": round(float(v.max()), 3),
+        "ekf_origin": [round(float(lat_e), 7), round(float(lon_e), 7)],
     }
+    flags = d.get("estimator_status_flags")
+    if flags is not None and "cs_ev_pos" in flags:
+        fa = airborne_mask(u, flags["timestamp"])
+        if fa is not None and fa.any():
+            out["ev_pos_fused_share"] = round(float(flags["cs_ev_pos"][fa].mean()), 4)
+    # Where the vehicle came to rest: the truth's last sample, in the EKF's frame.
+    out["rest_truth_ne"] = [round(float(truth["x"][-1]), 3), round(float(truth["y"][-1]), 3)]
+    out["start_truth_ne"] = [round(float(truth["x"][0]), 3), round(float(truth["y"][0]), 3)]
+    return out
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--px4", required=True)
-    ap.add_argument("--mavloc", required=True)
-    ap.add_argument("--out", default=os.path.join(ROOT, "results", "sitl"))
-    ap.add_argument("--max-s", type=float, default=600)
-    ap.add_argument("--aim", choices=["mission", "border"], default="mission",
-                    help="who points the gimbal: the mission's ROI items, or mavloc (gimbal.aim = border)")
-    a = ap.parse_args()
-    reexec_in_netns()
-    os.environ["MAVLINK20"] = "1"
+INDOOR_ORIGIN = (52.0, 4.37, 0.0)  # sim/scenarios/indoor-floor.toml
+INDOOR_PAD = (-2.5, -2.5)
+INDOOR_ZONE = (2.5, 1.0)
+
+
+def run_scenario(a, name, out):
+    """One cold start of PX4 and mavloc, one flight; the report."""
     from pymavlink import mavutil
-
-    name = f"coastline-{a.aim}"
-    out = os.path.join(os.path.abspath(a.out), name)
     shutil.rmtree(out, ignore_errors=True)
     os.makedirs(out)
-    params = read_params(os.path.join(ROOT, "config", "px4", "coastline.params"))
-    report = {"scenario": name, "px4_params": params, "private_netns": in_private_netns(), "events": []}
-    px4, px4_started = start_px4(a.px4, params, out)
+    indoor = name == "indoor"
+    params = read_params(os.path.join(ROOT, "config", "px4", "indoor.params" if indoor else "coastline.params"))
     state = os.path.join(out, "state")
+    args = ["--set", f"daemon.state_dir={state}"]
+    events_json = os.path.join(a.px4, "events", "all_events.json")
+    if os.path.exists(events_json):
+        args += ["--set", f"mavlink.px4_events={events_json}"]
+    report = {"scenario": name, "private_netns": in_private_netns(), "events": []}
+    if indoor:
+        lat, lon, pad = sih_origin(INDOOR_ORIGIN, INDOOR_PAD)
+        params.update({"SIH_LOC_LAT0": repr(lat), "SIH_LOC_LON0": repr(lon), "SIH_LOC_H0": repr(INDOOR_ORIGIN[2])})
+        config = os.path.join(ROOT, "config", "sitl-indoor.toml")
+        args += ["--set", f"indoor.pad_x_m={pad[0]:.4f}", "--set", f"indoor.pad_y_m={pad[1]:.4f}",
+                 "--set", f"indoor.landing_x_m={INDOOR_ZONE[0]}", "--set", f"indoor.landing_y_m={INDOOR_ZONE[1]}",
+                 "--set", f"indoor.model={a.model}"]
+        report["zone"] = list(INDOOR_ZONE)
+        report["pad"] = [round(pad[0], 4), round(pad[1], 4)]
+        report["zone_from_pad_m"] = round(((INDOOR_ZONE[0] - pad[0]) ** 2 + (INDOOR_ZONE[1] - pad[1]) ** 2) ** 0.5, 2)
+    else:
+        aim = name.split("-", 1)[1]
+        config = os.path.join(ROOT, "config", "sitl.toml")
+        args += ["--set", "camera.scenario=coastline", "--set", f"gimbal.aim={aim}"]
+    report["px4_params"] = params
+    px4, px4_started = start_px4(a.px4, params, out)
     mlog = open(os.path.join(out, "mavloc.log"), "w")
-    mavloc = subprocess.Popen([a.mavloc, "--config", os.path.join(ROOT, "config", "sitl.toml"), "run",
-                               "--set", f"daemon.state_dir={state}", "--set", "camera.scenario=coastline",
-                               "--set", f"gimbal.aim={a.aim}"],
-                              stdout=mlog, stderr=subprocess.STDOUT, env=dict(os.environ, RUST_LOG="mavloc=info"))
+    mavloc = subprocess.Popen([a.mavloc, "--config", config, "run"] + args, stdout=mlog, stderr=subprocess.STDOUT,
+                              env=dict(os.environ, RUST_LOG="mavloc=info"))
     try:
         # The pilot is a ground station on PX4's GCS link (PX4 sends to 14550).
         m = mavutil.mavlink_connection("udpin:127.0.0.1:14550", source_system=255, source_component=190)
@@ -236,12 +391,16 @@ def main():
         if hb is None:
             raise RuntimeError("no heartbeat from PX4 within 30 s")
         report["events"].append(f"PX4 heartbeat after {time.time() - px4_started:.1f} s")
-        fly_coastline(m, a.max_s, report["events"], a.aim)
+        if indoor:
+            fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started)
+        else:
+            fly_coastline(m, a.max_s, report["events"], aim)
         report["ok"] = True
     except Exception as e:  # the report says what failed; the logs are kept
         report["ok"] = False
         report["error"] = f"{type(e).__name__}: {e}"
     finally:
+        time.sleep(1)
         mavloc.send_signal(signal.SIGTERM)
         try:
             report["mavloc_exit"] = mavloc.wait(timeout=10)
@@ -260,26 +419,93 @@ def main():
             report["px4_estimate_vs_truth"] = f"not computed: {type(e).__name__}: {e}"
     status = os.path.join(state, "status.json")
     if os.path.exists(status):
-        report["mavloc_counters"] = json.load(open(status))["counters"]
-    lm = os.path.join(state, "results", "area", "landmarks.csv")
-    if os.path.exists(lm):
-        report["landmarks"] = max(0, sum(1 for _ in open(lm)) - 1)
-    if report.get("landmarks"):
-        # Accuracy against the simulated world's true shore: the scenario's ground truth
-        # (rendered once, one frame) and `mavloc eval area`.
-        truth = os.path.join(out, "truth")
-        subprocess.run([a.mavloc, "sim", "render", "--scenario", "coastline", "--frames", "1", "--width", "320",
-                        "--height", "180", "--out", truth, "--force"], capture_output=True, check=True)
-        r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result",
-                            os.path.join(state, "results", "area"), "--json"], capture_output=True, text=True)
-        if r.returncode == 0:
-            e = json.loads(r.stdout)
-            report["evaluation"] = e
-            report["mean_m"] = e["mean_m"]
-            report["median_m"] = e["median_m"]
+        st = json.load(open(status))
+        report["mavloc_counters"] = st["counters"]
+        report["mavloc_autopilot_events"] = st.get("autopilot_events")
+    log = open(os.path.join(out, "mavloc.log")).read()
+    report["mavloc_lines"] = [l.split(" ", 2)[-1] for l in log.splitlines()
+                              if "no GPS" in l or "landing" in l or "pre-arm" in l or "autopilot event" in l][:40]
+    if indoor:
+        e = report.get("px4_estimate_vs_truth")
+        if isinstance(e, dict):
+            rest = e["rest_truth_ne"]
+            report["touchdown"] = rest
+            report["touchdown_error_m"] = round(((rest[0] - INDOOR_ZONE[0]) ** 2 + (rest[1] - INDOOR_ZONE[1]) ** 2) ** 0.5, 3)
+        traj = os.path.join(state, "results", "indoor", "trajectory.csv")
+        if os.path.exists(traj):
+            import csv
+            rows = [r for r in csv.DictReader(open(traj))]
+            errs = [((float(r["x"]) - float(r["true_x"])) ** 2 + (float(r["y"]) - float(r["true_y"])) ** 2) ** 0.5
+                    for r in rows if r["true_x"] not in ("", "NaN", "nan")]
+            if errs:
+                report["mavloc_estimates"] = len(rows)
+                report["mavloc_rms_m"] = round((sum(e * e for e in errs) / len(errs)) ** 0.5, 3)
+                report["mavloc_max_m"] = round(max(errs), 3)
+    else:
+        report["gimbal_error_median_deg"] = report.get("mavloc_counters", {}).get("gimbal_error_median_deg")
+        lm = os.path.join(state, "results", "area", "landmarks.csv")
+        if os.path.exists(lm):
+            report["landmarks"] = max(0, sum(1 for _ in open(lm)) - 1)
+        if report.get("landmarks"):
+            # Accuracy against the simulated world's true shore: the scenario's ground truth
+            # (rendered once, one frame) and `mavloc eval area`.
+            truth = os.path.join(out, "truth")
+            subprocess.run([a.mavloc, "sim", "render", "--scenario", "coastline", "--frames", "1", "--width", "320",
+                            "--height", "180", "--out", truth, "--force"], capture_output=True, check=True)
+            r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result",
+                                os.path.join(state, "results", "area"), "--json"], capture_output=True, text=True)
+            if r.returncode == 0:
+                ev = json.loads(r.stdout)
+                report["evaluation"] = ev
+                report["mean_m"] = ev["mean_m"]
+                report["median_m"] = ev["median_m"]
     json.dump(report, open(os.path.join(out, "report.json"), "w"), indent=2)
-    print(json.dumps(report, indent=2))
-    return 0 if report.get("ok") else 1
+    return report
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--px4", required=True)
+    ap.add_argument("--mavloc", required=True)
+    ap.add_argument("--out", default=os.path.join(ROOT, "results", "sitl"))
+    ap.add_argument("--max-s", type=float, default=600)
+    ap.add_argument("--scenario", action="append", choices=["indoor", "coastline-border", "coastline-mission"],
+                    help="indoor: GPS-denied, mavloc's estimates alone, landing in a zone 6.1 m from the pad; "
+                         "coastline-border: GPS on, mavloc aims the gimbal at the shore; coastline-mission: the "
+                         "mission's ROI items aim it (default: indoor and coastline-border)")
+    ap.add_argument("--aim", choices=["mission", "border"], help="(old spelling) coastline-<aim>")
+    ap.add_argument("--repeat", type=int, default=1, help="cold starts per scenario (run-1 .. run-N)")
+    ap.add_argument("--model", help="indoor floor model (default: trained once into OUT/.cache)")
+    a = ap.parse_args()
+    reexec_in_netns()
+    os.environ["MAVLINK20"] = "1"
+    scenarios = a.scenario or ([f"coastline-{a.aim}"] if a.aim else ["indoor", "coastline-border"])
+    out_root = os.path.abspath(a.out)
+    if "indoor" in scenarios and not a.model:
+        cache = os.path.join(out_root, ".cache")
+        a.model = os.path.join(cache, "floor.model")
+        if not os.path.exists(a.model):
+            os.makedirs(cache, exist_ok=True)
+            train = os.path.join(cache, "floor-train")
+            print("sitl: training the floor model once (5000 rendered views) into", a.model, flush=True)
+            subprocess.run([a.mavloc, "sim", "render", "--scenario", "indoor-floor", "--views", "5000", "--out", train,
+                            "--force"], check=True, stdout=subprocess.DEVNULL)
+            subprocess.run([a.mavloc, "indoor", "train", "--dataset", train, "--out", a.model], check=True,
+                           stdout=subprocess.DEVNULL)
+    ok = True
+    for name in scenarios:
+        reports = []
+        for k in range(a.repeat):
+            out = os.path.join(out_root, name) if a.repeat == 1 else os.path.join(out_root, name, f"run-{k + 1}")
+            r = run_scenario(a, name, out)
+            keys = ["scenario", "ok", "error", "zone", "touchdown", "touchdown_error_m", "mavloc_rms_m",
+                    "mavloc_max_m", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg"]
+            print(json.dumps({k2: r[k2] for k2 in keys if k2 in r}, indent=2), flush=True)
+            reports.append(r)
+            ok &= bool(r.get("ok"))
+        if a.repeat > 1:
+            json.dump(reports, open(os.path.join(out_root, name, "runs.json"), "w"), indent=2)
+    return 0 if ok else 1
 
 
 if __name__ == "__main__":
