@@ -24,6 +24,7 @@ mod install;
 mod layers;
 mod mission_plans;
 mod opencv_link;
+mod px4_replay;
 mod sim_sift;
 mod systemd;
 mod twin;

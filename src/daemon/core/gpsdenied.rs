@@ -197,7 +197,9 @@ impl GpsDenied {
             _ => {}
         }
         if self.ground_due(now) && self.next_ground <= now {
-            self.next_ground = now + GROUND_PERIOD;
+            // Keep the cadence when polled late (by less than a period).
+            let next = self.next_ground + GROUND_PERIOD;
+            self.next_ground = if next > now { next } else { now + GROUND_PERIOD };
             self.vision_since.get_or_insert(now);
             self.sent_ground += 1;
             let (north, east, sd) = self.standing;

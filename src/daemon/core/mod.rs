@@ -755,19 +755,17 @@ impl Core {
                 }
             }
             MavMessage::SYS_STATUS(st) if self.is_autopilot(&f) => {
-                let bit = MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK;
-                if st.onboard_control_sensors_present.contains(bit) {
-                    let ok = st.onboard_control_sensors_health.contains(bit);
-                    if self.prearm_ok != Some(ok) && (ok || self.prearm_ok.is_some()) {
-                        let line = if ok {
-                            "autopilot: pre-arm checks pass"
-                        } else {
-                            "autopilot: pre-arm checks fail"
-                        };
-                        self.notes.info(line);
-                    }
-                    self.prearm_ok = Some(ok);
+                // PX4 sets only the health bit (never present or enabled: measured on
+                // v1.16 SITL), so the health bit is the verdict.
+                let ok = st
+                    .onboard_control_sensors_health
+                    .contains(MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK);
+                if self.prearm_ok != Some(ok) && (ok || self.prearm_ok.is_some()) {
+                    let line =
+                        if ok { "autopilot: pre-arm checks pass" } else { "autopilot: pre-arm checks fail" };
+                    self.notes.info(line);
                 }
+                self.prearm_ok = Some(ok);
             }
             MavMessage::GPS_GLOBAL_ORIGIN(o) if self.is_autopilot_system(&f) => {
                 let geo = Geodetic::new(

@@ -178,8 +178,7 @@ impl FakeAutopilot {
             self.next_status = now + Duration::from_secs(1);
             let bit = MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK;
             out.push(MavMessage::SYS_STATUS(SYS_STATUS_DATA {
-                onboard_control_sensors_present: bit,
-                onboard_control_sensors_enabled: bit,
+                // As PX4: the health bit alone.
                 onboard_control_sensors_health: if self.prearm_ok(now) {
                     bit
                 } else {
