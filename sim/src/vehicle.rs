@@ -59,6 +59,14 @@ const SLOW_BELOW_M: f64 = 5.0;
 const APPROACH_M_S: f64 = 1.0;
 /// PX4's PLD_BTOUT: a target older than this is lost.
 const TARGET_TIMEOUT_S: f64 = 5.0;
+/// PX4's take-off climb rate (MPC_TKO_SPEED).
+const CLIMB_M_S: f64 = 1.5;
+/// PX4 v1.16 without GPS (measured on SITL): pre-arm passes about 4.5 s after the origin,
+/// while vision keeps coming; vision older than this is lost.
+const PREARM_AFTER_ORIGIN_S: f64 = 4.5;
+const VISION_TIMEOUT_S: f64 = 0.5;
+/// PX4's "Arming denied: Resolve system health failures first" event id.
+pub const EVENT_ARM_DENIED: u32 = 0x0102_089d;
 
 /// How to run the vehicle.
 #[derive(Clone, Debug)]
@@ -77,6 +85,10 @@ pub struct VehicleOptions {
 /// Flight phase.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Phase {
+    /// Without GPS: disarmed on the ground at the mission's start until armed.
+    Standing,
+    /// Armed, climbing to the mission's first point (since when).
+    TakingOff(f64),
     Mission,
     Landing,
     Landed,
@@ -106,6 +118,18 @@ pub struct Vehicle {
     manager: Option<(u8, u8)>,
     system_id: u8,
     pub out: Vec<(u8, MavMessage)>,
+    /// False: as PX4 with EKF2_GPS_CTRL 0 (see [`Vehicle::without_gps`]).
+    gps: bool,
+    /// Vehicle time the mission's clock started (after the take-off without GPS).
+    mission_t0: f64,
+    /// Where home is (local NED): the origin with GPS; set at arming without.
+    home: Vec3,
+    pub vision_accepted: u64,
+    /// Vision estimates farther from the truth than EKF2's gate (5 SD) would take.
+    pub vision_rejected: u64,
+    last_vision: Option<f64>,
+    origin_at: Option<f64>,
+    event_sequence: u16,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -123,6 +147,7 @@ const DEFAULT_RATES: &[(u32, f64)] = &[
     (33, 10.0),  // GLOBAL_POSITION_INT
     (242, 0.5),  // HOME_POSITION
     (245, 2.0),  // EXTENDED_SYS_STATE
+    (1, 1.0),    // SYS_STATUS
     (2, 1.0),    // SYSTEM_TIME
     (285, 20.0), // GIMBAL_DEVICE_ATTITUDE_STATUS
     (115, 0.0),  // HIL_STATE_QUATERNION: the ground truth, off until asked for (as PX4 SITL)
@@ -161,7 +186,35 @@ impl Vehicle {
             manager: None,
             system_id,
             out: Vec::new(),
+            gps: true,
+            mission_t0: 0.0,
+            home: Vec3::zeros(),
+            vision_accepted: 0,
+            vision_rejected: 0,
+            last_vision: None,
+            origin_at: None,
+            event_sequence: 0,
         })
+    }
+
+    /// As PX4 v1.16 with EKF2_GPS_CTRL 0 (measured on SITL, `../shared/data/px4-sitl`):
+    /// standing disarmed on the ground at the mission's start, it arms only with vision
+    /// estimates coming (VISION_POSITION_ESTIMATE within EKF2's gate of its truth) and an
+    /// origin given 4.5 s before (SET_GPS_GLOBAL_ORIGIN, echoed as GPS_GLOBAL_ORIGIN);
+    /// a refusal is a COMMAND_ACK TEMPORARILY_REJECTED and an EVENT, no STATUSTEXT. Armed,
+    /// it sets home where it stands, climbs to the mission's start and flies it.
+    pub fn without_gps(mut self) -> Vehicle {
+        self.gps = false;
+        self.phase = Phase::Standing;
+        self.state = self.true_state(0.0);
+        self
+    }
+
+    /// PX4's pre-arm verdict at `t`.
+    pub fn prearm_ok(&self, t: f64) -> bool {
+        self.gps
+            || (self.last_vision.is_some_and(|v| t - v <= VISION_TIMEOUT_S)
+                && self.origin_at.is_some_and(|o| t - o >= PREARM_AFTER_ORIGIN_S))
     }
 
     fn send(&mut self, component: u8, m: MavMessage) {
@@ -170,8 +223,24 @@ impl Vehicle {
 
     /// The true state at vehicle time `t` (seconds since boot).
     fn true_state(&self, t: f64) -> State {
+        let start = self.mission.state(self.start_s);
+        let ground = |p: &Vec3| self.world.surface_height(p.x, p.y);
+        match self.phase {
+            Phase::Standing => {
+                let p = Vec3::new(start.position.x, start.position.y, ground(&start.position));
+                return State { t, position: p, velocity: Vec3::zeros(), ..start };
+            }
+            Phase::TakingOff(since) => {
+                let z0 = ground(&start.position);
+                let z = (z0 - CLIMB_M_S * (t - since)).max(start.position.z);
+                let v = if z > start.position.z { -CLIMB_M_S } else { 0.0 };
+                let p = Vec3::new(start.position.x, start.position.y, z);
+                return State { t, position: p, velocity: Vec3::new(0.0, 0.0, v), ..start };
+            }
+            _ => {}
+        }
         let Some((from, since)) = self.descent else {
-            return self.mission.state(self.start_s + t);
+            return self.mission.state(self.start_s + (t - self.mission_t0).max(0.0));
         };
         let mut p = from.position;
         let mut since = since;
@@ -222,11 +291,17 @@ impl Vehicle {
     }
 
     fn armed(&self) -> bool {
-        self.phase != Phase::Landed
+        !matches!(self.phase, Phase::Landed | Phase::Standing)
     }
 
     /// Advances to time `t`: phase changes and due streams.
     pub fn step(&mut self, t: f64) {
+        if let Phase::TakingOff(_) = self.phase {
+            if self.true_state(t).velocity.z == 0.0 {
+                self.phase = Phase::Mission;
+                self.mission_t0 = t;
+            }
+        }
         self.state = self.true_state(t);
         if let Phase::Landing = self.phase {
             // Still: on the ground (the approach of a precision landing moves level).
@@ -267,6 +342,8 @@ impl Vehicle {
         let m = match id {
             0 => {
                 let (sub, status) = match self.phase {
+                    Phase::Standing => (3, MavState::MAV_STATE_STANDBY), // PX4 boots in Hold
+                    Phase::TakingOff(_) => (2, MavState::MAV_STATE_ACTIVE),
                     Phase::Mission => (4, MavState::MAV_STATE_ACTIVE),
                     Phase::Landing => (6, MavState::MAV_STATE_ACTIVE),
                     Phase::Landed => (3, MavState::MAV_STATE_STANDBY), // AUTO.LOITER
@@ -347,22 +424,40 @@ impl Vehicle {
                     ..Default::default()
                 })
             }
-            242 => MavMessage::HOME_POSITION(HOME_POSITION_DATA {
-                latitude: (home.lat_deg * 1e7).round() as i32,
-                longitude: (home.lon_deg * 1e7).round() as i32,
-                altitude: (home.alt_m * 1e3).round() as i32,
-                x: 0.0,
-                y: 0.0,
-                z: 0.0,
-                q: [1.0, 0.0, 0.0, 0.0],
-                approach_x: 0.0,
-                approach_y: 0.0,
-                approach_z: 0.0,
-                ..Default::default()
-            }),
+            242 if !self.gps && self.origin_at.is_none() => return, // no origin, no home
+            242 => {
+                let h = self.origin.to_geodetic(&self.home);
+                MavMessage::HOME_POSITION(HOME_POSITION_DATA {
+                    latitude: (h.lat_deg * 1e7).round() as i32,
+                    longitude: (h.lon_deg * 1e7).round() as i32,
+                    altitude: (h.alt_m * 1e3).round() as i32,
+                    x: self.home.x as f32,
+                    y: self.home.y as f32,
+                    z: self.home.z as f32,
+                    q: [1.0, 0.0, 0.0, 0.0],
+                    approach_x: 0.0,
+                    approach_y: 0.0,
+                    approach_z: 0.0,
+                    ..Default::default()
+                })
+            }
+            1 => {
+                // PX4 sets only the pre-arm health bit (measured on v1.16 SITL).
+                let health = if self.prearm_ok(t) {
+                    MavSysStatusSensor::MAV_SYS_STATUS_PREARM_CHECK
+                } else {
+                    MavSysStatusSensor::empty()
+                };
+                MavMessage::SYS_STATUS(SYS_STATUS_DATA {
+                    onboard_control_sensors_health: health,
+                    ..Default::default()
+                })
+            }
             245 => MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
                 vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
                 landed_state: match self.phase {
+                    Phase::Standing => MavLandedState::MAV_LANDED_STATE_ON_GROUND,
+                    Phase::TakingOff(_) => MavLandedState::MAV_LANDED_STATE_TAKEOFF,
                     Phase::Mission => MavLandedState::MAV_LANDED_STATE_IN_AIR,
                     Phase::Landing => MavLandedState::MAV_LANDED_STATE_LANDING,
                     Phase::Landed => MavLandedState::MAV_LANDED_STATE_ON_GROUND,
@@ -477,6 +572,29 @@ impl Vehicle {
                             MavResult::MAV_RESULT_ACCEPTED
                         }
                     }
+                    MavCmd::MAV_CMD_COMPONENT_ARM_DISARM if c.param1 == 1.0 => match self.phase {
+                        Phase::Standing if self.prearm_ok(t) => {
+                            self.home = self.state.position;
+                            self.phase = Phase::TakingOff(t);
+                            self.emit(242, t); // PX4 sets home at arming
+                            MavResult::MAV_RESULT_ACCEPTED
+                        }
+                        Phase::Standing => {
+                            self.event_sequence = self.event_sequence.wrapping_add(1);
+                            let event = MavMessage::EVENT(EVENT_DATA {
+                                id: EVENT_ARM_DENIED,
+                                event_time_boot_ms: (t * 1000.0) as u32,
+                                sequence: self.event_sequence,
+                                destination_component: 0,
+                                destination_system: 0,
+                                log_levels: 0x62,
+                                arguments: [0; 40],
+                            });
+                            self.send(1, event);
+                            MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+                        }
+                        _ => MavResult::MAV_RESULT_ACCEPTED, // armed already
+                    },
                     MavCmd::MAV_CMD_NAV_LAND => {
                         self.land(t);
                         MavResult::MAV_RESULT_ACCEPTED
@@ -522,6 +640,37 @@ impl Vehicle {
                     && l.y.is_finite() =>
             {
                 self.landing_target = Some((t, l.x as f64, l.y as f64));
+            }
+            MavMessage::VISION_POSITION_ESTIMATE(v) if !self.gps => {
+                // EKF2's innovation gate: EKF2_EVP_GATE (5) SD of the reported variance,
+                // floored at EKF2_EVP_NOISE (0.1 m) as PX4 v1.16 does
+                // (ev_pos_control.cpp), which also stands in for a variance not given.
+                let var = [v.covariance[0], v.covariance[6]].map(|c| {
+                    if c.is_finite() {
+                        (c as f64).max(0.01)
+                    } else {
+                        0.01
+                    }
+                });
+                let (dx, dy) = (v.x as f64 - self.state.position.x, v.y as f64 - self.state.position.y);
+                if dx * dx / var[0] + dy * dy / var[1] > 25.0 {
+                    self.vision_rejected += 1;
+                } else {
+                    self.vision_accepted += 1;
+                    self.last_vision = Some(t);
+                }
+            }
+            #[allow(deprecated)]
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(o) if !self.gps && o.target_system == self.system_id => {
+                self.origin_at = Some(t);
+                #[allow(deprecated)]
+                let echo = MavMessage::GPS_GLOBAL_ORIGIN(GPS_GLOBAL_ORIGIN_DATA {
+                    latitude: o.latitude,
+                    longitude: o.longitude,
+                    altitude: o.altitude,
+                    time_usec: 0,
+                });
+                self.send(1, echo);
             }
             MavMessage::TIMESYNC(ts) if ts.tc1 == 0 => {
                 self.send(
@@ -699,6 +848,68 @@ mod tests {
         assert_eq!(v.phase, Phase::Landed);
         let off = ((v.state.position.x - target.0).powi(2) + (v.state.position.y - target.1).powi(2)).sqrt();
         assert!(off < 1e-6, "touched down {off} m from the target");
+    }
+
+    #[test]
+    fn without_gps_it_arms_only_with_vision_within_the_gate_and_an_origin_and_sets_home_there() {
+        let mut v = vehicle("indoor-floor").without_gps();
+        v.step(0.0);
+        let p = v.state.position;
+        let arm = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: 1.0,
+            command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+            target_system: 1,
+            target_component: 1,
+            ..Default::default()
+        });
+        let vpe = |dx: f32| {
+            let mut covariance = [0.0f32; 21];
+            covariance[0] = 0.0025;
+            covariance[6] = 0.0025;
+            MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
+                x: p.x as f32 + dx,
+                y: p.y as f32,
+                covariance,
+                ..Default::default()
+            })
+        };
+        let acks = |v: &Vehicle| -> Vec<MavResult> {
+            v.out
+                .iter()
+                .filter_map(|(_, m)| match m {
+                    MavMessage::COMMAND_ACK(a) if a.command == MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => {
+                        Some(a.result)
+                    }
+                    _ => None,
+                })
+                .collect()
+        };
+        // Far from the truth (0.6 m, the gate is 5 x 0.1 m): rejected, no position.
+        v.handle((1, 191), &vpe(0.6), 1.0);
+        assert_eq!((v.vision_accepted, v.vision_rejected), (0, 1));
+        #[allow(deprecated)]
+        let origin = MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA {
+            target_system: 1,
+            ..Default::default()
+        });
+        v.handle((1, 191), &origin, 1.0);
+        assert!(v.out.iter().any(|(_, m)| matches!(m, MavMessage::GPS_GLOBAL_ORIGIN(_))), "echoed");
+        v.handle((255, 190), &arm, 6.0);
+        assert_eq!(acks(&v), [MavResult::MAV_RESULT_TEMPORARILY_REJECTED], "no vision");
+        assert!(v.out.iter().any(|(_, m)| matches!(m, MavMessage::EVENT(e) if e.id == EVENT_ARM_DENIED)));
+        v.out.clear();
+        v.handle((1, 191), &vpe(0.02), 6.0);
+        assert_eq!(v.vision_accepted, 1);
+        v.handle((255, 190), &arm, 6.1);
+        assert_eq!(acks(&v), [MavResult::MAV_RESULT_ACCEPTED]);
+        assert!(
+            v.out.iter().any(|(_, m)| matches!(m, MavMessage::HOME_POSITION(h)
+            if (h.x as f64 - p.x).abs() < 1e-3 && (h.y as f64 - p.y).abs() < 1e-3)),
+            "home where it stood"
+        );
+        v.step(6.2);
+        assert!(matches!(v.phase, Phase::TakingOff(_)));
+        assert!(v.state.position.z < p.z, "climbing");
     }
 
     #[test]

@@ -50,12 +50,25 @@ pub fn fly_with(
     masks: bool,
     pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
 ) -> Flight {
+    fly_vehicle(settings, duration_s, masks, |v| v, pipeline, |_, _| {})
+}
+
+/// The loop itself: `vehicle` adapts the built-in vehicle (e.g. without GPS), `gcs` is
+/// called every step with the time and the vehicle (a ground station's commands).
+pub fn fly_vehicle(
+    settings: &Settings,
+    duration_s: f64,
+    masks: bool,
+    vehicle: impl FnOnce(Vehicle) -> Vehicle,
+    pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
+    mut gcs: impl FnMut(f64, &mut Vehicle),
+) -> Flight {
     let scenario = Scenario::load(&settings.camera.scenario).unwrap();
     let world = World::build(&scenario).unwrap();
     let renderer = Renderer::new(&world);
     let k = mavloc::camera::intrinsics(settings).unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(mavloc::camera::sim::noise_seed(scenario.seed));
-    let mut vehicle = Vehicle::new(&scenario, 1, 0.0).unwrap();
+    let mut vehicle = vehicle(Vehicle::new(&scenario, 1, 0.0).unwrap());
     let mut core = Core::new(settings.clone(), Default::default(), false, None);
     let mut live = pipeline(settings);
     let (mut frames, mut sent) = (Vec::new(), Vec::new());
@@ -66,6 +79,7 @@ pub fn fly_with(
     for i in 0..(duration_s / step) as u64 {
         let t = i as f64 * step;
         let now = Mono::from_secs_f64(t);
+        gcs(t, &mut vehicle);
         vehicle.step(t);
         for (component, message) in vehicle.out.drain(..) {
             let header = MavHeader { system_id: 1, component_id: component, sequence: 0 };
@@ -261,6 +275,110 @@ fn indoor_flight_lands_in_the_zone_with_estimates_within_0_2_m_median_in_simulat
     assert!(median < 0.2, "median error {median} m");
     assert!(flight.core.on_ground(), "the vehicle landed");
     assert!(miss < radius, "landed {miss} m from the centre of a {radius} m zone");
+}
+
+/// Issue #18's flight without PX4: the built-in vehicle without GPS (arming needs
+/// vision and an origin, vision outside EKF2's gate is rejected), mavloc's estimates its
+/// only position. A ground station tries to arm every 2 s; the vehicle takes off from
+/// the pad, flies its mission, and mavloc's trigger lands it on the zone.
+#[test]
+fn without_gps_the_vehicle_arms_on_mavlocs_estimates_alone_and_lands_on_the_zone_in_simulated_time() {
+    use mavlink::dialects::common::*;
+    let dir = tempfile::tempdir().unwrap();
+    let model = crate::fixtures::small_indoor_model();
+    let scenario = Scenario::load("indoor-floor").unwrap();
+    let world = World::build(&scenario).unwrap();
+    let mission = mavloc_sim::Mission::plan(&world).unwrap();
+    let pad = mission.state(0.0).position;
+    let zone = mission.state(12.0).position;
+    let o = scenario.origin;
+    let mut s = Settings::default();
+    let (x, y, px, py, m) = (
+        zone.x.to_string(),
+        zone.y.to_string(),
+        pad.x.to_string(),
+        pad.y.to_string(),
+        model.display().to_string(),
+    );
+    let origin = format!("[{}, {}, {}]", o.lat_deg, o.lon_deg, o.alt_m);
+    sets(
+        &mut s,
+        &[
+            ("camera.scenario", "indoor-floor"),
+            ("daemon.pipeline", "indoor"),
+            ("indoor.model", &m),
+            ("camera.width", "320"),
+            ("camera.height", "240"),
+            ("camera.fps", "15"),
+            ("indoor.gps_denied", "true"),
+            ("indoor.origin", &origin),
+            ("indoor.pad_x_m", &px),
+            ("indoor.pad_y_m", &py),
+            ("indoor.landing_enabled", "true"),
+            ("indoor.landing_x_m", &x),
+            ("indoor.landing_y_m", &y),
+            ("indoor.landing_radius_m", "0.6"),
+        ],
+    );
+    let out = dir.path().join("indoor");
+    let mut answers: Vec<(f64, MavResult)> = Vec::new();
+    let mut next_try = 1.0;
+    let flight = fly_vehicle(
+        &s,
+        50.0,
+        true,
+        |v| v.without_gps(),
+        move |s| {
+            let k = mavloc::camera::intrinsics(s).unwrap();
+            Box::new(mavloc::daemon::live::IndoorLive::new(s, k, &out, "twin").unwrap())
+        },
+        |t, v| {
+            if t + 1e-9 < next_try || answers.last().is_some_and(|a| a.1 == MavResult::MAV_RESULT_ACCEPTED) {
+                return;
+            }
+            next_try += 2.0;
+            let arm = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                param1: 1.0,
+                command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            });
+            v.handle((255, 190), &arm, t);
+            for (_, m) in &v.out {
+                if let MavMessage::COMMAND_ACK(a) = m {
+                    if a.command == MavCmd::MAV_CMD_COMPONENT_ARM_DISARM {
+                        answers.push((t, a.result));
+                    }
+                }
+            }
+        },
+    );
+    let origin_sent = flight
+        .sent
+        .iter()
+        .find(|(_, m)| matches!(m, MavMessage::SET_GPS_GLOBAL_ORIGIN(_)))
+        .map(|(t, _)| *t)
+        .expect("mavloc gave the origin");
+    let armed = flight.vehicle.vision_accepted;
+    let landed = flight.vehicle.state.position;
+    let miss = (landed.x - zone.x).hypot(landed.y - zone.y);
+    println!(
+        "no GPS, simulated time: origin at {origin_sent:.1} s, arming answers {:?}, vision accepted {armed} rejected {}, landed {miss:.3} m from the zone",
+        answers.iter().map(|(t, r)| format!("{t:.0} s {r:?}")).collect::<Vec<_>>(),
+        flight.vehicle.vision_rejected
+    );
+    // Refused until 4.5 s after the origin (with PX4's EVENT, said in words), then armed.
+    let first_ok = answers.iter().find(|a| a.1 == MavResult::MAV_RESULT_ACCEPTED).expect("armed").0;
+    assert!(answers.iter().any(|a| a.1 == MavResult::MAV_RESULT_TEMPORARILY_REJECTED));
+    assert!(first_ok >= origin_sent + 4.5 && first_ok < origin_sent + 7.0, "armed at {first_ok} s");
+    assert!(flight.core.autopilot_events().recent().any(|e| e.text.contains("Arming denied")));
+    // Every estimate within EKF2's gate of the truth: on the pad and in the air.
+    assert!(flight.vehicle.vision_accepted > 500);
+    assert_eq!(flight.vehicle.vision_rejected, 0, "estimates EKF2 would reject");
+    // Landed on the zone by the precision landing.
+    assert!(flight.core.on_ground(), "the vehicle landed");
+    assert!(miss < 0.05, "landed {miss} m from the zone's centre");
 }
 
 /// A real camera gives no target mask: the live area pipeline segments the frames with
