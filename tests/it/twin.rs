@@ -354,6 +354,7 @@ fn without_gps_the_vehicle_arms_on_mavlocs_estimates_alone_and_lands_on_the_zone
             }
         },
     );
+    #[allow(deprecated)]
     let origin_sent = flight
         .sent
         .iter()
