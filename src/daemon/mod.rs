@@ -625,9 +625,10 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
     let now = now.secs();
     while let Some(c) = live.pending.pop_front() {
         let running = matches!(core.pipeline(), PipelineState::Running(_)) && live.worker.is_some();
-        // Live frames are not processed while the vehicle is on the ground (replayed ones
-        // carry their own pose and are).
-        if !running || (c.pose.is_none() && core.on_ground()) {
+        // Live frames are not processed while the vehicle is on the ground, nor by the
+        // indoor pipeline while the camera is too low to see the floor as trained
+        // (replayed ones carry their own pose and are).
+        if !running || (c.pose.is_none() && (core.on_ground() || core.too_low())) {
             live.give_credit();
             continue;
         }

@@ -588,6 +588,7 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
     v.range("indoor.landing_sigma_gate_m", i.landing_sigma_gate_m, 0.01, 100.0);
     // At least two frames: the trigger never fires on a single frame.
     v.range_int("indoor.landing_frames", i.landing_frames.into(), 2, 1000);
+    v.range("indoor.min_height_m", i.min_height_m, 0.0, 1000.0);
     v.range("indoor.pad_x_m", i.pad_x_m, -1000.0, 1000.0);
     v.range("indoor.pad_y_m", i.pad_y_m, -1000.0, 1000.0);
     // Without an origin PX4 refuses to arm on vision alone (../shared/data/px4-sitl).

@@ -353,6 +353,9 @@ pub struct Indoor {
     /// The autopilot has no other position source (no GPS): send vision estimates from
     /// power-on (the pad while standing), then the origin, so it can arm.
     pub gps_denied: bool,
+    /// Frames taken lower than this above the floor (the downward rangefinder, else the
+    /// autopilot's height) are not localised: the model never saw the floor that close.
+    pub min_height_m: f64,
     /// Where the vehicle stands before its first fix in the air, in the floor's frame.
     pub pad_x_m: f64,
     pub pad_y_m: f64,
@@ -387,6 +390,7 @@ impl Default for Indoor {
             landing_frames: 5,
             landing_precision: true,
             gps_denied: false,
+            min_height_m: 0.5,
             pad_x_m: 0.0,
             pad_y_m: 0.0,
             origin: Vec::new(),

@@ -119,7 +119,7 @@ pub fn fly_vehicle(
         let a = core.aligner();
         let Some((stamp, _)) = a.vehicle.newest() else { continue };
         let Some(capture) = a.clock.to_local(stamp) else { continue };
-        if capture <= last_rendered || core.on_ground() {
+        if capture <= last_rendered || core.on_ground() || core.too_low() {
             continue;
         }
         let Ok(pose) = a.align(capture, t) else { continue };

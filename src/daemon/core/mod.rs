@@ -502,6 +502,11 @@ impl Core {
     // ---- inputs ----
 
     pub fn handle(&mut self, input: Input) {
+        self.handle_input(input);
+        self.gps.set_on_ground(self.vision_paused());
+    }
+
+    fn handle_input(&mut self, input: Input) {
         let at = match &input {
             Input::Mav { rx, .. } => *rx,
             Input::Pipeline { now, .. }
@@ -532,7 +537,7 @@ impl Core {
             self.gps.restart();
             self.prearm_ok = None;
         }
-        self.gps.set_on_ground(self.standing());
+        self.gps.set_on_ground(self.vision_paused());
         if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
             let command = self.landing.command();
             self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
@@ -745,11 +750,11 @@ impl Core {
                         ));
                     }
                 }
-                self.gps.set_on_ground(self.standing());
+                self.gps.set_on_ground(self.vision_paused());
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
                 self.autopilot.on_landed_state(e.landed_state);
-                self.gps.set_on_ground(self.standing());
+                self.gps.set_on_ground(self.vision_paused());
                 if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
                     self.landing.landed();
                 }
@@ -867,6 +872,28 @@ impl Core {
         self.landing.cancel();
         self.gps.restart();
         self.prearm_ok = None;
+    }
+
+    /// The camera's height above the floor: the downward rangefinder when it spoke in the
+    /// last second, else the autopilot's height (the local frame's z = 0 is the ground).
+    pub fn height_above_floor(&self) -> Option<f64> {
+        match self.telemetry.range_down {
+            Some((at, m)) if self.now.saturating_sub(at) <= Duration::from_secs(1) => Some(m),
+            _ => self.aligner().vehicle.newest().map(|(_, v)| -v.position.z),
+        }
+    }
+
+    /// No indoor localisation now: the vehicle stands, or the camera is lower than
+    /// `indoor.min_height_m` (taking off, touching down, or a take-off PX4 has declared
+    /// while the rangefinder still reads the ground).
+    pub fn vision_paused(&self) -> bool {
+        self.standing() || self.too_low()
+    }
+
+    /// The indoor pipeline runs and the camera is below `indoor.min_height_m`.
+    pub fn too_low(&self) -> bool {
+        matches!(self.pipeline, PipelineState::Running(PipelineKind::Indoor))
+            && self.height_above_floor().is_some_and(|h| h < self.settings.indoor.min_height_m)
     }
 
     /// Standing on the ground, as far as the autopilot says: its landed state, or

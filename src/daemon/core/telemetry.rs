@@ -50,6 +50,9 @@ pub struct Telemetry {
     pub truth: Option<(Mono, HIL_STATE_QUATERNION_DATA)>,
     /// Where the gimbal reports the camera looks (unit vector, NED) and when.
     pub gimbal_pointing: Option<(Mono, Vec3)>,
+    /// The downward rangefinder (DISTANCE_SENSOR, PITCH_270) and when: metres, 0 when
+    /// it reads below its minimum (PX4 reports 0 standing on the ground).
+    pub range_down: Option<(Mono, f64)>,
 }
 
 /// Stamps on a new timeline needed to believe a reboot...
@@ -82,6 +85,7 @@ impl Telemetry {
             global: None,
             truth: None,
             gimbal_pointing: None,
+            range_down: None,
         }
     }
 
@@ -208,6 +212,14 @@ impl Telemetry {
             }
             MavMessage::HIL_STATE_QUATERNION(h) if flight_controller => {
                 self.truth = Some((rx, h.clone()));
+                None
+            }
+            MavMessage::DISTANCE_SENSOR(d)
+                if d.orientation == MavSensorOrientation::MAV_SENSOR_ROTATION_PITCH_270 =>
+            {
+                let m = d.current_distance as f64 * 0.01;
+                let below = d.current_distance <= d.min_distance;
+                self.range_down = Some((rx, if below { 0.0 } else { m }));
                 None
             }
             MavMessage::HOME_POSITION(h) if flight_controller => {

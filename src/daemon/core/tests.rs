@@ -868,3 +868,49 @@ fn a_precision_landing_streams_the_zone_until_the_vehicle_is_down() {
     sim.run_for(Duration::from_secs(2));
     assert_eq!(sim.ap.landing_targets.len(), n, "none once on the ground");
 }
+
+#[test]
+fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the_vehicle_standing() {
+    // Measured on PX4 v1.16 SIH: in the air by its land detector 7 s before the
+    // rangefinder left 0; localising the ground-level frames then dragged EKF2 away.
+    let mut s = gps_denied_settings();
+    s.daemon.pipeline = PipelineKind::Indoor;
+    s.indoor.model = "floor.model".into(); // the fake shell starts any pipeline
+    let mut sim = Sim::new(s);
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(12));
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    let range = |cm: u16| {
+        frame(
+            1,
+            1,
+            MavMessage::DISTANCE_SENSOR(DISTANCE_SENSOR_DATA {
+                current_distance: cm,
+                min_distance: 1,
+                max_distance: 10_000,
+                orientation: MavSensorOrientation::MAV_SENSOR_ROTATION_PITCH_270,
+                ..Default::default()
+            }),
+        )
+    };
+    for i in 0..20 {
+        sim.run_until(secs(12) + Duration::from_millis(100 * i));
+        sim.deliver(range(0));
+    }
+    sim.run_until(secs(14));
+    assert!(
+        sim.core.too_low() && sim.core.vision_paused(),
+        "{:?} {:?}",
+        sim.core.pipeline(),
+        sim.core.height_above_floor()
+    );
+    assert!(vision(&sim, secs(13), secs(14)).len() >= 28, "still the pad while the camera is at the floor");
+    for i in 0..20 {
+        sim.run_until(secs(14) + Duration::from_millis(100 * i));
+        sim.deliver(range(100));
+    }
+    sim.run_until(secs(17));
+    assert!(!sim.core.vision_paused(), "1 m up: the pipeline's turn");
+    assert!(vision(&sim, secs(16), secs(17)).is_empty());
+}
