@@ -78,6 +78,11 @@ pub struct ParticleFilter {
     rng: rand::rngs::StdRng,
     last_likelihood: Vec<f64>,
     last_displacement: Vector2<f64>,
+    /// Where new particles come from: None, anywhere on the map (global localisation, the
+    /// kidnapped robot); Some(sd), around the particles' mean (tracking: a vehicle
+    /// cannot jump across the map between frames, but a look-alike place can lure
+    /// uniform draws).
+    local_recovery: Option<f64>,
 }
 
 impl ParticleFilter {
@@ -99,12 +104,31 @@ impl ParticleFilter {
             rng: rand::rngs::StdRng::seed_from_u64(seed),
             last_likelihood: Vec::new(),
             last_displacement: Vector2::zeros(),
+            local_recovery: None,
         };
         pf.particles = (0..count.max(1)).map(|_| pf.uniform()).collect();
         pf.weights = vec![1.0 / pf.particles.len() as f64; pf.particles.len()];
         pf.previous = pf.particles.clone();
         pf.previous_weights = pf.weights.clone();
         pf
+    }
+
+    /// Tracking instead of global localisation: new particles around the mean (SD, m).
+    pub fn set_local_recovery(&mut self, sd_m: Option<f64>) {
+        self.local_recovery = sd_m;
+    }
+
+    /// A fresh particle: anywhere on the map, or near the mean when tracking.
+    fn fresh(&mut self, mean: Vector2<f64>) -> Vector2<f64> {
+        match self.local_recovery {
+            None => self.uniform(),
+            Some(sd) => {
+                let g = Gaussian2::new(&(Matrix2::identity() * (sd * sd).max(1e-12)))
+                    .expect("a positive diagonal is positive definite");
+                let p = mean + g.sample(&mut self.rng);
+                Vector2::new(p.x.clamp(self.min.x, self.max.x), p.y.clamp(self.min.y, self.max.y))
+            }
+        }
     }
 
     fn uniform(&mut self) -> Vector2<f64> {
@@ -181,9 +205,11 @@ impl ParticleFilter {
             .collect();
         let total: f64 = self.last_likelihood.iter().sum();
         if !(total.is_finite() && total > 0.0) {
-            // Nothing explains the measurement: start again over the whole map.
+            // Nothing explains the measurement: start again over the whole map (or,
+            // tracking, around where the particles were).
+            let mean = self.mean();
             for i in 0..n {
-                self.particles[i] = self.uniform();
+                self.particles[i] = self.fresh(mean);
             }
             self.weights = vec![1.0 / n as f64; n];
             return;
@@ -204,9 +230,10 @@ impl ParticleFilter {
         self.particles = picks.iter().map(|&i| old[i]).collect();
         self.last_likelihood = picks.iter().map(|&i| old_l[i]).collect();
         self.weights = vec![1.0 / n as f64; n];
+        let mean = self.mean();
         for i in 0..n {
             if p_random > 0.0 && self.rng.random::<f64>() < p_random {
-                self.particles[i] = self.uniform();
+                self.particles[i] = self.fresh(mean);
                 self.last_likelihood[i] = 0.0;
             }
         }

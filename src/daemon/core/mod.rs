@@ -503,7 +503,7 @@ impl Core {
 
     pub fn handle(&mut self, input: Input) {
         self.handle_input(input);
-        self.gps.set_on_ground(self.vision_paused());
+        self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
     }
 
     fn handle_input(&mut self, input: Input) {
@@ -537,7 +537,7 @@ impl Core {
             self.gps.restart();
             self.prearm_ok = None;
         }
-        self.gps.set_on_ground(self.vision_paused());
+        self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
         if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
             let command = self.landing.command();
             self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
@@ -750,11 +750,11 @@ impl Core {
                         ));
                     }
                 }
-                self.gps.set_on_ground(self.vision_paused());
+                self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
                 self.autopilot.on_landed_state(e.landed_state);
-                self.gps.set_on_ground(self.vision_paused());
+                self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
                 if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
                     self.landing.landed();
                 }
@@ -880,6 +880,29 @@ impl Core {
         match self.telemetry.range_down {
             Some((at, m)) if self.now.saturating_sub(at) <= Duration::from_secs(1) => Some(m),
             _ => self.aligner().vehicle.newest().map(|(_, v)| -v.position.z),
+        }
+    }
+
+    /// Where the floor is below the camera, local z (down, m), and its variance: 0 while
+    /// standing, else the downward rangefinder's distance turned vertical by the
+    /// vehicle's tilt (a reading below its minimum is the floor). None without a fresh
+    /// reading. It goes out as the vision estimate's z: the floor is the local frame's
+    /// z = 0, the origin mavloc gives being on it.
+    pub fn floor_down(&self) -> Option<(f64, f64)> {
+        if self.standing() {
+            return Some((0.0, RANGE_VARIANCE));
+        }
+        match self.telemetry.range_down {
+            Some((at, m)) if self.now.saturating_sub(at) <= Duration::from_secs(1) => {
+                let (roll, pitch, _) = self
+                    .aligner()
+                    .vehicle
+                    .newest()
+                    .map(|(_, v)| v.attitude.euler_angles())
+                    .unwrap_or((0.0, 0.0, 0.0));
+                Some((-(m * roll.cos() * pitch.cos()), RANGE_VARIANCE))
+            }
+            _ => None,
         }
     }
 
@@ -1270,8 +1293,12 @@ impl Core {
             }));
         }
         if let Some(e) = &report.position {
-            self.result(vision_position_estimate(e, usec, attitude));
-            self.gps.on_pipeline_estimate(now, e);
+            let (e, down_var) = match self.floor_down() {
+                Some((down, var)) => (PositionEstimate { down, ..*e }, Some(var)),
+                None => (*e, None),
+            };
+            self.result(vision_position_estimate(&e, usec, attitude, down_var));
+            self.gps.on_pipeline_estimate(now, &e);
         }
         let ms = (capture.max(0.0) * 1e3) as u32;
         for &(name, value) in &report.counters {
@@ -1334,19 +1361,33 @@ fn param_name(id: &mavlink::types::CharArray<16>) -> Option<String> {
     id.to_str().ok().map(|n| n.trim_end_matches('\0').to_string())
 }
 
+/// Variance of the floor's distance as the vision estimate's z: PX4's default
+/// rangefinder noise (EKF2_RNG_NOISE, 0.1 m).
+const RANGE_VARIANCE: f64 = 0.01;
+
 /// Variance reported for what the pipeline does not measure (z, attitude): large enough
 /// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.
 const UNMEASURED_VARIANCE: f32 = 1.0e4;
 
 /// VISION_POSITION_ESTIMATE for an indoor estimate. The covariance is the upper triangle
 /// of the 6x6 (x, y, z, roll, pitch, yaw) matrix, row-major, as MAVLink defines it.
-pub fn vision_position_estimate(e: &PositionEstimate, usec: u64, attitude: (f64, f64, f64)) -> MavMessage {
+/// `down_var`: z is measured (the camera's distance to the floor) with this variance;
+/// None: z is not measured.
+pub fn vision_position_estimate(
+    e: &PositionEstimate,
+    usec: u64,
+    attitude: (f64, f64, f64),
+    down_var: Option<f64>,
+) -> MavMessage {
     let mut covariance = [0f32; 21];
     covariance[0] = e.cov[0][0] as f32;
     covariance[1] = e.cov[0][1] as f32;
     covariance[6] = e.cov[1][1] as f32;
     for i in [11, 15, 18, 20] {
         covariance[i] = UNMEASURED_VARIANCE;
+    }
+    if let Some(v) = down_var {
+        covariance[11] = v as f32;
     }
     MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
         usec,

@@ -403,7 +403,8 @@ fn vision_position_covariance_is_the_upper_triangle() {
         down: -1.0,
         cov: [[0.04, 0.01], [0.01, 0.09]],
     };
-    let MavMessage::VISION_POSITION_ESTIMATE(v) = vision_position_estimate(&e, 1_000_000, (0.0, 0.0, 0.3))
+    let MavMessage::VISION_POSITION_ESTIMATE(v) =
+        vision_position_estimate(&e, 1_000_000, (0.0, 0.0, 0.3), None)
     else {
         unreachable!()
     };
@@ -412,6 +413,12 @@ fn vision_position_covariance_is_the_upper_triangle() {
     assert_eq!((v.covariance[0], v.covariance[1], v.covariance[6]), (0.04, 0.01, 0.09));
     assert!(v.covariance[11] >= 1e3 && v.covariance[20] >= 1e3);
     assert_eq!(v.covariance[2], 0.0);
+    let MavMessage::VISION_POSITION_ESTIMATE(v) =
+        vision_position_estimate(&e, 0, (0.0, 0.0, 0.0), Some(0.01))
+    else {
+        unreachable!()
+    };
+    assert_eq!((v.z, v.covariance[11]), (-1.0, 0.01), "z measured");
 }
 
 /// A command from the ground station, as the property test draws them.
