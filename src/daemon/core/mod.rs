@@ -1388,6 +1388,12 @@ pub fn vision_position_estimate(
     }
     if let Some(v) = down_var {
         covariance[11] = v as f32;
+        // The attitude is the autopilot's own, echoed, and EKF2 never fuses roll or pitch
+        // from vision; but PX4 v1.16 floors the height's variance with the roll/pitch
+        // variance (ev_height_control.cpp), so "unmeasured" there would void z.
+        for i in [15, 18] {
+            covariance[i] = v as f32;
+        }
     }
     MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
         usec,

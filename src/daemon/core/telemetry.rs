@@ -217,9 +217,13 @@ impl Telemetry {
             MavMessage::DISTANCE_SENSOR(d)
                 if d.orientation == MavSensorOrientation::MAV_SENSOR_ROTATION_PITCH_270 =>
             {
-                let m = d.current_distance as f64 * 0.01;
-                let below = d.current_distance <= d.min_distance;
-                self.range_down = Some((rx, if below { 0.0 } else { m }));
+                // PX4 SIH sends a distance below the floor (the vehicle settling into
+                // the ground) wrapped round to 655 m: above the maximum is no reading.
+                if d.current_distance <= d.max_distance || d.max_distance == 0 {
+                    let m = d.current_distance as f64 * 0.01;
+                    let below = d.current_distance <= d.min_distance;
+                    self.range_down = Some((rx, if below { 0.0 } else { m }));
+                }
                 None
             }
             MavMessage::HOME_POSITION(h) if flight_controller => {
