@@ -203,11 +203,31 @@ def local_position(m, timeout=1.0):
     return None if p is None else (p.x, p.y, p.z)
 
 
-def fly_indoor(m, zone, max_s, events, t0):
+def wait_timesync(status_path, events, t0, answers=520, timeout=90):
+    """PX4 v1.16 maps mavloc's timestamps onto its clock only after 500 TIMESYNC exchanges
+    (Timesync.hpp CONVERGENCE_WINDOW; ~50 s at its 10 Hz); until then it stamps each vision
+    estimate on arrival, mavloc's whole latency late. Wait for mavloc to have answered
+    that many (its status.json)."""
+    deadline = time.time() + timeout
+    n = 0
+    while time.time() < deadline:
+        try:
+            n = json.load(open(status_path))["counters"].get("timesync_answered", 0)
+        except (OSError, ValueError, KeyError):
+            pass
+        if n >= answers:
+            events.append(f"PX4's timesync has {n} exchanges with mavloc {time.time() - t0:.1f} s after PX4 started")
+            return
+        time.sleep(1)
+    events.append(f"only {n} timesync exchanges after {timeout} s: PX4 still stamps estimates on arrival")
+
+
+def fly_indoor(m, zone, max_s, events, t0, status_path):
     """Arm once PX4 is ready, take off, fly (offboard, ramped at 0.5 m/s) to the zone and
     hold there: mavloc's landing trigger is what lands the vehicle. Ends at disarm."""
     from pymavlink import mavutil
     wait_prearm(m, 90, events, t0)
+    wait_timesync(status_path, events, t0)
     for _ in range(10):
         if command(m, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0:
             break
@@ -392,7 +412,7 @@ def run_scenario(a, name, out):
             raise RuntimeError("no heartbeat from PX4 within 30 s")
         report["events"].append(f"PX4 heartbeat after {time.time() - px4_started:.1f} s")
         if indoor:
-            fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started)
+            fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started, os.path.join(state, "status.json"))
         else:
             fly_coastline(m, a.max_s, report["events"], aim)
         report["ok"] = True

@@ -31,8 +31,6 @@ pub const ORIGIN_TRIES: u32 = 3;
 const PAD_SD_M: f64 = 0.05;
 /// A pipeline estimate this recent makes a standing one unnecessary.
 const PIPELINE_FRESH: Duration = Duration::from_millis(200);
-/// How fast an unseen vehicle's position is taken to grow uncertain (m/s of SD).
-pub const UNSEEN_DRIFT_M_S: f64 = 0.5;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum OriginState {
@@ -72,8 +70,6 @@ pub struct GpsDenied {
     sent_ground: u64,
     notices: Vec<Notice>,
     floor: Option<(f64, f64)>,
-    ap_standing: bool,
-    air_since: Option<Mono>,
 }
 
 impl GpsDenied {
@@ -90,8 +86,6 @@ impl GpsDenied {
             sent_ground: 0,
             notices: Vec::new(),
             floor: None,
-            ap_standing: true,
-            air_since: None,
         }
     }
 
@@ -116,30 +110,15 @@ impl GpsDenied {
     /// `on_ground`: the vehicle counts as standing (the autopilot says so, or the camera
     /// is too low to localise); `floor`: where the floor is below it (local z, variance),
     /// if known, for the estimate's z.
-    /// `standing`: the autopilot itself says so. Counting as standing while it does not
-    /// (the camera too low), the vehicle may move unseen: the estimate's SD then grows
-    /// by `UNSEEN_DRIFT_M_S` from the last fix, so EKF2 leans on its inertial sensors
-    /// rather than on a stale position.
-    pub fn set_state(&mut self, now: Mono, on_ground: bool, standing: bool, floor: Option<(f64, f64)>) {
-        if self.ap_standing && !standing {
-            self.air_since = Some(now);
-        }
-        if standing {
-            self.air_since = None;
-        }
-        self.ap_standing = standing;
+    /// `on_ground`: the vehicle counts as standing (the autopilot says so, or the camera
+    /// is too low to localise). It stays where it was last seen, with that estimate's SD:
+    /// a take-off is vertical. (Letting the SD grow while unseen was tried against PX4
+    /// SITL: EKF2 then drifted on the ground before lift-off and its controller pushed
+    /// the vehicle 0.4 m/s the other way as it left the floor.) `floor`: where the floor
+    /// is below it (local z, variance), if known, for the estimate's z.
+    pub fn set_state(&mut self, on_ground: bool, floor: Option<(f64, f64)>) {
         self.on_ground = on_ground;
         self.floor = floor;
-    }
-
-    /// The SD of the standing estimate at `now`.
-    fn standing_sd(&self, now: Mono) -> f64 {
-        let since = match (self.air_since, self.last_pipeline) {
-            (None, _) => return self.standing.2,
-            (Some(a), Some(p)) => a.max(p),
-            (Some(a), None) => a,
-        };
-        self.standing.2 + UNSEEN_DRIFT_M_S * now.saturating_sub(since).as_secs_f64()
     }
 
     /// The pipeline published an estimate from the air: it is where the vehicle will
@@ -233,8 +212,7 @@ impl GpsDenied {
             self.next_ground = if next > now { next } else { now + GROUND_PERIOD };
             self.vision_since.get_or_insert(now);
             self.sent_ground += 1;
-            let (north, east, _) = self.standing;
-            let sd = self.standing_sd(now);
+            let (north, east, sd) = self.standing;
             let e = PositionEstimate {
                 autopilot_time: f64::NAN,
                 north,

@@ -257,6 +257,13 @@ pub struct Counters {
     pub standing_estimates_sent: u64,
     /// EVENT messages from the autopilot (PX4's arming refusals and health reports).
     pub autopilot_events: u64,
+    /// The autopilot's TIMESYNC requests answered. PX4 v1.16 maps mavloc's timestamps
+    /// onto its clock only after 500 low-latency exchanges (its CONVERGENCE_WINDOW; at its
+    /// 10 Hz, about 50 s); before that it stamps vision estimates on arrival.
+    pub timesync_answered: u64,
+    /// Median time from a frame's capture to its estimate going out, over the last 100
+    /// estimates (ms): the delay EKF2 sees while it stamps on arrival (EKF2_EV_DELAY).
+    pub vision_latency_median_ms: Option<f64>,
 }
 
 /// A failing result write is said at most this often (a full disk fails every write):
@@ -302,6 +309,8 @@ pub struct Core {
     events: EventLog,
     /// The autopilot's pre-arm checks pass (SYS_STATUS), once it said.
     prearm_ok: Option<bool>,
+    /// Capture-to-send delays of the last estimates (ms).
+    latencies: VecDeque<f64>,
     health: Health,
     notes: Notes,
     /// Lines written on a peer's behalf, rate-limited per sender.
@@ -353,6 +362,7 @@ impl Core {
             gps: GpsDenied::new(gps_origin(&settings), (settings.indoor.pad_x_m, settings.indoor.pad_y_m)),
             events: EventLog::default(),
             prearm_ok: None,
+            latencies: VecDeque::new(),
             health: Health::new(m.heartbeat_hz, watchdog),
             notes: Notes::default(),
             peer_lines: SenderLimit::default(),
@@ -503,7 +513,7 @@ impl Core {
 
     pub fn handle(&mut self, input: Input) {
         self.handle_input(input);
-        self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
+        self.gps.set_state(self.vision_paused(), self.floor_down());
     }
 
     fn handle_input(&mut self, input: Input) {
@@ -537,7 +547,7 @@ impl Core {
             self.gps.restart();
             self.prearm_ok = None;
         }
-        self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
+        self.gps.set_state(self.vision_paused(), self.floor_down());
         if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
             let command = self.landing.command();
             self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
@@ -750,11 +760,11 @@ impl Core {
                         ));
                     }
                 }
-                self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
+                self.gps.set_state(self.vision_paused(), self.floor_down());
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
                 self.autopilot.on_landed_state(e.landed_state);
-                self.gps.set_state(self.now, self.vision_paused(), self.standing(), self.floor_down());
+                self.gps.set_state(self.vision_paused(), self.floor_down());
                 if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
                     self.landing.landed();
                 }
@@ -796,6 +806,7 @@ impl Core {
             MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
                 let (reply, sample) = self.timesync.on_timesync(rx, t, from);
                 if let Some(r) = reply {
+                    self.counters.timesync_answered += 1;
                     self.reply(r);
                 }
                 if let Some(s) = sample {
@@ -1247,6 +1258,11 @@ impl Core {
         self.counters.telemetry_from_the_future = self.telemetry.implausible;
         self.counters.reboot_claims_rejected = self.telemetry.reboot_claims_rejected;
         self.counters.gimbal_error_median_deg = self.gimbal.median_error_deg();
+        self.counters.vision_latency_median_ms = {
+            let mut v: Vec<f64> = self.latencies.iter().copied().collect();
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied()
+        };
         self.counters.statustext_dropped = self.notes.dropped;
         let ms = (now.0 / 1000) as u32;
         let values: [(&str, f32); 5] = [
@@ -1293,6 +1309,10 @@ impl Core {
             }));
         }
         if let Some(e) = &report.position {
+            if self.latencies.len() >= 100 {
+                self.latencies.pop_front();
+            }
+            self.latencies.push_back((now.secs() - capture) * 1e3);
             let (e, down_var) = match self.floor_down() {
                 Some((down, var)) => (PositionEstimate { down, ..*e }, Some(var)),
                 None => (*e, None),

@@ -419,7 +419,10 @@ fn vision_position_covariance_is_the_upper_triangle() {
         unreachable!()
     };
     assert_eq!((v.z, v.covariance[11]), (-1.0, 0.01), "z measured");
-    assert!(v.covariance[15] <= 0.01 && v.covariance[18] <= 0.01, "PX4 floors z's variance with roll's and pitch's");
+    assert!(
+        v.covariance[15] <= 0.01 && v.covariance[18] <= 0.01,
+        "PX4 floors z's variance with roll's and pitch's"
+    );
 }
 
 /// A command from the ground station, as the property test draws them.
