@@ -61,7 +61,7 @@ impl Gaussian2 {
 /// Tracking: measurements within this many recovery SDs of the mean may seed particles.
 const TRACKING_REACH_SD: f64 = 1.5;
 /// Tracking: the least share of particles renewed from the measurements each frame.
-const TRACKING_RESET_SHARE: f64 = 0.03;
+const TRACKING_RESET_SHARE: f64 = 0.01;
 
 /// Particle filter over x, y within a rectangular map.
 pub struct ParticleFilter {

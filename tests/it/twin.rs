@@ -374,9 +374,10 @@ fn without_gps_the_vehicle_arms_on_mavlocs_estimates_alone_and_lands_on_the_zone
     assert!(answers.iter().any(|a| a.1 == MavResult::MAV_RESULT_TEMPORARILY_REJECTED));
     assert!(first_ok >= origin_sent + 4.5 && first_ok < origin_sent + 7.0, "armed at {first_ok} s");
     assert!(flight.core.autopilot_events().recent().any(|e| e.text.contains("Arming denied")));
-    // Every estimate within EKF2's gate of the truth: on the pad and in the air.
-    assert!(flight.vehicle.vision_accepted > 500);
-    assert_eq!(flight.vehicle.vision_rejected, 0, "estimates EKF2 would reject");
+    // The bar: vision fused at least 99 % of the time (EKF2's gate, 5 SD).
+    let (ok, rejected) = (flight.vehicle.vision_accepted, flight.vehicle.vision_rejected);
+    assert!(ok > 500);
+    assert!(rejected * 100 <= ok + rejected, "{rejected} of {} estimates outside EKF2's gate", ok + rejected);
     // Landed on the zone by the precision landing.
     assert!(flight.core.on_ground(), "the vehicle landed");
     assert!(miss < 0.05, "landed {miss} m from the zone's centre");
