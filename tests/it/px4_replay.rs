@@ -85,10 +85,8 @@ fn replay() -> Option<Replay> {
         decoder.push(&bytes);
         while let Some(frame) = decoder.next_frame(None) {
             match &frame.message {
-                MavMessage::EXTENDED_SYS_STATE(e) => {
-                    if r.landed.last().map(|l| l.1) != Some(e.landed_state) {
-                        r.landed.push((secs, e.landed_state));
-                    }
+                MavMessage::EXTENDED_SYS_STATE(e) if r.landed.last().map(|l| l.1) != Some(e.landed_state) => {
+                    r.landed.push((secs, e.landed_state));
                 }
                 MavMessage::GPS_GLOBAL_ORIGIN(_) => r.origin_echo = r.origin_echo.or(Some(secs)),
                 MavMessage::EVENT(_) => r.events += 1,
