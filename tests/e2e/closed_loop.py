@@ -101,7 +101,8 @@ while time.time() - start < SECONDS:
                 elif t == "COMMAND_ACK":
                     key = f"{m.command}:{m.result}"
                     seen["acks"][key] = seen["acks"].get(key, 0) + 1
-                    if m.command == mav2.MAV_CMD_NAV_LAND:
+                    # Either landing: plain, or precise (23, PX4's NAV_PRECLAND).
+                    if m.command in (mav2.MAV_CMD_NAV_LAND, mav2.MAV_CMD_NAV_LAND_LOCAL):
                         seen["land_acks"].append(m.result)
                 elif t == "EXTENDED_SYS_STATE" and m.landed_state == mav2.MAV_LANDED_STATE_ON_GROUND:
                     seen["on_ground"] = True
@@ -115,6 +116,8 @@ while time.time() - start < SECONDS:
                     seen["statustext"].append(m.text)
                 elif t == "DEBUG_VECT" and m.name == "LMK":
                     seen["lmk"] += 1
+                elif t == "LANDING_TARGET":
+                    seen["landing_targets"] = seen.get("landing_targets", 0) + 1
                 elif t == "VISION_POSITION_ESTIMATE":
                     seen["vpe"].append([now, m.x, m.y, m.covariance[0], m.covariance[6]])
                     if last_lpn is not None:
@@ -123,7 +126,7 @@ while time.time() - start < SECONDS:
                     seen["named"][m.name] = m.value
                 elif t == "COMMAND_LONG":
                     seen["commands"][str(m.command)] = seen["commands"].get(str(m.command), 0) + 1
-                    if m.command == mav2.MAV_CMD_NAV_LAND:
+                    if m.command in (mav2.MAV_CMD_NAV_LAND, mav2.MAV_CMD_NAV_LAND_LOCAL):
                         seen["land_commands"] += 1
                 elif t == "HEARTBEAT":
                     seen["daemon_heartbeat_states"].append(m.system_status)

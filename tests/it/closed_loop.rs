@@ -172,6 +172,8 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     // The landing: commanded, acknowledged, and down inside the zone.
     assert!(seen["land_commands"].as_u64().unwrap() >= 1, "{text}");
     assert!(seen["land_acks"].as_array().unwrap().iter().any(|r| r == 0), "{seen}");
+    // A precision landing on the zone: its centre streamed as LANDING_TARGET.
+    assert!(seen["landing_targets"].as_u64().unwrap_or(0) >= 1, "{seen}");
     assert_eq!(seen["on_ground"], true);
     let truth = mavloc_data::truth::read_truth(&state.join("truth.csv")).unwrap();
     let last = truth.last().unwrap();
