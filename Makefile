@@ -6,7 +6,8 @@
 # `make install` needs only a Rust toolchain and the build packages (`make build-deps`).
 
 BUILD_PACKAGES := libopencv-dev clang libclang-dev
-APT_PACKAGES := $(BUILD_PACKAGES) fonts-dejavu-core python3-venv
+# dpkg-dev: `make deb` (dpkg-shlibdeps works out the package's library dependencies).
+APT_PACKAGES := $(BUILD_PACKAGES) fonts-dejavu-core python3-venv dpkg-dev
 # The interpreter the test tools' virtual environment is made from. Debian's own
 # (`/usr/bin/python3`) is "externally managed" and refuses `pip install`, so the tools go
 # into a project venv, never into the system interpreter.
@@ -18,7 +19,7 @@ export MAVLOC_PYTHON := $(abspath $(VENV))/bin/python
 CARGO ?= cargo
 SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 
-.PHONY: deps build-deps demo test check-long sitl build release install install-files uninstall clean
+.PHONY: deps build-deps demo test check-long sitl build release install install-files uninstall deb deb-files clean
 
 # Debian packages, installed only when missing.
 define apt_install
@@ -119,6 +120,45 @@ uninstall:
 	rm -f $(DESTDIR)$(PREFIX)/bin/mavloc $(UNIT) $(UNIT).new $(PRISTINE)
 	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then systemctl daemon-reload; fi
 	@echo "make uninstall: kept /etc/mavloc and /var/lib/mavloc (configuration, results)"
+
+# A Debian package: the binary (/usr/bin), the unit (/usr/lib/systemd/system, so local
+# changes go in /etc/systemd/system/mavloc.service.d/), the real-drone configuration as a
+# conffile (/etc/mavloc/mavloc.toml: dpkg never overwrites an edited one on upgrade), the
+# demo and SITL configurations as examples, and maintainer scripts that reload systemd
+# and stop/disable the service on removal. Built with dpkg-deb itself, from the same
+# files as `make install`: target/debian/mavloc_<version>_<arch>.deb.
+DEB_DIR ?= target/debian
+DEB_COMPRESS ?= xz
+DEB_MAINTAINER ?= mavloc developers <mavloc@localhost>
+deb: release
+	$(call apt_install,dpkg-dev)
+	@$(MAKE) --no-print-directory deb-files STRIP=1
+
+# The packaging alone (tests/it/install.rs runs it on a debug binary, uncompressed).
+deb-files:
+	@set -e; stage=$(DEB_DIR)/stage; rm -rf $$stage; \
+	version=$$(sed -n 's/^version = "\(.*\)"/\1/p' Cargo.toml | head -1); \
+	arch=$$(dpkg --print-architecture); \
+	install -D -m 0755 $(BIN) $$stage/usr/bin/mavloc; \
+	if [ -n "$(STRIP)" ]; then strip --strip-unneeded $$stage/usr/bin/mavloc; fi; \
+	mkdir -p $$stage/usr/lib/systemd/system; \
+	sed 's|/usr/local/bin/mavloc|/usr/bin/mavloc|; s|`make install`|the package|' systemd/mavloc.service > $$stage/usr/lib/systemd/system/mavloc.service; \
+	install -D -m 0644 config/drone.toml $$stage/etc/mavloc/mavloc.toml; \
+	install -D -m 0644 config/mavloc.toml $$stage/usr/share/doc/mavloc/examples/demo.toml; \
+	install -m 0644 config/sitl.toml config/sitl-indoor.toml config/photo-survey.toml $$stage/usr/share/doc/mavloc/examples/; \
+	install -m 0644 README.md packaging/deb/copyright $$stage/usr/share/doc/mavloc/; \
+	mkdir -p $$stage/DEBIAN; \
+	install -m 0755 packaging/deb/postinst packaging/deb/prerm packaging/deb/postrm $$stage/DEBIAN/; \
+	echo /etc/mavloc/mavloc.toml > $$stage/DEBIAN/conffiles; \
+	shl=$$(mktemp -d); mkdir $$shl/debian; printf 'Source: mavloc\n\nPackage: mavloc\nArchitecture: any\n' > $$shl/debian/control; \
+	depends=$$(cd $$shl && dpkg-shlibdeps -O --warnings=0 -e $(abspath $(DEB_DIR))/stage/usr/bin/mavloc | sed 's/^shlibs:Depends=//'); \
+	rm -rf $$shl; \
+	size=$$(du -sk --exclude=DEBIAN $$stage | cut -f1); \
+	sed -e "s|@VERSION@|$$version|" -e "s|@ARCH@|$$arch|" -e "s|@DEPENDS@|$$depends|" \
+	    -e "s|@SIZE@|$$size|" -e "s|@MAINTAINER@|$(DEB_MAINTAINER)|" packaging/deb/control.in > $$stage/DEBIAN/control; \
+	deb=$(DEB_DIR)/mavloc_$${version}_$${arch}.deb; \
+	dpkg-deb --root-owner-group -Z$(DEB_COMPRESS) --build $$stage $$deb >/dev/null; \
+	rm -rf $$stage; echo "make deb: $$deb"
 
 clean:
 	$(CARGO) clean

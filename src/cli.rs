@@ -79,6 +79,9 @@ pub enum ImportCommand {
         /// Intrinsics (TOML: fx, fy, cx, cy) instead of the estimate from the focal length.
         #[arg(long)]
         calibration: Option<PathBuf>,
+        /// Replace a non-empty output folder whole (an edited mavloc.toml in it is kept).
+        #[arg(long)]
+        force: bool,
     },
 }
 
@@ -113,33 +116,40 @@ pub enum SimCommand {
     Render(Box<RenderArgs>),
     /// Write a scenario's mission as a QGroundControl .plan file (stdout without --out).
     Plan {
-        /// Scenario name or file.
+        /// Scenario name (coastline, cliff, indoor-floor) or path to a scenario TOML file.
         #[arg(long)]
         scenario: String,
+        /// The .plan file to write (default: print it).
         #[arg(long)]
         out: Option<PathBuf>,
     },
     /// Write a north-up orthophoto of a scenario's ground (PNG), centred on the origin:
     /// the orthomap for `mavloc indoor train --orthomap`, or a floor for `indoor map-eval`.
     Orthophoto {
+        /// Scenario name (coastline, cliff, indoor-floor) or path to a scenario TOML file.
         #[arg(long)]
         scenario: String,
+        /// The PNG file to write.
         #[arg(long)]
         out: PathBuf,
         /// Half the side of the square, metres.
         #[arg(long, default_value_t = 4.0)]
         half_extent_m: f64,
+        /// Ground size of one pixel, metres.
         #[arg(long, default_value_t = 0.01)]
         metres_per_px: f64,
     },
     /// Run a simulated MAVLink vehicle (PX4-like autopilot with a gimbal) that flies a
     /// scenario's mission; what mavloc talks to when no PX4 is installed.
     Vehicle {
+        /// Scenario whose mission the vehicle flies: coastline, cliff, indoor-floor, or a
+        /// scenario TOML file.
         #[arg(long)]
         scenario: String,
         /// Where to talk: udpout:HOST:PORT (to mavloc, as PX4's onboard link) or udpin:HOST:PORT.
         #[arg(long, default_value = "udpout:127.0.0.1:14540")]
         mavlink: String,
+        /// The vehicle's MAVLink system id (PX4's default is 1).
         #[arg(long, default_value_t = 1)]
         system_id: u8,
         /// Land after this many seconds of mission and exit once on the ground (default: fly until stopped).
@@ -272,16 +282,20 @@ pub struct IndoorTrainArgs {
     /// Frames with fewer RANSAC inliers than this are rejected.
     #[arg(long, default_value_t = 25)]
     pub min_inliers: usize,
+    /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
 }
 
 #[derive(Debug, Args)]
 pub struct IndoorRunArgs {
+    /// Dataset folder of the flight (frames and telemetry; ground truth if it has one).
     #[arg(long)]
     pub dataset: PathBuf,
+    /// The model file from `mavloc indoor train`.
     #[arg(long)]
     pub model: PathBuf,
+    /// Output folder: trajectory.csv and summary.json.
     #[arg(long)]
     pub out: PathBuf,
     /// Process at most this many frames.
@@ -290,6 +304,7 @@ pub struct IndoorRunArgs {
     /// Ignore the telemetry's velocity (the velocity model then fits one to its estimates).
     #[arg(long)]
     pub no_velocity: bool,
+    /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
 }
@@ -302,11 +317,13 @@ pub struct LandingsArgs {
     /// Output folder (e.g. the one of `mavloc indoor run`, for `mavloc eval indoor`).
     #[arg(long)]
     pub out: PathBuf,
+    /// Landing approaches to fly, each to its own random zone.
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
     /// Give up a trial after this long, seconds.
     #[arg(long, default_value_t = 60.0)]
     pub max_s: f64,
+    /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
 }
@@ -331,6 +348,7 @@ pub struct MapEvalArgs {
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
+    /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
 }
@@ -367,11 +385,12 @@ pub enum EvalCommand {
 
 #[derive(Debug, Subcommand)]
 pub enum ConfigCommand {
-    /// Validate a configuration file (with the MAVLOC_* environment and --set applied);
-    /// exits non-zero and lists every problem if it is not valid.
+    /// Validate a configuration file (with the MAVLOC_* environment and --set applied) and
+    /// the files it names, as `run` would; exits 78 and lists every problem, all in one
+    /// pass, if it cannot run.
     Check {
-        /// The file to check.
-        file: PathBuf,
+        /// The file to check (default: --config, else /etc/mavloc/mavloc.toml).
+        file: Option<PathBuf>,
     },
     /// Print the configuration in force, each non-default value with where it came from.
     Show,
@@ -415,6 +434,28 @@ mod tests {
     #[test]
     fn cli_definition_is_consistent() {
         Cli::command().debug_assert();
+    }
+
+    /// Every argument of every subcommand says what it is for in `--help`.
+    #[test]
+    fn every_argument_has_help_text() {
+        fn walk(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
+            for arg in cmd.get_arguments() {
+                let id = arg.get_id().as_str();
+                if id != "help" && id != "version" && arg.get_help().is_none() {
+                    missing.push(format!("{path} --{id}"));
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                if sub.get_about().is_none() {
+                    missing.push(format!("{path} {} (no about)", sub.get_name()));
+                }
+                walk(sub, &format!("{path} {}", sub.get_name()), missing);
+            }
+        }
+        let mut missing = Vec::new();
+        walk(&Cli::command(), "mavloc", &mut missing);
+        assert!(missing.is_empty(), "arguments without help text: {missing:?}");
     }
 
     #[test]

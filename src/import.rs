@@ -293,10 +293,26 @@ pub struct ImportReport {
     pub fx_px: f64,
     pub intrinsics_from: String,
     pub origin: Option<Geodetic>,
+    /// Set when the user's edited settings file was kept (and why).
+    pub kept_settings: Option<String>,
 }
 
-/// Imports the photos of `dir` (JPEG) into a dataset at `out`.
-pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Result<ImportReport, String> {
+/// Imports the photos of `dir` (JPEG) into a dataset at `out`, written beside it and put
+/// in place whole; a non-empty `out` is replaced only with `replace` (`--force`), keeping
+/// a `mavloc.toml` the user edited.
+pub fn import_photos(
+    dir: &Path,
+    out: &Path,
+    calibration: Option<&Path>,
+    replace: bool,
+) -> Result<ImportReport, String> {
+    if mavloc_data::staged::nested(dir, out) {
+        return Err(format!(
+            "--out {} and the photos' folder {} are the same or one is inside the other: choose an output folder elsewhere",
+            out.display(),
+            dir.display()
+        ));
+    }
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| format!("{}: {e}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -312,7 +328,14 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
     let mut report = ImportReport::default();
     let mut photos = Vec::new();
     for p in &paths {
-        match read_tags(p) {
+        match read_tags(p).and_then(|t| {
+            // Tags come first in the file, so a cut photo still has them: check the image.
+            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", t.name))?;
+            if crate::imaging::jpeg_truncated(&bytes) {
+                return Err(format!("{}: truncated JPEG (the image data ends early)", t.name));
+            }
+            Ok(t)
+        }) {
             Ok(t) => match exif_seconds(&t.time) {
                 Some(s) => photos.push((s, p.clone(), t)),
                 None => {
@@ -379,6 +402,8 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
         origin,
     };
     camera.intrinsics().validate().map_err(|e| format!("intrinsics: {e}"))?;
+    let staged = mavloc_data::staged::StagedDir::begin(out, replace)?;
+    let (final_dir, out) = (out, staged.path());
     dataset::prepare(out)?;
     let frame = LocalFrame::new(origin);
     let t0 = photos[0].0;
@@ -412,11 +437,26 @@ pub fn import_photos(dir: &Path, out: &Path, calibration: Option<&Path>) -> Resu
     dataset::write_camera(out, &camera)?;
     // The settings photos need (segment water, the photo-survey tuning), so `mavloc area
     // --dataset D` runs right without a --config; edit the file to change them.
-    write(dataset::SETTINGS_FILE, PHOTO_SURVEY_SETTINGS.as_bytes())?;
+    // A settings file the user edited in the old dataset is kept; ours goes beside it.
+    let theirs = std::fs::read_to_string(final_dir.join(dataset::SETTINGS_FILE)).ok();
+    match theirs.filter(|t| t != PHOTO_SURVEY_SETTINGS) {
+        Some(t) => {
+            write(dataset::SETTINGS_FILE, t.as_bytes())?;
+            let new_name = format!("{}.new", dataset::SETTINGS_FILE);
+            write(&new_name, PHOTO_SURVEY_SETTINGS.as_bytes())?;
+            report.kept_settings = Some(format!(
+                "{} was edited, so it is kept; the import's own settings are in {}",
+                final_dir.join(dataset::SETTINGS_FILE).display(),
+                final_dir.join(new_name).display()
+            ));
+        }
+        None => write(dataset::SETTINGS_FILE, PHOTO_SURVEY_SETTINGS.as_bytes())?,
+    }
     let tags: Vec<&PhotoTags> = photos.iter().map(|(_, _, t)| t).collect();
     write("photos.json", serde_json::to_string_pretty(&tags).map_err(|e| e.to_string())?.as_bytes())?;
     // Last: its presence marks a complete dataset.
     dataset::write_telemetry(out, &records)?;
+    staged.commit()?;
     report.fx_px = fx;
     report.intrinsics_from = from;
     report.origin = Some(origin);

@@ -23,6 +23,7 @@ pub mod atomic;
 pub mod dataset;
 pub mod results;
 pub mod sets;
+pub mod staged;
 pub mod state;
 pub mod table;
 pub mod truth;

@@ -2,7 +2,6 @@
 //! `mavloc_data::dataset`; this module renders the frames and masks and writes them, the
 //! telemetry and the ground truth through it.
 
-use std::fs;
 use std::path::{Path, PathBuf};
 
 use mavloc_data::dataset::{self, Appearance, CameraFile, GimbalFrame, PoseRecord, TelemetryRecord};
@@ -82,13 +81,11 @@ pub fn render_dataset(
         scenario.noise = noise.clone();
     }
     scenario.validate()?;
-    if out.exists() {
-        let non_empty =
-            fs::read_dir(out).map_err(|e| format!("cannot read {}: {e}", out.display()))?.next().is_some();
-        if non_empty && !opts.force {
-            return Err(format!("{} is not empty; pass --force to overwrite it", out.display()));
-        }
-    }
+    // Written beside `out` and put in place whole at the end: a failed render leaves no
+    // half-written folder, and --force replaces the old dataset instead of writing over it.
+    let staged = mavloc_data::staged::StagedDir::begin(out, opts.force)?;
+    let final_dir = out;
+    let out = staged.path();
     dataset::prepare(out)?;
 
     let world = World::build(&scenario)?;
@@ -165,7 +162,8 @@ pub fn render_dataset(
         progress(i + 1, total);
     }
     dataset::write_telemetry(out, &records)?;
-    Ok(RenderSummary { frames: written, dropped, dir: out.to_path_buf() })
+    staged.commit()?;
+    Ok(RenderSummary { frames: written, dropped, dir: final_dir.to_path_buf() })
 }
 
 /// What the vehicle reports for a true state: position noise, the gimbal attitude of

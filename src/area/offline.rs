@@ -60,6 +60,9 @@ pub struct RunSummary {
     pub residual_p90_px: Option<f64>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub yaw_off_180_frames: Vec<u64>,
+    /// Why the first skipped frame was skipped (file and reason).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_skip_reason: Option<String>,
     pub complete: bool,
 }
 
@@ -222,22 +225,40 @@ pub fn run(
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
         let frame_path = ds.frame_path(record);
         let mask_path = ds.mask_path(record);
-        let img = imgcodecs::imread(&frame_path, imgcodecs::IMREAD_COLOR)?;
-        let mask = match super::segment::segment(&img, &s.area)? {
-            Some(m) => m,
-            None => imgcodecs::imread(&mask_path, imgcodecs::IMREAD_GRAYSCALE)?,
+        // The frame and its mask, or why this frame cannot be used (naming the file).
+        let loaded = crate::imaging::read_image(&frame_path, imgcodecs::IMREAD_COLOR).and_then(|img| {
+            if (img.cols(), img.rows()) != (k_full.width as i32, k_full.height as i32) {
+                return Err(format!(
+                    "{}: {}x{} px, but the dataset's camera is {}x{}",
+                    frame_path.display(),
+                    img.cols(),
+                    img.rows(),
+                    k_full.width,
+                    k_full.height
+                ));
+            }
+            let mask = match super::segment::segment(&img, &s.area).map_err(|e| e.to_string())? {
+                Some(m) => m,
+                None => crate::imaging::read_image(&mask_path, imgcodecs::IMREAD_GRAYSCALE)
+                    .map_err(|e| format!("its mask {e}"))?,
+            };
+            if (mask.cols(), mask.rows()) != (img.cols(), img.rows()) {
+                return Err(format!("{}: the mask's size differs from the frame's", mask_path.display()));
+            }
+            Ok((img, mask))
+        });
+        let (img, mask) = match loaded {
+            Ok(v) => v,
+            Err(why) => {
+                tracing::warn!(frame = record.frame, "frame skipped: {why}");
+                summary.skipped_frames += 1;
+                summary.first_skip_reason.get_or_insert(why);
+                progress(i as u64 + 1, total);
+                continue;
+            }
         };
-        if opts.debug_masks && !img.empty() && !mask.empty() && sheet_every > 0 && i % sheet_every == 0 {
+        if opts.debug_masks && sheet_every > 0 && i % sheet_every == 0 {
             sheet.push((record.frame, img.clone(), mask.clone()));
-        }
-        if img.empty()
-            || mask.empty()
-            || (img.cols(), img.rows()) != (k_full.width as i32, k_full.height as i32)
-        {
-            tracing::warn!(frame = record.frame, path = %frame_path.display(), "unreadable or wrongly sized frame or mask, skipped");
-            summary.skipped_frames += 1;
-            progress(i as u64 + 1, total);
-            continue;
         }
         let (grey, small_mask) = prepare(&img, &mask, downscale)?;
         let pose = ds.camera_pose(&record.measured, s.gimbal.offsets_deg());

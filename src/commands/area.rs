@@ -32,6 +32,21 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         Some(_) => AreaMethod::Ukf,
         None => settings.area.method,
     };
+    if crate::data::staged::nested(&args.dataset, &args.out) {
+        anyhow::bail!(
+            "--out {} and --dataset {} are the same folder or one is inside the other: results go elsewhere",
+            args.out.display(),
+            args.dataset.display()
+        );
+    }
+    if !args.dataset.join(crate::data::dataset::TELEMETRY_FILE).exists() && holds_photos(&args.dataset) {
+        anyhow::bail!(
+            "{} holds photos but is not a dataset (no {}): make one with `mavloc import photos {} --out DATASET`",
+            args.dataset.display(),
+            crate::data::dataset::TELEMETRY_FILE,
+            args.dataset.display()
+        );
+    }
     let opts = RunOptions {
         dataset: args.dataset,
         out: args.out,
@@ -46,6 +61,15 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         bar.set_position(done);
     })?;
     bar.finish_and_clear();
+    if summary.frames == 0 {
+        // Exit non-zero: a run that looked at nothing has no result to stand for.
+        anyhow::bail!(
+            "no frame of {} could be used ({} skipped){}",
+            opts.dataset.display(),
+            summary.skipped_frames,
+            summary.first_skip_reason.as_deref().map(|r| format!("; the first: {r}")).unwrap_or_default()
+        );
+    }
     println!(
         "{}: {} frames ({} skipped) in {:.1} s, {:.1} frames/s; {} landmarks, {} border line{} ({})",
         opts.out.display(),
@@ -71,4 +95,12 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Whether a folder has JPEG photos directly in it (raw photos, not a dataset).
+fn holds_photos(dir: &std::path::Path) -> bool {
+    std::fs::read_dir(dir).into_iter().flatten().flatten().any(|e| {
+        let ext = e.path().extension().map(|x| x.to_string_lossy().to_ascii_lowercase());
+        matches!(ext.as_deref(), Some("jpg" | "jpeg"))
+    })
 }

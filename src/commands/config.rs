@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use super::{load, Global};
+use super::Global;
 use crate::cli::ConfigCommand;
 use crate::link::params::Tuned;
 use crate::settings;
@@ -10,12 +10,31 @@ use crate::settings;
 pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
     match command {
         ConfigCommand::Check { file } => {
-            let loaded = load(Some(file.clone()), global.overrides)?;
-            // What `run` needs besides valid values (files it names): refused here too.
-            let missing = settings::preflight(&loaded);
-            if !missing.is_empty() {
-                return Err(settings::SettingsError::Invalid(missing).into());
-            }
+            // FILE, else --config (or MAVLOC_CONFIG), else the system file: one file, named.
+            let file = match (file, &global.config) {
+                (Some(f), Some(c)) if !same_file(&f, c) => anyhow::bail!(
+                    "two files to check: {} (the argument) and {} (--config or MAVLOC_CONFIG); give one",
+                    f.display(),
+                    c.display()
+                ),
+                (Some(f), _) => f,
+                (None, _) => global.config_file().ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "no configuration file: give one (`mavloc config check FILE`) or install {}",
+                        settings::SYSTEM_CONFIG
+                    )
+                })?,
+            };
+            let layers = settings::Layers::from_process(Some(file.clone()), global.overrides);
+            let loaded = match settings::check(&layers) {
+                Ok(l) => l,
+                Err(e) => {
+                    use std::io::Write;
+                    let _ = writeln!(std::io::stderr(), "mavloc: {e}");
+                    // The code `run` exits with on the same configuration.
+                    return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
+                }
+            };
             println!(
                 "{}: valid ({} key{} set in the file or overridden)",
                 file.display(),
@@ -36,4 +55,9 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// Whether two paths name the same file (either may not exist).
+fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    a == b || matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
 }

@@ -6,8 +6,8 @@ use crate::cli::ImportCommand;
 
 pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
     match command {
-        ImportCommand::Photos { dir, out, calibration } => {
-            let r = crate::import::import_photos(&dir, &out, calibration.as_deref())
+        ImportCommand::Photos { dir, out, calibration, force } => {
+            let r = crate::import::import_photos(&dir, &out, calibration.as_deref(), force)
                 .map_err(anyhow::Error::msg)?;
             println!(
                 "{}: {} photos imported, {} skipped; fx {:.1} px from the {}",
@@ -19,6 +19,9 @@ pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
             );
             for (name, why) in &r.skipped {
                 println!("  skipped {name}: {why}");
+            }
+            if let Some(note) = &r.kept_settings {
+                println!("{note}");
             }
             Ok(ExitCode::SUCCESS)
         }

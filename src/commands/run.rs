@@ -14,15 +14,9 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     if let Some(address) = args.mavlink {
         global.overrides.push(format!("mavlink.connection={address}"));
     }
-    let loaded = match global.load().and_then(|l| {
-        // The files the settings name, as `config check` checks them.
-        let missing = crate::settings::preflight(&l);
-        if missing.is_empty() {
-            Ok(l)
-        } else {
-            Err(crate::settings::SettingsError::Invalid(missing).into())
-        }
-    }) {
+    // Every problem at once, files the settings name included, as `config check` reports.
+    let layers = crate::settings::Layers::from_process(global.config_file(), global.overrides.clone());
+    let loaded = match crate::settings::check(&layers) {
         Ok(l) => l,
         Err(e) => {
             let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");

@@ -64,8 +64,8 @@ impl fmt::Display for Problem {
 /// Why the configuration could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum SettingsError {
-    #[error("cannot read configuration file {path}: {source}")]
-    Read { path: PathBuf, source: std::io::Error },
+    #[error("cannot read configuration file {path}: {error}")]
+    Read { path: PathBuf, error: String },
     #[error("configuration file {path} is not valid TOML: {message}")]
     Syntax { path: PathBuf, message: String },
     #[error("invalid configuration ({} problem{}):\n{}", .0.len(), if .0.len() == 1 { "" } else { "s" },
@@ -270,15 +270,44 @@ fn flatten_file(
 
 /// Loads and validates the configuration from all layers.
 pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
+    let (loaded, problems) = load_lenient(layers)?;
+    if !problems.is_empty() {
+        return Err(SettingsError::Invalid(problems));
+    }
+    Ok(loaded)
+}
+
+/// What `mavloc run` would refuse, all in one pass: every problem of every layer (unknown
+/// keys, wrong types, values out of range) and the files the values name, together.
+/// `config check` and `run` both call it.
+pub fn check(layers: &Layers) -> Result<Loaded, SettingsError> {
+    let (loaded, mut problems) = load_lenient(layers)?;
+    // The files are checked on what is valid, so a missing model is named beside a
+    // misspelt key rather than after it is fixed.
+    let bad: std::collections::BTreeSet<&str> = problems.iter().map(|p| p.key.as_str()).collect();
+    let more: Vec<Problem> =
+        preflight(&loaded).into_iter().filter(|p| !bad.contains(p.key.as_str())).collect();
+    problems.extend(more);
+    if !problems.is_empty() {
+        return Err(SettingsError::Invalid(problems));
+    }
+    Ok(loaded)
+}
+
+/// Loads every layer, leaving out (and reporting) each value that is wrong, so one run
+/// names every problem: the settings returned are the defaults plus the valid values.
+/// Only an unreadable file or broken TOML stops it early (nothing in it can be trusted).
+fn load_lenient(layers: &Layers) -> Result<(Loaded, Vec<Problem>), SettingsError> {
     let schema = schema();
     let mut problems = Vec::new();
     let mut origins = BTreeMap::new();
 
     // Layers 1 and 2: the configuration file, then the dataset's settings.
-    let mut file_texts = Vec::new();
+    let mut file_pairs = Vec::new();
     for path in layers.file.iter().chain(&layers.dataset) {
+        // The OS error is the message's cause; it is not repeated as a source.
         let text = std::fs::read_to_string(path)
-            .map_err(|source| SettingsError::Read { path: path.clone(), source })?;
+            .map_err(|e| SettingsError::Read { path: path.clone(), error: e.to_string() })?;
         let doc: toml::Table = text.parse().map_err(|e: toml::de::Error| SettingsError::Syntax {
             path: path.clone(),
             message: e.to_string(),
@@ -288,12 +317,12 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
         for (k, _, o) in &pairs {
             origins.insert(k.clone(), o.clone());
         }
-        file_texts.push(text);
+        file_pairs.push(pairs);
     }
 
     // Layer 3: the environment.
     let mut env_pairs = Vec::new();
-    let mut env_map = ::config::Map::new();
+    let mut env_vars = Vec::new();
     for (var, raw) in &layers.env {
         let Some(rest) = var.strip_prefix(ENV_PREFIX) else {
             continue;
@@ -307,8 +336,8 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
         let key = rest.to_lowercase().replacen("__", ".", 1);
         let origin = format!("environment variable {var}");
         env_pairs.push((key.clone(), parse_loose(raw), origin.clone()));
-        origins.insert(key, origin);
-        env_map.insert(var.clone(), raw.clone());
+        origins.insert(key.clone(), origin);
+        env_vars.push((key, var.clone(), raw.clone()));
     }
     check_layer(&schema, &env_pairs, &mut problems);
 
@@ -332,16 +361,81 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
     }
     check_layer(&schema, &cli_pairs, &mut problems);
 
-    if !problems.is_empty() {
-        return Err(SettingsError::Invalid(problems));
+    // Merge with the `config` crate what passed; a value the merge still refuses (an
+    // integer beyond its type) is reported and left out, and the merge tried again.
+    let mut excluded: std::collections::BTreeSet<(String, String)> =
+        problems.iter().map(|p| (p.key.clone(), p.origin.clone())).collect();
+    let mut settings = loop {
+        match merge_layers(&file_pairs, &env_vars, &cli_pairs, &excluded, &origins) {
+            Ok(s) => break s,
+            Err(MergeFailure::Key(problem)) => {
+                if !excluded.insert((problem.key.clone(), "*".into())) {
+                    return Err(SettingsError::Invalid(vec![problem]));
+                }
+                problems.push(problem);
+            }
+            Err(MergeFailure::Other(e)) => return Err(e),
+        }
+    };
+    for (k, _) in &excluded {
+        // A left-out value is not in force: its origin would mislead `config show`.
+        if problems.iter().any(|p| &p.key == k) {
+            origins.remove(k);
+        }
     }
+    for path in layers.file.iter().chain(&layers.dataset) {
+        resolve_relative_paths(&mut settings, &origins, path);
+    }
+    let range_problems = validate(&settings, &origins);
+    problems.extend(range_problems);
+    Ok((Loaded { settings, origins, file: layers.file.clone() }, problems))
+}
 
-    // Merge with the `config` crate.
-    let defaults = Config::try_from(&Settings::default()).map_err(|e| SettingsError::Merge(e.to_string()))?;
+/// Why one merge attempt failed.
+enum MergeFailure {
+    /// One value, named with its origin.
+    Key(Problem),
+    Other(SettingsError),
+}
+
+/// Defaults < files < environment < command line, leaving out the (key, origin) pairs in
+/// `excluded`.
+fn merge_layers(
+    files: &[Vec<(String, toml::Value, String)>],
+    env: &[(String, String, String)],
+    cli: &[(String, toml::Value, String)],
+    excluded: &std::collections::BTreeSet<(String, String)>,
+    origins: &BTreeMap<String, String>,
+) -> Result<Settings, MergeFailure> {
+    let merge = |e: ::config::ConfigError| MergeFailure::Other(SettingsError::Merge(e.to_string()));
+    // (key, origin) leaves out one layer's value; (key, "*") the key in every layer.
+    let keep = |key: &String, origin: &String| {
+        !excluded.contains(&(key.clone(), origin.clone())) && !excluded.contains(&(key.clone(), "*".into()))
+    };
+    let table = |pairs: &[(String, toml::Value, String)]| {
+        let mut doc = toml::Table::new();
+        for (key, value, _) in pairs.iter().filter(|(k, _, o)| keep(k, o)) {
+            let Some((section, name)) = key.split_once('.') else { continue };
+            if let Some(t) = doc
+                .entry(section.to_string())
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                .as_table_mut()
+            {
+                t.insert(name.to_string(), value.clone());
+            }
+        }
+        doc.to_string()
+    };
+    let defaults = Config::try_from(&Settings::default()).map_err(merge)?;
     let mut builder = Config::builder().add_source(defaults);
-    for text in &file_texts {
-        builder = builder.add_source(File::from_str(text, FileFormat::Toml));
+    for pairs in files {
+        builder = builder.add_source(File::from_str(&table(pairs), FileFormat::Toml));
     }
+    let env_map: ::config::Map<String, String> = env
+        .iter()
+        .filter(|(key, var, _)| keep(key, &format!("environment variable {var}")))
+        .map(|(_, var, raw)| (var.clone(), raw.clone()))
+        .collect();
     builder = builder.add_source(
         Environment::with_prefix("MAVLOC")
             .prefix_separator("_")
@@ -353,29 +447,12 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
             .with_list_parse_key("area.hsv_high")
             .source(Some(env_map)),
     );
-    if !cli_pairs.is_empty() {
-        let mut doc = toml::Table::new();
-        for (key, value, _) in &cli_pairs {
-            let (section, name) = key.split_once('.').expect("checked against the schema");
-            doc.entry(section.to_string())
-                .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-                .as_table_mut()
-                .expect("sections are tables")
-                .insert(name.to_string(), value.clone());
-        }
-        builder = builder.add_source(File::from_str(&doc.to_string(), FileFormat::Toml));
-    }
-    let merged = builder.build().map_err(|e| SettingsError::Merge(e.to_string()))?;
-    let mut settings: Settings = merged.try_deserialize().map_err(|e| merge_error(e, &origins))?;
-    for path in layers.file.iter().chain(&layers.dataset) {
-        resolve_relative_paths(&mut settings, &origins, path);
-    }
-
-    let problems = validate(&settings, &origins);
-    if !problems.is_empty() {
-        return Err(SettingsError::Invalid(problems));
-    }
-    Ok(Loaded { settings, origins, file: layers.file.clone() })
+    builder = builder.add_source(File::from_str(&table(cli), FileFormat::Toml));
+    let merged = builder.build().map_err(merge)?;
+    merged.try_deserialize().map_err(|e| match merge_error(e, origins) {
+        SettingsError::Invalid(mut v) if v.len() == 1 => MergeFailure::Key(v.remove(0)),
+        other => MergeFailure::Other(other),
+    })
 }
 
 /// A relative path written in a configuration file means "beside this file", not "in
@@ -402,15 +479,39 @@ fn resolve_relative_paths(s: &mut Settings, origins: &BTreeMap<String, String>, 
 }
 
 /// Turns a deserialisation error (an enum value that is not one of the variants, an
-/// integer out of its type's range) into a problem naming the key and its origin.
+/// integer out of its type's range) into a problem naming the key, its origin and, for an
+/// integer, the range its type holds.
 fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> SettingsError {
     let msg = e.to_string();
-    // The config crate phrases these as "... for key `section.key` ...".
-    let key = msg.split('`').nth(1).filter(|k| k.contains('.')).map(str::to_string);
+    // The config crate quotes the key and the value in backticks, in either order
+    // ("invalid value: integer `300`, expected u8 for key `mavlink.system_id`").
+    let quoted: Vec<&str> = msg.split('`').skip(1).step_by(2).collect();
+    let keys = all_keys();
+    let key = quoted.iter().find(|q| keys.iter().any(|k| k == *q)).map(|k| k.to_string());
+    let value = quoted.iter().find(|q| q.parse::<i128>().is_ok()).map(|v| v.to_string());
+    // Serde names the integer type as `u8` or as "an unsigned 8 bit integer".
+    let ranges = [
+        (["u8", "unsigned 8 bit"], "0 to 255"),
+        (["u16", "unsigned 16 bit"], "0 to 65535"),
+        (["u32", "unsigned 32 bit"], "0 to 4294967295"),
+        (["u64", "unsigned 64 bit"], "0 to 18446744073709551615"),
+        (["i32", "signed 32 bit"], "-2147483648 to 2147483647"),
+    ];
+    let tail = msg.split("expected").nth(1).unwrap_or("");
+    let expected = ranges
+        .iter()
+        .find(|(names, _)| {
+            names.iter().any(|n| {
+                tail.trim_start().trim_start_matches(['`', ' ']).starts_with(n)
+                    || tail.contains(&format!("an {n} integer"))
+            })
+        })
+        .map(|(_, r)| format!("expected an integer from {r}"))
+        .unwrap_or(msg.clone());
     match key {
         Some(key) => {
             let origin = origins.get(&key).cloned().unwrap_or_else(|| "the merged configuration".into());
-            SettingsError::Invalid(vec![Problem { key, value: None, expected: msg, origin }])
+            SettingsError::Invalid(vec![Problem { key, value, expected, origin }])
         }
         None => SettingsError::Merge(msg),
     }

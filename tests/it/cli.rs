@@ -279,3 +279,162 @@ fn config_check_and_run_refuse_the_files_run_needs() {
     let said = String::from_utf8_lossy(&check.stderr);
     assert!(said.contains("1 problem") && !said.contains("indoor.model"), "{said}");
 }
+
+/// `sim render --force` replaces a dataset whole: a 2-frame render over a 5-frame one
+/// leaves 2 frames, not 5 beside 2 lines of telemetry. A failed render leaves no folder.
+#[test]
+fn a_forced_render_replaces_the_dataset_whole_and_a_failed_one_leaves_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let render = |frames: &str, force: bool| {
+        let mut c = mavloc();
+        c.args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--width",
+            "96",
+            "--height",
+            "54",
+            "--frames",
+            frames,
+        ])
+        .arg("--out")
+        .arg(&ds);
+        if force {
+            c.arg("--force");
+        }
+        c.assert()
+    };
+    render("5", false).success();
+    assert_eq!(std::fs::read_dir(ds.join("frames")).unwrap().count(), 5);
+    let err = String::from_utf8_lossy(&render("2", false).failure().get_output().stderr).to_string();
+    assert!(err.contains("--force"), "{err}");
+    render("2", true).success();
+    assert_eq!(std::fs::read_dir(ds.join("frames")).unwrap().count(), 2, "no stale frames");
+    assert_eq!(mavloc_data::Dataset::open(&ds).unwrap().records.len(), 2);
+    // A render that fails part way (an invalid size here) leaves nothing to block a retry.
+    let bad = dir.path().join("bad");
+    mavloc()
+        .args(["sim", "render", "--scenario", "coastline", "--width", "0", "--height", "54", "--out"])
+        .arg(&bad)
+        .assert()
+        .failure();
+    let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(left, ["ds"], "{left:?}");
+}
+
+/// A run that can use no frame (every frame a truncated image here) exits non-zero and
+/// names the file and the reason; results inside the dataset, or raw photos given as a
+/// dataset, are refused with what to do instead.
+#[test]
+fn an_area_run_that_processes_nothing_fails_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    mavloc()
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--width",
+            "96",
+            "--height",
+            "54",
+            "--frames",
+            "3",
+        ])
+        .arg("--out")
+        .arg(&ds)
+        .assert()
+        .success();
+    for e in std::fs::read_dir(ds.join("frames")).unwrap() {
+        let p = e.unwrap().path();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() / 3]).unwrap();
+    }
+    let a = mavloc()
+        .args(["area", "--dataset"])
+        .arg(&ds)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("no frame") && err.contains("3 skipped") && err.contains("000000.png"), "{err}");
+
+    let a = mavloc().args(["area", "--dataset"]).arg(&ds).arg("--out").arg(ds.join("out")).assert().failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("inside"), "{err}");
+    assert!(!ds.join("out").exists());
+
+    let photos = dir.path().join("photos");
+    std::fs::create_dir(&photos).unwrap();
+    std::fs::write(photos.join("DJI_0001.JPG"), b"x").unwrap();
+    let a = mavloc()
+        .args(["area", "--dataset"])
+        .arg(&photos)
+        .arg("--out")
+        .arg(dir.path().join("o2"))
+        .assert()
+        .failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("mavloc import photos"), "{err}");
+}
+
+/// A file with problems of every kind gets them all in one run of `config check`, each
+/// with its key, file and what is allowed (an integer beyond its type with the range), and
+/// exits 78 like `run`; the same file given twice ways, or two different files, is clear.
+#[test]
+fn config_check_reports_every_problem_of_every_layer_in_one_pass() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("mavloc.toml");
+    std::fs::write(
+        &file,
+        "[area]\nukf_alfa = 0.7\nmethod = \"magic\"\n[indoor]\nparticles = 0\nmodel = \"gone.model\"\n\
+         [mavlink]\nsystem_id = 300\n[daemon]\npipeline = \"indoor\"\n",
+    )
+    .unwrap();
+    let a = mavloc()
+        .args(["config", "check"])
+        .arg(&file)
+        .env("MAVLOC_AREA__L_MAX", "many")
+        .args(["--set", "area.downscale=x"])
+        .assert()
+        .code(78);
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    let f = file.display().to_string();
+    for needle in [
+        "7 problems",
+        "area.ukf_alfa",
+        "area.method = \"magic\"",
+        "indoor.particles = 0",
+        "mavlink.system_id = 300",
+        "an integer from 0 to 255",
+        "MAVLOC_AREA__L_MAX",
+        "area.downscale",
+        "gone.model",
+        &f,
+    ] {
+        assert!(err.contains(needle), "`{needle}` missing from: {err}");
+    }
+    let sysid = err.lines().find(|l| l.contains("mavlink.system_id")).unwrap();
+    assert!(sysid.contains(&f), "the file is named: {sysid}");
+
+    let other = dir.path().join("other.toml");
+    std::fs::write(&other, "").unwrap();
+    let a = mavloc().arg("--config").arg(&other).args(["config", "check"]).arg(&file).assert().failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("two files"), "{err}");
+    let out = stdout_of(mavloc().arg("--config").arg(&other).args(["config", "check"]));
+    assert!(out.contains("other.toml: valid"), "--config is what is checked: {out}");
+}
+
+/// A missing file's OS error is said once, not once more as its cause.
+#[test]
+fn a_missing_configuration_file_is_named_once() {
+    let a = mavloc().args(["config", "check", "/nonexistent/mavloc.toml"]).assert().failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert_eq!(err.matches("No such file").count(), 1, "{err}");
+}

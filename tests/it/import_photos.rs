@@ -44,13 +44,17 @@ fn photos_without_the_needed_tags_are_named_and_skipped_and_order_is_capture_tim
     std::fs::copy(sample().join("DJI_0030.JPG"), photos.join("c.jpg")).unwrap();
     without("GimbalYawDegree", &sample().join("DJI_0031.JPG"), &photos.join("b.jpg"));
     std::fs::write(photos.join("d.jpg"), b"not a jpeg").unwrap();
+    // Cut two thirds in (a copy interrupted): its tags read, its image does not.
+    let whole = std::fs::read(sample().join("DJI_0031.JPG")).unwrap();
+    std::fs::write(photos.join("e.jpg"), &whole[..whole.len() * 2 / 3]).unwrap();
     let out = dir.path().join("ds");
-    let r = import_photos(&photos, &out, None).unwrap();
+    let r = import_photos(&photos, &out, None, false).unwrap();
     assert_eq!(r.imported, ["c.jpg", "a.jpg"], "by capture time, not by name");
     let skipped: Vec<String> = r.skipped.iter().map(|(n, why)| format!("{n}: {why}")).collect();
-    assert_eq!(skipped.len(), 2, "{skipped:?}");
+    assert_eq!(skipped.len(), 3, "{skipped:?}");
     assert!(skipped[0].starts_with("b.jpg") && skipped[0].contains("GimbalYawDegree"), "{skipped:?}");
     assert!(skipped[1].starts_with("d.jpg") && skipped[1].contains("EXIF"), "{skipped:?}");
+    assert!(skipped[2].starts_with("e.jpg") && skipped[2].contains("truncated"), "{skipped:?}");
     let ds = mavloc_data::Dataset::open(&out).unwrap();
     assert_eq!(ds.records.len(), 2);
     assert_eq!(ds.records[1].t, 14.0, "16:33:27 to 16:33:41");
@@ -70,7 +74,7 @@ fn a_calibration_file_overrides_the_focal_length_estimate() {
     let dir = tempfile::tempdir().unwrap();
     let cal = dir.path().join("cal.toml");
     std::fs::write(&cal, "fx = 2340.0\nfy = 2341.0\ncx = 2001.0\ncy = 1120.0\n").unwrap();
-    let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal)).unwrap();
+    let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal), false).unwrap();
     assert_eq!(r.fx_px, 2340.0);
     let ds = mavloc_data::Dataset::open(&dir.path().join("ds")).unwrap();
     assert_eq!((ds.camera.fy, ds.camera.cx, ds.camera.cy), (2341.0, 2001.0, 1120.0));
@@ -93,7 +97,7 @@ fn a_calibration_with_distortion_undistorts_the_frames() {
         format!("fx = {fx}\nfy = {fx}\ncx = {cx}\ncy = {cy}\ndistortion = [{k1}, 0.0, 0.0, 0.0, 0.0]\n"),
     )
     .unwrap();
-    let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal)).unwrap();
+    let r = import_photos(&sample(), &dir.path().join("ds"), Some(&cal), false).unwrap();
     assert!(r.intrinsics_from.contains("undistorted"), "{}", r.intrinsics_from);
     let ds = mavloc_data::Dataset::open(&dir.path().join("ds")).unwrap();
     let grey = |p: &Path| opencv::imgcodecs::imread(p, opencv::imgcodecs::IMREAD_GRAYSCALE).unwrap();
@@ -140,7 +144,7 @@ fn a_calibration_with_distortion_undistorts_the_frames() {
         "fx = 2311.0\nfy = 2311.0\ncx = 1999.5\ncy = 1124.5\ndistortion = [0.1, 0.0, 0.0]\n",
     )
     .unwrap();
-    let e = import_photos(&sample(), &dir.path().join("ds2"), Some(&cal)).unwrap_err();
+    let e = import_photos(&sample(), &dir.path().join("ds2"), Some(&cal), false).unwrap_err();
     assert!(e.contains("cal.toml") && e.contains("distortion has 3 coefficients"), "{e}");
 }
 
@@ -279,4 +283,39 @@ fn the_residual_report_names_a_frame_whose_yaw_is_half_a_turn_off() {
         serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
     assert!(summary["residual_median_px"].as_f64().unwrap() < 15.0, "{summary}");
     assert_eq!(summary["yaw_off_180_frames"], serde_json::json!([30]));
+}
+
+/// Re-importing into a dataset: refused without --force; with it the folder is replaced
+/// whole (no stale frame of the larger first import) and an edited mavloc.toml is kept,
+/// the import's own settings written beside it. An output inside the photos is refused.
+#[test]
+fn a_reimport_replaces_the_dataset_whole_and_keeps_the_edited_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    for n in ["DJI_0030.JPG", "DJI_0031.JPG", "DJI_0032.JPG"] {
+        std::fs::copy(sample().join(n), photos.join(n)).unwrap();
+    }
+    let out = dir.path().join("ds");
+    import_photos(&photos, &out, None, false).unwrap();
+    assert!(out.join("frames/000002.jpg").exists());
+    let settings = out.join("mavloc.toml");
+    let edited = std::fs::read_to_string(&settings).unwrap() + "\n# mine: turnover tuned\n";
+    std::fs::write(&settings, &edited).unwrap();
+
+    std::fs::remove_file(photos.join("DJI_0032.JPG")).unwrap();
+    let e = import_photos(&photos, &out, None, false).unwrap_err();
+    assert!(e.contains("--force"), "{e}");
+    let r = import_photos(&photos, &out, None, true).unwrap();
+    assert_eq!(r.imported.len(), 2);
+    assert!(!out.join("frames/000002.jpg").exists(), "the old third frame is gone");
+    assert_eq!(mavloc_data::Dataset::open(&out).unwrap().records.len(), 2);
+    assert_eq!(std::fs::read_to_string(&settings).unwrap(), edited, "the user's settings are kept");
+    assert!(out.join("mavloc.toml.new").exists());
+    assert!(r.kept_settings.unwrap().contains("edited"));
+    let siblings: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(siblings.len(), 2, "no half-written folder beside: {siblings:?}");
+
+    let e = import_photos(&photos, &photos.join("ds"), None, false).unwrap_err();
+    assert!(e.contains("inside"), "{e}");
 }

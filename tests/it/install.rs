@@ -56,3 +56,69 @@ fn make_sitl_without_px4_is_skipped_with_a_message() {
     assert!(out.status.success(), "{said}{}", String::from_utf8_lossy(&out.stderr));
     assert!(said.contains("skipped") && said.contains("MAVLOC_PX4_DIR"), "{said}");
 }
+
+fn dpkg_deb(args: &[&str], deb: &Path) -> String {
+    let out = Command::new("dpkg-deb").args(args).arg(deb).output().expect("dpkg-deb runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// `make deb` (here its packaging step on the debug binary, uncompressed): the binary, the
+/// unit under /usr/lib pointing at it, the real-drone configuration as the one conffile,
+/// the demo and SITL configurations as examples, library dependencies worked out, and
+/// maintainer scripts that reload systemd and stop and disable the service on removal.
+#[test]
+fn the_debian_package_holds_the_service_and_keeps_the_configuration_as_a_conffile() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new("make")
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["--no-print-directory", "-s", "deb-files", "DEB_COMPRESS=none"])
+        .arg(format!("DEB_DIR={}", dir.path().display()))
+        .arg(format!("BIN={}", env!("CARGO_BIN_EXE_mavloc")))
+        .output()
+        .expect("make runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let deb = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e == "deb"))
+        .expect("a .deb was written");
+    assert!(!dir.path().join("stage").exists(), "the staging tree is cleaned up");
+
+    let contents = dpkg_deb(&["-c"], &deb);
+    for file in [
+        "./usr/bin/mavloc",
+        "./usr/lib/systemd/system/mavloc.service",
+        "./etc/mavloc/mavloc.toml",
+        "./usr/share/doc/mavloc/copyright",
+        "./usr/share/doc/mavloc/examples/sitl.toml",
+        "./usr/share/doc/mavloc/examples/demo.toml",
+    ] {
+        assert!(contents.lines().any(|l| l.ends_with(file)), "{file} missing from:\n{contents}");
+    }
+    assert!(contents.lines().all(|l| l.contains("root/root")), "files owned by root:\n{contents}");
+    assert_eq!(dpkg_deb(&["-I"], &deb).matches("conffiles").count(), 1);
+    let ctrl = tempfile::tempdir().unwrap();
+    let status = Command::new("dpkg-deb").arg("-e").arg(&deb).arg(ctrl.path()).status().unwrap();
+    assert!(status.success());
+    let read = |name: &str| std::fs::read_to_string(ctrl.path().join(name)).unwrap();
+    assert_eq!(read("conffiles").trim(), "/etc/mavloc/mavloc.toml");
+    let control = read("control");
+    assert!(control.contains(&format!("Version: {}", env!("CARGO_PKG_VERSION"))), "{control}");
+    let depends = control.lines().find(|l| l.starts_with("Depends:")).unwrap_or_default();
+    assert!(depends.contains("libc6") && depends.contains("libopencv"), "{control}");
+    assert!(read("postinst").contains("systemctl daemon-reload"));
+    assert!(read("prerm").contains("systemctl disable --now mavloc.service"));
+    assert!(read("postrm").contains("systemctl daemon-reload"));
+
+    // The unit inside points at the packaged binary and stops restarting on bad config.
+    let unit_dir = tempfile::tempdir().unwrap();
+    let status = Command::new("dpkg-deb").arg("-x").arg(&deb).arg(unit_dir.path()).status().unwrap();
+    assert!(status.success());
+    let unit =
+        std::fs::read_to_string(unit_dir.path().join("usr/lib/systemd/system/mavloc.service")).unwrap();
+    assert!(unit.contains("ExecStart=/usr/bin/mavloc run --config /etc/mavloc/mavloc.toml"), "{unit}");
+    assert!(unit.contains("RestartPreventExitStatus=78"));
+    let config = std::fs::read_to_string(unit_dir.path().join("etc/mavloc/mavloc.toml")).unwrap();
+    assert!(config.contains("source = \"v4l2\""), "the real-drone configuration is the conffile");
+}
