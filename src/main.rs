@@ -17,11 +17,14 @@ fn main() -> ExitCode {
         // SAFETY: restoring a signal's default disposition, before any thread starts.
         unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
     }
+    // OpenCV's and the image decoders' own lines go through `tracing` (logging.rs); the
+    // guard restores stderr and drains what is left when main returns.
+    let _native = mavloc::logging::capture_native_stderr();
     match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
             // A closed stderr is no reason to panic on the way out.
-            let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");
+            let _ = writeln!(mavloc::logging::stderr(), "mavloc: {e:#}");
             ExitCode::FAILURE
         }
     }

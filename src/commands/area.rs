@@ -3,7 +3,7 @@
 
 use std::process::ExitCode;
 
-use super::{progress_bar, Global};
+use super::{Global, Progress};
 use crate::cli::AreaArgs;
 use crate::settings::{self, Layers};
 
@@ -55,12 +55,11 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         max_frames: args.frames,
         debug_masks: args.debug_masks,
     };
-    let bar = progress_bar("area");
+    let bar = Progress::new("area", "frames");
     let summary = run(&opts, settings, |done, total| {
-        bar.set_length(total);
-        bar.set_position(done);
+        bar.set(done, total);
     })?;
-    bar.finish_and_clear();
+    bar.finish();
     if summary.frames == 0 {
         // Exit non-zero: a run that looked at nothing has no result to stand for.
         anyhow::bail!(

@@ -30,7 +30,7 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
                 Ok(l) => l,
                 Err(e) => {
                     use std::io::Write;
-                    let _ = writeln!(std::io::stderr(), "mavloc: {e}");
+                    let _ = writeln!(crate::logging::stderr(), "mavloc: {e}");
                     // The code `run` exits with on the same configuration.
                     return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
                 }

@@ -21,7 +21,9 @@ pub fn run(args: DemoArgs, global: Global) -> anyhow::Result<ExitCode> {
         indoor_s: args.indoor_s,
         views: args.views,
     };
-    let report = crate::demo::run(&opts, |stage| eprintln!("mavloc demo: {stage}"))?;
+    let report = crate::demo::run(&opts, |stage| {
+        let _ = writeln!(crate::logging::stderr(), "mavloc demo: {stage}");
+    })?;
     print!("{report}");
     Ok(if report.passed() { ExitCode::SUCCESS } else { ExitCode::from(EXIT_FAIL) })
 }

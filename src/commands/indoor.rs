@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::anyhow;
 
-use super::{progress_bar, Global};
+use super::{Global, Progress};
 use crate::cli::IndoorCommand;
 use crate::indoor::offline;
 
@@ -23,13 +23,12 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 _ => offline::Labelling::Telemetry,
             };
             let opts = offline::TrainOptions { dataset: a.dataset, out: a.out, labelling, seed: a.seed };
-            let bar = progress_bar("histograms");
+            let bar = Progress::new("histograms", "images");
             let r = offline::train(&opts, &settings.indoor, |done, total| {
-                bar.set_length(total as u64);
-                bar.set_position(done as u64);
+                bar.set(done as u64, total as u64);
             })
             .map_err(|e| anyhow!(e))?;
-            bar.finish_and_clear();
+            bar.finish();
             println!(
                 "{}: {} images ({} rejected) in {:.1} s ({:.1} s of full-sampling histograms, {:.0} images/s)",
                 opts.out.display(),
@@ -60,13 +59,12 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 no_velocity: a.no_velocity,
                 seed: a.seed,
             };
-            let bar = progress_bar("indoor");
+            let bar = Progress::new("indoor", "frames");
             let s = offline::run(&opts, &settings.indoor, |done, total| {
-                bar.set_length(total as u64);
-                bar.set_position(done as u64);
+                bar.set(done as u64, total as u64);
             })
             .map_err(|e| anyhow!(e))?;
-            bar.finish_and_clear();
+            bar.finish();
             println!(
                 "{}: {} frames ({} skipped), localiser {:.0} frames/s ({:.2} ms), reading+preparing {:.1} ms per frame; motion model {}, derotation {}",
                 opts.out.display(),
@@ -85,13 +83,12 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             let model = crate::indoor::model::Model::load(&a.model).map_err(|e| anyhow!(e))?;
             let opts =
                 ApproachOptions { trials: a.trials, seed: a.seed, max_s: a.max_s, ..Default::default() };
-            let bar = progress_bar("approaches");
+            let bar = Progress::new("approaches", "trials");
             let rows = run(&model, &settings.indoor, &opts, |done, total| {
-                bar.set_length(total as u64);
-                bar.set_position(done as u64);
+                bar.set(done as u64, total as u64);
             })
             .map_err(|e| anyhow!(e))?;
-            bar.finish_and_clear();
+            bar.finish();
             std::fs::create_dir_all(&a.out)?;
             let path = a.out.join("landings.csv");
             crate::output::write_atomic(&path, crate::data::results::landings_csv(&rows).as_bytes())?;
@@ -107,6 +104,7 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         IndoorCommand::MapEval(a) => {
+            let bar = Progress::new("rendering views", "views");
             let e = crate::simulated::mapeval::evaluate(
                 &a.map,
                 a.metres_per_px,
@@ -114,12 +112,14 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 a.sigma_m,
                 &settings.indoor,
                 a.seed,
+                &|done, total| bar.set(done as u64, total as u64),
             )
             .map_err(|e| anyhow!(e))?;
+            bar.finish();
             let title = format!("{}: L(D) = {:.4} over {} views", a.map.display(), e.global_loss, e.views);
             let drawn = crate::indoor::mapeval::heatmap(&a.out, &e, 0.25, &title);
             if let Err(why) = &drawn {
-                eprintln!("mavloc indoor map-eval: heat map not written: {why}");
+                tracing::warn!("heat map not written: {why}");
             }
             if a.json {
                 println!(

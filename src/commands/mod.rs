@@ -44,14 +44,90 @@ fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded>
     Ok(settings::load(&Layers::from_process(file, overrides))?)
 }
 
-/// The progress bar of the commands that work through frames.
-fn progress_bar(what: &str) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(0);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames, {per_sec}, eta {eta}")
+/// Progress of a command that works through items (frames, views, trials): a bar on a
+/// terminal; otherwise a plain line at the first item, every [`PROGRESS_EVERY`] and at the
+/// end, so a long render under a pipe, a log file or CI is not minutes of silence.
+pub(crate) struct Progress {
+    bar: indicatif::ProgressBar,
+    what: String,
+    unit: &'static str,
+    terminal: bool,
+    start: std::time::Instant,
+    /// When the last line was written, and how far it said.
+    last: std::sync::Mutex<Option<(std::time::Instant, u64, u64)>>,
+}
+
+/// How often a progress line is written when stderr is not a terminal.
+const PROGRESS_EVERY: std::time::Duration = std::time::Duration::from_secs(10);
+
+impl Progress {
+    pub(crate) fn new(what: &str, unit: &'static str) -> Progress {
+        let terminal = crate::logging::stderr_is_terminal();
+        let bar = indicatif::ProgressBar::with_draw_target(Some(0), crate::logging::progress_target());
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(&format!(
+                "{{msg}} [{{bar:40}}] {{pos}}/{{len}} {unit}, {{per_sec}}, eta {{eta}}"
+            ))
             .expect("valid template")
             .progress_chars("=> "),
-    );
-    bar.set_message(what.to_string());
-    bar
+        );
+        bar.set_message(what.to_string());
+        Progress {
+            bar,
+            what: what.to_string(),
+            unit,
+            terminal,
+            start: std::time::Instant::now(),
+            last: std::sync::Mutex::new(None),
+        }
+    }
+
+    /// `done` of `total` items finished (callable from worker threads).
+    pub(crate) fn set(&self, done: u64, total: u64) {
+        self.bar.set_length(total);
+        self.bar.set_position(done);
+        if self.terminal {
+            return;
+        }
+        let mut last = self.last.lock().unwrap_or_else(|e| e.into_inner());
+        let due = match *last {
+            None => done > 0,
+            Some((at, _, _)) => at.elapsed() >= PROGRESS_EVERY,
+        };
+        if due {
+            *last = Some((std::time::Instant::now(), done, total));
+            self.line(done, total);
+        }
+    }
+
+    fn line(&self, done: u64, total: u64) {
+        use std::io::Write;
+        let secs = self.start.elapsed().as_secs_f64();
+        let rate = done as f64 / secs.max(1e-3);
+        let pct = 100.0 * done as f64 / total.max(1) as f64;
+        let eta = if done > 0 && done < total {
+            format!(", about {:.0} s left", (total - done) as f64 / rate)
+        } else {
+            String::new()
+        };
+        let _ = writeln!(
+            crate::logging::stderr(),
+            "mavloc: {}: {done}/{total} {} ({pct:.0} %), {rate:.1} {}/s{eta}",
+            self.what,
+            self.unit,
+            self.unit
+        );
+    }
+
+    /// Clears the bar; off a terminal, says where it ended if that was not said yet.
+    pub(crate) fn finish(self) {
+        self.bar.finish_and_clear();
+        if !self.terminal {
+            let last = *self.last.lock().unwrap_or_else(|e| e.into_inner());
+            let (done, total) = (self.bar.position(), self.bar.length().unwrap_or(0));
+            if last.is_none_or(|(_, d, t)| (d, t) != (done, total)) && total > 0 {
+                self.line(done, total);
+            }
+        }
+    }
 }

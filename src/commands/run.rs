@@ -19,7 +19,7 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     let loaded = match crate::settings::check(&layers) {
         Ok(l) => l,
         Err(e) => {
-            let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");
+            let _ = writeln!(crate::logging::stderr(), "mavloc: {e:#}");
             return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
         }
     };
@@ -45,7 +45,7 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     if let Err(e) = &result {
         if e.downcast_ref::<crate::daemon::Unusable>().is_some() {
             tracing::error!("{e:#}");
-            let _ = writeln!(std::io::stderr(), "mavloc: {e:#}");
+            let _ = writeln!(crate::logging::stderr(), "mavloc: {e:#}");
             return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
         }
     }

@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use anyhow::anyhow;
 
-use super::progress_bar;
+use super::Progress;
 use crate::cli::{RenderArgs, SimCommand};
 
 pub fn run(command: SimCommand) -> anyhow::Result<ExitCode> {
@@ -93,14 +93,13 @@ fn render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
         noise: Some(noise),
         force: args.force,
     };
-    let bar = progress_bar(&format!("rendering {}", scenario.name));
+    let bar = Progress::new(&format!("rendering {}", scenario.name), "frames");
     let start = std::time::Instant::now();
     let summary = render_dataset(&scenario, &opts, &args.out, |done, total| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
+        bar.set(done as u64, total as u64);
     })
     .map_err(|e| anyhow!(e))?;
-    bar.finish_and_clear();
+    bar.finish();
     println!(
         "{}: {} frames ({} dropped) of {} in {:.1} s",
         summary.dir.display(),

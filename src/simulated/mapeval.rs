@@ -13,7 +13,8 @@ use crate::indoor::mapeval::{self, MapEvaluation};
 use crate::settings::Indoor;
 use mavloc_sim::{views, Mission, Renderer, Scenario, World};
 
-/// Evaluates a floor image of `metres_per_px` from `count` synthetic views.
+/// Evaluates a floor image of `metres_per_px` from `count` synthetic views;
+/// `progress(done, count)` after each view is rendered (from worker threads).
 pub fn evaluate(
     map: &Path,
     metres_per_px: f64,
@@ -21,6 +22,7 @@ pub fn evaluate(
     sigma_m: f64,
     s: &Indoor,
     seed: u64,
+    progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<MapEvaluation, String> {
     let img = opencv::imgcodecs::imread(map, opencv::imgcodecs::IMREAD_COLOR)
         .map_err(|e| format!("cannot read map {}: {e}", map.display()))?;
@@ -52,6 +54,7 @@ pub fn evaluate(
     let mut pre = Preprocessor::new(k, s.work_width, s.derotate, (s.patch_w as usize, s.patch_h as usize));
     pre.normalise = s.normalise;
     let shots = views::random_views(&spec, count, seed);
+    let done = std::sync::atomic::AtomicUsize::new(0);
     let canvases: Vec<(Canvas, [f64; 2])> = shots
         .par_iter()
         .map(|(state, appearance)| {
@@ -60,6 +63,7 @@ pub fn evaluate(
             views::apply(appearance, frame.width as usize, frame.height as usize, &mut frame.rgb);
             let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
             let c = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
+            progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, count);
             Ok((c, [state.position.x, state.position.y]))
         })
         .collect::<Result<_, String>>()?;

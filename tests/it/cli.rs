@@ -307,7 +307,10 @@ fn a_forced_render_replaces_the_dataset_whole_and_a_failed_one_leaves_nothing() 
         }
         c.assert()
     };
-    render("5", false).success();
+    let first = render("5", false).success();
+    // Not a terminal here: progress comes as lines, from the first frame to the last.
+    let err = String::from_utf8_lossy(&first.get_output().stderr).to_string();
+    assert!(err.contains("rendering coastline: 1/5 frames") && err.contains("5/5 frames (100 %)"), "{err}");
     assert_eq!(std::fs::read_dir(ds.join("frames")).unwrap().count(), 5);
     let err = String::from_utf8_lossy(&render("2", false).failure().get_output().stderr).to_string();
     assert!(err.contains("--force"), "{err}");
@@ -437,4 +440,45 @@ fn a_missing_configuration_file_is_named_once() {
     let a = mavloc().args(["config", "check", "/nonexistent/mavloc.toml"]).assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert_eq!(err.matches("No such file").count(), 1, "{err}");
+}
+
+/// OpenCV's own log lines (here its video backends failing on a file that is no video)
+/// reach the log through `tracing`, target `opencv`, not as raw `[ WARN:0@...]` lines.
+#[test]
+fn opencv_log_lines_go_through_tracing() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("bad.mp4"), b"not a video").unwrap();
+    let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let config = dir.path().join("mavloc.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[camera]\nsource = \"file\"\npath = \"bad.mp4\"\n[mavlink]\nconnection = \"udpin:127.0.0.1:{port}\"\n\
+             [daemon]\nstate_dir = \"{}\"\n",
+            dir.path().join("state").display(),
+        ),
+    )
+    .unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .arg("--config")
+        .arg(&config)
+        .arg("run")
+        .env_remove("STATE_DIRECTORY")
+        .env_remove("NOTIFY_SOCKET")
+        .stderr(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(3));
+    // SAFETY: signalling our own child.
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let started = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() && started.elapsed().as_secs() < 10 {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("WARN opencv:"), "{err}");
+    assert!(!err.lines().any(|l| l.starts_with("[ WARN:")), "{err}");
 }
