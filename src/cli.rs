@@ -400,6 +400,9 @@ pub enum ConfigCommand {
 pub enum ParamsCommand {
     /// List the tuned values, their configuration keys and whether each is in force.
     List,
+    /// Print the table of every parameter (name, configuration key, type, unit, range,
+    /// default, meaning) in Markdown, as the README has it.
+    Doc,
     /// Forget a tuned value (or all of them): the configuration's value applies again
     /// from mavloc's next start.
     Reset {

@@ -43,6 +43,11 @@ pub fn tuned_layer(loaded: &mut Loaded) -> (PathBuf, Vec<Tuned>) {
 }
 
 pub fn run(command: ParamsCommand, global: Global) -> anyhow::Result<ExitCode> {
+    if let ParamsCommand::Doc = command {
+        // Needs no configuration: it describes the parameters, not this machine's values.
+        print!("{}", crate::link::metadata::markdown_table());
+        return Ok(ExitCode::SUCCESS);
+    }
     let loaded = global.load()?;
     let path = params_file(&loaded);
     match command {
@@ -97,5 +102,6 @@ pub fn run(command: ParamsCommand, global: Global) -> anyhow::Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
+        ParamsCommand::Doc => unreachable!("answered above"),
     }
 }

@@ -10,6 +10,7 @@
 //! * [`transport`]: serial, UDP and TCP with reconnection; the only part that does I/O.
 
 pub mod codec;
+pub mod metadata;
 pub mod params;
 pub mod peers;
 pub mod signing;

@@ -564,7 +564,17 @@ pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
 
 /// Range and consistency checks on merged settings.
 pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem> {
-    let mut v = Validator { origins, problems: Vec::new() };
+    checked(s, origins).problems
+}
+
+/// The allowed range of every key that has one (for the defaults: a bound that depends on
+/// another key, such as `area.turnover` below `area.l_max`, is the default's).
+pub fn ranges() -> BTreeMap<String, (f64, f64)> {
+    checked(&Settings::default(), &BTreeMap::new()).ranges
+}
+
+fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator<'a> {
+    let mut v = Validator { origins, problems: Vec::new(), ranges: BTreeMap::new() };
 
     // [daemon]
     v.range("daemon.max_frame_age_s", s.daemon.max_frame_age_s, 0.01, 60.0);
@@ -710,7 +720,7 @@ pub fn validate(s: &Settings, origins: &BTreeMap<String, String>) -> Vec<Problem
         );
     }
 
-    v.problems
+    v
 }
 
 fn quote(s: &str) -> String {
@@ -720,6 +730,9 @@ fn quote(s: &str) -> String {
 struct Validator<'a> {
     origins: &'a BTreeMap<String, String>,
     problems: Vec<Problem>,
+    /// Every range checked, so the parameter table and metadata state the very bounds
+    /// the check applies ([`ranges`]).
+    ranges: BTreeMap<String, (f64, f64)>,
 }
 
 impl Validator<'_> {
@@ -738,12 +751,14 @@ impl Validator<'_> {
     }
 
     fn range(&mut self, key: &str, value: f64, min: f64, max: f64) {
+        self.ranges.insert(key.into(), (min, max));
         if !(value.is_finite() && value >= min && value <= max) {
             self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
         }
     }
 
     fn range_int(&mut self, key: &str, value: i64, min: i64, max: i64) {
+        self.ranges.insert(key.into(), (min as f64, max as f64));
         if value < min || value > max {
             self.problem(key, value.to_string(), format!("out of range; allowed {min} ..= {max}"));
         }

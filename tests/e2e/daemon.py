@@ -477,6 +477,74 @@ def test_corrupt_state_files_are_moved_aside():
     assert aside, f"params.json was not moved aside: {os.listdir(d.state)}"
 
 
+def ftp_get(c, path, local):
+    """Downloads `path` from mavloc's MAVLink FTP server with pymavlink's own client."""
+    from pymavlink import mavftp
+    ftp = mavftp.MAVFTP(c, 1, MAVLOC_COMP)
+    ftp.cmd_get([path, local])
+    ret = ftp.process_ftp_reply("OpenFileRO", timeout=10)
+    assert ret.error_code == 0, f"FTP get {path}: error {ret.error_code}"
+    with open(local, "rb") as f:
+        return f.read()
+
+
+def component_metadata(c, timeout=5.0):
+    """COMPONENT_METADATA (397), decoded by hand: pymavlink 2.4.50's dialects predate it,
+    so it arrives as UNKNOWN_397 holding the whole MAVLink 2 frame."""
+    import struct
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        m = c.recv_match(type="UNKNOWN_397", blocking=True, timeout=0.2)
+        if m is None:
+            continue
+        raw = bytes(m.data)
+        if len(raw) < 12 or raw[0] != 0xFD or raw[7] | raw[8] << 8 | raw[9] << 16 != 397:
+            continue
+        if raw[6] != MAVLOC_COMP:
+            continue
+        payload = raw[10:10 + raw[1]].ljust(108, b"\0")  # MAVLink 2 trims trailing zeros
+        time_boot_ms, file_crc = struct.unpack("<II", payload[:8])
+        return time_boot_ms, file_crc, payload[8:].split(b"\0")[0].decode()
+    raise AssertionError(f"no COMPONENT_METADATA from mavloc within {timeout} s")
+
+
+def test_component_metadata_over_mavlink_ftp():
+    """COMPONENT_METADATA names general.json; both files come over MAVLink FTP with the
+    CRCs announced, and parameters.json describes every parameter PARAM_VALUE lists."""
+    import zlib
+    d = Daemon()
+    try:
+        c = d.connect()
+        hello(c)
+        c.mav.command_long_send(1, MAVLOC_COMP, mav2.MAV_CMD_REQUEST_MESSAGE, 0, 397, 0, 0, 0, 0, 0, 0)
+        time_boot_ms, file_crc, uri = component_metadata(c)
+        assert time_boot_ms > 0
+        assert uri.startswith(f"mftp://[;comp={MAVLOC_COMP}]/"), uri
+        general_bytes = ftp_get(c, uri.split("]", 1)[1], os.path.join(d.dir, "general.json"))
+        assert zlib.crc32(general_bytes) == file_crc, "general.json's CRC is the one announced"
+        general = json.loads(general_bytes)
+        (entry,) = [t for t in general["metadataTypes"] if t["type"] == 1]
+        params_bytes = ftp_get(c, entry["uri"].split("]", 1)[1], os.path.join(d.dir, "parameters.json"))
+        assert zlib.crc32(params_bytes) == entry["fileCrc"]
+        described = {p["name"]: p for p in json.loads(params_bytes)["parameters"]}
+        listed = {v.param_id for v in param_list(c).values()}
+        assert set(described) == listed, set(described) ^ listed
+        r = described["IND_LAND_R"]
+        assert r["units"] == "m" and r["min"] == 0.05 and r["max"] == 100 and r["default"] == 0.6, r
+        assert "landing zone radius" in r["shortDesc"], r
+        # Read-only: a write is refused, and the files are unchanged.
+        from pymavlink import mavftp
+        ftp = mavftp.MAVFTP(c, 1, MAVLOC_COMP)
+        ftp.cmd_rm(["/mavloc/parameters.json"])
+        ret = ftp.process_ftp_reply("RemoveFile", timeout=5)
+        assert ret.error_code != 0, "a remove must be refused"
+        again = ftp_get(c, entry["uri"].split("]", 1)[1], os.path.join(d.dir, "again.json"))
+        assert again == params_bytes
+        c.close()
+    finally:
+        assert d.stop() == 0
+
+
 TESTS = {n: f for n, f in globals().items() if n.startswith("test_")}
 
 if __name__ == "__main__":

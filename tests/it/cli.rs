@@ -482,3 +482,17 @@ fn opencv_log_lines_go_through_tracing() {
     assert!(err.contains("WARN opencv:"), "{err}");
     assert!(!err.lines().any(|l| l.starts_with("[ WARN:")), "{err}");
 }
+
+/// The README's parameter table is the one the code generates (`mavloc params doc`).
+#[test]
+fn the_readme_parameter_table_matches_the_code() {
+    let generated = stdout_of(mavloc().args(["params", "doc"]));
+    let readme = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+    let start = readme.find("<!-- params:begin -->\n").expect("README has the table's start marker");
+    let end = readme.find("<!-- params:end -->").expect("README has the table's end marker");
+    let table = &readme[start + "<!-- params:begin -->\n".len()..end];
+    assert_eq!(table, generated, "regenerate with `mavloc params doc` between the markers");
+    assert!(
+        generated.contains("| `IND_LAND_R` | `indoor.landing_radius_m` | float | m | 0.05 ..= 100 | 0.6 |")
+    );
+}

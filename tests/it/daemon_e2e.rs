@@ -70,3 +70,8 @@ fn an_unusable_state_directory_exits_78_naming_it() {
 fn corrupt_state_files_are_moved_aside_and_mavloc_starts() {
     run_python(&["test_corrupt_state_files_are_moved_aside"], Duration::from_secs(30));
 }
+
+#[test]
+fn component_metadata_is_served_over_mavlink_ftp() {
+    run_python(&["test_component_metadata_over_mavlink_ftp"], Duration::from_secs(60));
+}

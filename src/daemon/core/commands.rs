@@ -8,7 +8,8 @@
 //!   1 area, 2 indoor), param2 = action (0 stop, 1 start, 2 reset).
 //! * `MAV_CMD_USER_2` (31011), result snapshot: writes the current results to the state
 //!   directory; acknowledged `IN_PROGRESS`, then `ACCEPTED` or `FAILED`.
-//! * `MAV_CMD_REQUEST_MESSAGE` (512) for HEARTBEAT (0) and PARAM_VALUE (22, param2 = index).
+//! * `MAV_CMD_REQUEST_MESSAGE` (512) for HEARTBEAT (0), PARAM_VALUE (22, param2 = index)
+//!   and COMPONENT_METADATA (397: where the parameter metadata is, over MAVLink FTP).
 
 use std::collections::BTreeMap;
 
@@ -30,6 +31,7 @@ pub enum Decision {
     Snapshot,
     SendHeartbeat,
     SendParam(usize),
+    SendMetadata,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -70,6 +72,8 @@ pub fn decide(c: &COMMAND_LONG_DATA, broadcast: bool, configured: PipelineKind, 
             let index = c.param2;
             if c.param1 == 0.0 {
                 Decision::SendHeartbeat
+            } else if c.param1 == 397.0 {
+                Decision::SendMetadata
             } else if c.param1 == 22.0 && index >= 0.0 && index.fract() == 0.0 && (index as usize) < params {
                 Decision::SendParam(index as usize)
             } else {

@@ -26,6 +26,7 @@
 pub mod autopilot;
 pub mod commands;
 pub mod events;
+pub mod ftp;
 pub mod gimbal;
 pub mod gpsdenied;
 pub mod health;
@@ -303,6 +304,9 @@ pub struct Core {
     streams: Streams,
     timesync: TimeSync,
     params: ParamPacer,
+    /// MAVLink FTP with the component metadata files; `metadata_general` is general.json.
+    ftp: ftp::FtpServer,
+    metadata_general: Vec<u8>,
     gimbal: Gimbal,
     landing: Landing,
     gps: GpsDenied,
@@ -348,6 +352,7 @@ impl Core {
     ) -> Core {
         let m = &settings.mavlink;
         let system_id = if m.system_id == 0 { m.autopilot_system_id } else { m.system_id };
+        let metadata_files = crate::link::metadata::files(m.component_id);
         let mut core = Core {
             component_id: m.component_id,
             system_id,
@@ -357,6 +362,8 @@ impl Core {
             streams: Streams::new(wants_truth(&settings)),
             timesync: TimeSync::default(),
             params: ParamPacer::new(param_table::PARAMS.len()),
+            ftp: ftp::FtpServer::new(metadata_files.clone()),
+            metadata_general: metadata_files[crate::link::metadata::GENERAL_PATH].clone(),
             gimbal: Gimbal::default(),
             landing: Landing::default(),
             gps: GpsDenied::new(gps_origin(&settings), (settings.indoor.pad_x_m, settings.indoor.pad_y_m)),
@@ -572,6 +579,7 @@ impl Core {
             self.gps.deadline(),
             self.gimbal.deadline(),
             self.params.deadline(),
+            self.ftp.deadline(),
         ])
     }
 
@@ -593,8 +601,8 @@ impl Core {
         let message = self
             .poll_heartbeat()
             .or_else(|| {
-                if let Some(line) = self.streams.poll_summary() {
-                    self.notes.warn(&line);
+                if let Some((line, short)) = self.streams.poll_summary() {
+                    self.notes.warn_short(&line, &short);
                 }
                 self.notes.pop()
             })
@@ -612,6 +620,7 @@ impl Core {
             .or_else(|| self.timesync.poll_transmit(now, target))
             .or_else(|| self.landing.poll_transmit(now, target))
             .or_else(|| self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id)))
+            .or_else(|| self.ftp.poll(now).map(|(to, payload)| ftp_message(to, payload)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;
         Some(Outgoing {
             system_id: self.system_id,
@@ -846,6 +855,22 @@ impl Core {
                 let name = param_name(&p.param_id).unwrap_or_default();
                 self.param_set(rx, &f, &name, Wire { value: p.param_value, ty: p.param_type });
             }
+            MavMessage::FILE_TRANSFER_PROTOCOL(m)
+                if self.for_us(m.target_system, m.target_component, false) =>
+            {
+                // The files are public (parameter metadata) but the server's time is not:
+                // only the peers allowed to command mavloc use it.
+                if let Err(why) = self.trusted(&f) {
+                    self.counters.commands_refused += 1;
+                    if self.peer_lines.allow(from, rx) {
+                        tracing::warn!("refused MAVLink FTP from {}/{}: {why}", from.0, from.1);
+                    }
+                    return;
+                }
+                if let Some(reply) = self.ftp.on_request(rx, from, &m.payload) {
+                    self.reply(ftp_message(from, reply));
+                }
+            }
             MavMessage::COMMAND_LONG(c) if self.for_us(c.target_system, c.target_component, true) => {
                 let broadcast = c.target_component == 0 || c.target_system == 0;
                 self.on_command(rx, &f, c, broadcast);
@@ -1078,6 +1103,18 @@ impl Core {
             Decision::SendParam(i) => {
                 ack(self, MavResult::MAV_RESULT_ACCEPTED);
                 self.params.on_single(i);
+            }
+            Decision::SendMetadata => {
+                ack(self, MavResult::MAV_RESULT_ACCEPTED);
+                let general = &self.metadata_general;
+                let uri =
+                    format!("mftp://[;comp={}]{}", self.component_id, crate::link::metadata::GENERAL_PATH);
+                let m = MavMessage::COMPONENT_METADATA(COMPONENT_METADATA_DATA {
+                    time_boot_ms: (rx.secs() * 1000.0) as u32,
+                    file_crc: crc32fast::hash(general),
+                    uri: uri.as_str().into(),
+                });
+                self.reply(m);
             }
             Decision::Snapshot => {
                 ack(self, MavResult::MAV_RESULT_IN_PROGRESS);
@@ -1375,6 +1412,16 @@ impl Core {
             self.notes.push(MavSeverity::MAV_SEVERITY_NOTICE, &line);
         }
     }
+}
+
+/// A MAVLink FTP payload to `to`.
+fn ftp_message(to: (u8, u8), payload: [u8; ftp::PAYLOAD]) -> MavMessage {
+    MavMessage::FILE_TRANSFER_PROTOCOL(FILE_TRANSFER_PROTOCOL_DATA {
+        target_network: 0,
+        target_system: to.0,
+        target_component: to.1,
+        payload,
+    })
 }
 
 fn param_name(id: &mavlink::types::CharArray<16>) -> Option<String> {

@@ -19,6 +19,12 @@ const CAP: usize = 64;
 const CHUNK: usize = 50;
 
 impl Notes {
+    /// Logs `log` as a warning and sends only `short`, which fits one STATUSTEXT.
+    pub fn warn_short(&mut self, log: &str, short: &str) {
+        tracing::warn!("{log}");
+        self.queue_text(MavSeverity::MAV_SEVERITY_WARNING, short);
+    }
+
     /// Queues `text` (prefixed "mavloc: ") and logs it at the matching level.
     pub fn push(&mut self, severity: MavSeverity, text: &str) {
         match severity {
@@ -29,6 +35,11 @@ impl Notes {
             MavSeverity::MAV_SEVERITY_WARNING => tracing::warn!("{text}"),
             _ => tracing::info!("{text}"),
         }
+        self.queue_text(severity, text);
+    }
+
+    /// The STATUSTEXT chunks of `text`, queued.
+    fn queue_text(&mut self, severity: MavSeverity, text: &str) {
         let line = format!("mavloc: {text}");
         let chunks: Vec<&[u8]> = line.as_bytes().chunks(CHUNK).collect();
         // A multi-chunk text shares a non-zero id so the receiver can reassemble it.

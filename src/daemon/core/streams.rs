@@ -141,8 +141,9 @@ impl Streams {
         }
     }
 
-    /// Once every stream has settled: one line naming those that failed, if any.
-    pub fn poll_summary(&mut self) -> Option<String> {
+    /// Once every stream has settled, if any failed: a log line naming them, and a short
+    /// line that fits one STATUSTEXT (a ground station shows split texts as pieces).
+    pub fn poll_summary(&mut self) -> Option<(String, String)> {
         if !self.active
             || self.reported
             || self.states.iter().any(|s| matches!(s, StreamState::Pending { .. }))
@@ -155,7 +156,13 @@ impl Streams {
             .map(|i| self.list[i].1)
             .collect();
         (!failed.is_empty()).then(|| {
-            format!("autopilot refused or did not acknowledge these stream requests: {}", failed.join(", "))
+            (
+                format!(
+                    "autopilot refused or did not acknowledge these stream requests: {}",
+                    failed.join(", ")
+                ),
+                format!("{} of {} streams not set up (see log)", failed.len(), self.list.len()),
+            )
         })
     }
 }
@@ -207,8 +214,9 @@ mod tests {
             }
         }
         assert_eq!(sent, TRIES as usize * STREAMS.len());
-        let line = s.poll_summary().expect("reported");
+        let (line, short) = s.poll_summary().expect("reported");
         assert!(line.contains("ATTITUDE") && line.contains("EXTENDED_SYS_STATE"), "{line}");
+        assert!(format!("mavloc: {short}").len() <= 50, "one STATUSTEXT: {short}");
         assert_eq!(s.poll_summary(), None, "once");
     }
 }
