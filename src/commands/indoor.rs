@@ -65,6 +65,13 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             })
             .map_err(|e| anyhow!(e))?;
             bar.finish();
+            if s.frames == 0 {
+                anyhow::bail!(
+                    "no frame of {} could be used ({} skipped; the log names each and why)",
+                    opts.dataset.display(),
+                    s.skipped_frames
+                );
+            }
             println!(
                 "{}: {} frames ({} skipped), localiser {:.0} frames/s ({:.2} ms), reading+preparing {:.1} ms per frame; motion model {}, derotation {}",
                 opts.out.display(),

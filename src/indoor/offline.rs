@@ -85,10 +85,10 @@ fn pose_rotation(r: &TelemetryRecord, ds: &Dataset) -> mavloc_geometry::Rot3 {
 /// Reads and prepares one frame; `None` (with a warning) when it is unreadable.
 fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<Canvas> {
     let path = ds.frame_path(r);
-    let img = match imgcodecs::imread(&path, imgcodecs::IMREAD_COLOR) {
-        Ok(m) if !m.empty() => m,
-        _ => {
-            tracing::warn!(frame = r.frame, path = %path.display(), "unreadable frame, skipped");
+    let img = match crate::imaging::read_image(&path, imgcodecs::IMREAD_COLOR) {
+        Ok(m) => m,
+        Err(why) => {
+            tracing::warn!(frame = r.frame, "frame skipped: {why}");
             return None;
         }
     };
