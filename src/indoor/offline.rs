@@ -16,7 +16,6 @@ use std::time::Instant;
 
 use nalgebra::{Matrix2, Vector2};
 use opencv::imgcodecs;
-use opencv::prelude::*;
 use rand::SeedableRng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
