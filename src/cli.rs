@@ -69,7 +69,8 @@ pub enum Command {
 
 #[derive(Debug, Subcommand)]
 pub enum ImportCommand {
-    /// Geotagged drone photos (EXIF GPS, DJI XMP gimbal and flight attitude) to a dataset.
+    /// Geotagged drone photos to a dataset: DJI (EXIF GPS, XMP gimbal and flight attitude)
+    /// or senseFly (XMP position and attitude, camera fixed to the airframe).
     Photos {
         /// Folder of JPEG photos.
         dir: PathBuf,
@@ -82,6 +83,10 @@ pub enum ImportCommand {
         /// Replace a non-empty output folder whole (an edited mavloc.toml in it is kept).
         #[arg(long)]
         force: bool,
+        /// A camera fixed to the airframe (senseFly photos): its yaw, pitch, roll relative
+        /// to the body in degrees (default 0,-90,0: straight down, image top to the nose).
+        #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
+        mount_deg: Option<[f64; 3]>,
     },
 }
 

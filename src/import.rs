@@ -5,8 +5,11 @@
 //! FocalLengthIn35mmFilm; pixel size) with `kamadak-exif`, and DJI's XMP packet
 //! (`drone-dji:` AbsoluteAltitude, RelativeAltitude, Gimbal{Roll,Yaw,Pitch}Degree,
 //! Flight{Roll,Yaw,Pitch}Degree) with `quick-xml`, whether written as attributes or as
-//! elements. A photo missing any tag the pose needs is reported by name and skipped, never
-//! guessed.
+//! elements. senseFly photos (`sensefly:` XMP: Latitude, Longitude, AltitudeAMSL, Height,
+//! Heading, PitchAngle, RollAngle, UTCTime) import with the camera fixed to the body. A
+//! photo missing any tag the pose needs is reported by name and skipped, never guessed.
+//! Before anything is written, consecutive photos are checked against each other for a
+//! half-turned image (`area::imageup`).
 //!
 //! Conventions (documented assumptions):
 //! - Local NED around the first photo (by capture time): north/east from its latitude and
@@ -63,14 +66,36 @@ pub struct PhotoTags {
     pub focal_35mm: Option<f64>,
     pub absolute_alt_m: f64,
     pub relative_alt_m: f64,
-    /// Gimbal yaw, pitch, roll, degrees.
+    /// Gimbal yaw, pitch, roll, degrees: earth-frame (DJI) or, for a camera fixed to the
+    /// body, the mount relative to the body.
     pub gimbal_deg: [f64; 3],
     /// Vehicle roll, pitch, yaw, degrees.
     pub flight_deg: [f64; 3],
+    /// Whose tags gave the pose: "dji" (gimbal angles in the earth frame) or "sensefly"
+    /// (the aircraft's attitude; the camera is fixed to the body).
+    pub vendor: String,
+    /// Focal length in pixels of this file from EXIF FocalLength and FocalPlaneXResolution,
+    /// when both are there (scaled from the EXIF image width to the file's).
+    pub focal_px: Option<f64>,
+}
+
+/// Where the camera's attitude comes from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Vendor {
+    /// DJI: gimbal angles in the earth frame (`drone-dji:` XMP).
+    Dji,
+    /// senseFly: the aircraft's heading, pitch and roll (`sensefly:` XMP); the camera is
+    /// fixed to the airframe.
+    SenseFly,
 }
 
 /// `drone-dji:` values of a JPEG's XMP packet, attribute or element form.
 pub fn dji_xmp(jpeg: &[u8]) -> BTreeMap<String, String> {
+    xmp_values(jpeg, "drone-dji:")
+}
+
+/// The values under one namespace prefix (e.g. `sensefly:`) of a JPEG's XMP packet.
+pub fn xmp_values(jpeg: &[u8], prefix: &str) -> BTreeMap<String, String> {
     use quick_xml::events::Event;
     let mut out = BTreeMap::new();
     let (Some(start), Some(end)) = (find(jpeg, b"<x:xmpmeta"), find(jpeg, b"</x:xmpmeta>")) else {
@@ -88,12 +113,12 @@ pub fn dji_xmp(jpeg: &[u8]) -> BTreeMap<String, String> {
             Ok(Event::Start(e)) | Ok(Event::Empty(e)) => {
                 for a in e.attributes().flatten() {
                     let key = String::from_utf8_lossy(a.key.as_ref()).to_string();
-                    if let Some(k) = key.strip_prefix("drone-dji:") {
+                    if let Some(k) = key.strip_prefix(prefix) {
                         out.insert(k.to_string(), String::from_utf8_lossy(&a.value).trim().to_string());
                     }
                 }
                 let name = String::from_utf8_lossy(e.name().as_ref()).to_string();
-                element = name.strip_prefix("drone-dji:").map(str::to_string);
+                element = name.strip_prefix(prefix).map(str::to_string);
             }
             Ok(Event::Text(t)) => {
                 if let Some(k) = element.take() {
@@ -126,93 +151,192 @@ fn rational_f64(f: &exif::Field, i: usize) -> Option<f64> {
     }
 }
 
-/// Reads a photo's tags; the error names the photo and every missing tag.
+/// Reads a photo's tags; the error names the photo and every missing tag. The size is the
+/// JPEG's own (its frame header), not EXIF's, which some cameras leave at the sensor's
+/// (the senseFly sample says 4000x3000 in files of 3600x2700). EXIF that cannot be parsed
+/// (an odd maker block) is not fatal when the XMP has what the pose needs.
 pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let bytes = std::fs::read(path).map_err(|e| format!("{name}: {e}"))?;
-    let exif = exif::Reader::new()
-        .read_from_container(&mut std::io::Cursor::new(&bytes))
-        .map_err(|e| format!("{name}: no readable EXIF ({e})"))?;
-    let field = |t| exif.get_field(t, exif::In::PRIMARY);
+    let (width, height) = jpeg_size(&bytes).ok_or_else(|| format!("{name}: not a JPEG (no frame header)"))?;
+    let exif = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes));
+    let dji = xmp_values(&bytes, "drone-dji:");
+    let sensefly = xmp_values(&bytes, "sensefly:");
+    let vendor = if !dji.is_empty() {
+        Vendor::Dji
+    } else if !sensefly.is_empty() {
+        Vendor::SenseFly
+    } else {
+        let why = match &exif {
+            Ok(_) => "no DJI or senseFly XMP: the camera's attitude is not in the photo".to_string(),
+            Err(e) => format!("no readable EXIF ({e}) and no DJI or senseFly XMP"),
+        };
+        return Err(format!("{name}: {why}"));
+    };
+    let exif = match (exif, vendor) {
+        (Ok(e), _) => Some(e),
+        (Err(e), Vendor::Dji) => return Err(format!("{name}: no readable EXIF ({e})")),
+        (Err(e), Vendor::SenseFly) => {
+            tracing::warn!("{name}: EXIF unreadable ({e}); position and attitude from XMP");
+            None
+        }
+    };
+    let field = |t| exif.as_ref().and_then(|e| e.get_field(t, exif::In::PRIMARY));
     let mut missing: Vec<&str> = Vec::new();
-    let dms = |t, r, label: &'static str, missing: &mut Vec<&str>| -> f64 {
+    let dms = |t, r| -> Option<f64> {
         let v = field(t).and_then(|f| {
             let (d, m, s) = (rational_f64(f, 0)?, rational_f64(f, 1)?, rational_f64(f, 2)?);
             Some(d + m / 60.0 + s / 3600.0)
-        });
+        })?;
         let sign = match field(r).map(|f| f.display_value().to_string()) {
             Some(s) if s.starts_with('S') || s.starts_with('W') => -1.0,
             _ => 1.0,
         };
-        match v {
-            Some(v) => sign * v,
-            None => {
-                missing.push(label);
-                f64::NAN
-            }
-        }
+        Some(sign * v)
     };
-    let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef, "GPSLatitude", &mut missing);
-    let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef, "GPSLongitude", &mut missing);
     let gps_alt = field(exif::Tag::GPSAltitude).and_then(|f| rational_f64(f, 0));
     let below = field(exif::Tag::GPSAltitudeRef).and_then(|f| f.value.get_uint(0)) == Some(1);
     let gps_alt = gps_alt.map(|a| if below { -a } else { a });
-    let time = field(exif::Tag::DateTimeOriginal)
+    let exif_time = field(exif::Tag::DateTimeOriginal)
         .or_else(|| field(exif::Tag::DateTime))
-        .map(|f| f.display_value().to_string().replace('-', ":"))
-        .unwrap_or_default();
-    if time.is_empty() {
-        missing.push("DateTimeOriginal");
-    }
+        .map(|f| f.display_value().to_string().replace('-', ":"));
     let focal_mm = field(exif::Tag::FocalLength).and_then(|f| rational_f64(f, 0));
     let focal_35mm =
         field(exif::Tag::FocalLengthIn35mmFilm).and_then(|f| f.value.get_uint(0)).map(|v| v as f64);
-    let size = (
-        field(exif::Tag::PixelXDimension).and_then(|f| f.value.get_uint(0)),
-        field(exif::Tag::PixelYDimension).and_then(|f| f.value.get_uint(0)),
-    );
-    let xmp = dji_xmp(&bytes);
-    let mut num = |key: &'static str| -> f64 {
+    // Pixels per millimetre on the focal plane, at the EXIF image width.
+    let plane = field(exif::Tag::FocalPlaneXResolution).and_then(|f| rational_f64(f, 0)).and_then(|r| {
+        let unit_mm = match field(exif::Tag::FocalPlaneResolutionUnit).and_then(|f| f.value.get_uint(0)) {
+            Some(3) => 10.0,
+            Some(4) => 1.0,
+            Some(5) => 0.001,
+            _ => 25.4, // 2 = inch, the default
+        };
+        (r > 0.0).then_some(r / unit_mm)
+    });
+    let exif_width = field(exif::Tag::PixelXDimension).and_then(|f| f.value.get_uint(0)).filter(|&w| w > 0);
+    let focal_px = match (focal_mm, plane) {
+        (Some(f), Some(px_per_mm)) => {
+            Some(f * px_per_mm * exif_width.map_or(1.0, |w| width as f64 / w as f64))
+        }
+        _ => None,
+    };
+    let mut num = |xmp: &BTreeMap<String, String>, key: &'static str| -> f64 {
         match xmp.get(key).and_then(|v| v.trim_start_matches('+').parse::<f64>().ok()) {
-            Some(v) => v,
-            None => {
+            Some(v) if v.is_finite() => v,
+            _ => {
                 missing.push(key);
                 f64::NAN
             }
         }
     };
-    let absolute = num("AbsoluteAltitude");
-    let relative = num("RelativeAltitude");
-    let gimbal = [num("GimbalYawDegree"), num("GimbalPitchDegree"), num("GimbalRollDegree")];
-    let flight = [num("FlightRollDegree"), num("FlightPitchDegree"), num("FlightYawDegree")];
-    if focal_35mm.is_none() {
-        missing.push("FocalLengthIn35mmFilm");
-    }
-    let (width, height) = match size {
-        (Some(w), Some(h)) if w > 0 && h > 0 => (w, h),
-        _ => {
-            missing.push("PixelXDimension/PixelYDimension");
-            (0, 0)
+    let tags = match vendor {
+        Vendor::Dji => {
+            let absolute = num(&dji, "AbsoluteAltitude");
+            let relative = num(&dji, "RelativeAltitude");
+            let gimbal =
+                [num(&dji, "GimbalYawDegree"), num(&dji, "GimbalPitchDegree"), num(&dji, "GimbalRollDegree")];
+            let flight =
+                [num(&dji, "FlightRollDegree"), num(&dji, "FlightPitchDegree"), num(&dji, "FlightYawDegree")];
+            let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
+            let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
+            if lat.is_none() {
+                missing.push("GPSLatitude");
+            }
+            if lon.is_none() {
+                missing.push("GPSLongitude");
+            }
+            if focal_35mm.is_none() && focal_px.is_none() {
+                missing.push("FocalLengthIn35mmFilm");
+            }
+            PhotoTags {
+                name: name.clone(),
+                width,
+                height,
+                lat_deg: lat.unwrap_or(f64::NAN),
+                lon_deg: lon.unwrap_or(f64::NAN),
+                gps_alt_m: gps_alt.unwrap_or(absolute),
+                time: exif_time.clone().unwrap_or_default(),
+                focal_mm,
+                focal_35mm,
+                absolute_alt_m: absolute,
+                relative_alt_m: relative,
+                gimbal_deg: gimbal,
+                flight_deg: flight,
+                vendor: "dji".into(),
+                focal_px,
+            }
+        }
+        Vendor::SenseFly => {
+            // senseFly writes its own position (the EXIF GPS repeats it, rounded), the
+            // altitude above sea level and `Height`, a fixed offset below it (take-off
+            // height), and the aircraft's heading, pitch and roll.
+            let lat = num(&sensefly, "Latitude");
+            let lon = num(&sensefly, "Longitude");
+            let absolute = num(&sensefly, "AltitudeAMSL");
+            let relative = num(&sensefly, "Height");
+            let attitude =
+                [num(&sensefly, "RollAngle"), num(&sensefly, "PitchAngle"), num(&sensefly, "Heading")];
+            // UTC "2013-06-04T17:50:37" (the camera's own clock is off by hours and seconds).
+            let time =
+                sensefly.get("UTCTime").map(|t| t.replace('-', ":").replace('T', " ")).or(exif_time.clone());
+            if focal_35mm.is_none() && focal_px.is_none() {
+                missing.push("FocalLength with FocalPlaneXResolution");
+            }
+            PhotoTags {
+                name: name.clone(),
+                width,
+                height,
+                lat_deg: lat,
+                lon_deg: lon,
+                gps_alt_m: gps_alt.unwrap_or(absolute),
+                time: time.unwrap_or_default(),
+                focal_mm,
+                focal_35mm,
+                absolute_alt_m: absolute,
+                relative_alt_m: relative,
+                gimbal_deg: [0.0, -90.0, 0.0],
+                flight_deg: attitude,
+                vendor: "sensefly".into(),
+                focal_px,
+            }
         }
     };
+    if tags.time.is_empty() {
+        missing.push("DateTimeOriginal");
+    }
     if !missing.is_empty() {
         return Err(format!("{name}: missing {}", missing.join(", ")));
     }
-    Ok(PhotoTags {
-        name,
-        width,
-        height,
-        lat_deg: lat,
-        lon_deg: lon,
-        gps_alt_m: gps_alt.unwrap_or(absolute),
-        time,
-        focal_mm,
-        focal_35mm,
-        absolute_alt_m: absolute,
-        relative_alt_m: relative,
-        gimbal_deg: gimbal,
-        flight_deg: flight,
-    })
+    Ok(tags)
+}
+
+/// Width and height from a JPEG's start-of-frame marker (SOF0..SOF15 but DHT, JPG, DAC).
+pub fn jpeg_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    if !bytes.starts_with(&[0xFF, 0xD8]) {
+        return None;
+    }
+    let mut i = 2;
+    while i + 9 < bytes.len() {
+        if bytes[i] != 0xFF {
+            return None;
+        }
+        let marker = bytes[i + 1];
+        if marker == 0xFF {
+            i += 1; // fill byte
+            continue;
+        }
+        let len = u16::from_be_bytes([bytes[i + 2], bytes[i + 3]]) as usize;
+        if (0xC0..=0xCF).contains(&marker) && ![0xC4, 0xC8, 0xCC].contains(&marker) {
+            let h = u16::from_be_bytes([bytes[i + 5], bytes[i + 6]]) as u32;
+            let w = u16::from_be_bytes([bytes[i + 7], bytes[i + 8]]) as u32;
+            return (w > 0 && h > 0).then_some((w, h));
+        }
+        if marker == 0xDA {
+            return None; // image data before any frame header
+        }
+        i += 2 + len;
+    }
+    None
 }
 
 /// Seconds since 0000-01-01 of an EXIF time, for ordering and intervals.
@@ -284,6 +408,19 @@ fn undistort_photo(src: &Path, dest: &Path, c: &Calibration) -> Result<(), Strin
     Ok(())
 }
 
+/// How to import.
+#[derive(Clone, Debug, Default)]
+pub struct ImportOptions {
+    /// Intrinsics (and distortion) instead of the estimate from the EXIF focal length.
+    pub calibration: Option<PathBuf>,
+    /// Replace a non-empty output folder (`--force`).
+    pub replace: bool,
+    /// For a camera fixed to the airframe (senseFly): its yaw, pitch, roll relative to the
+    /// body, degrees; default `[0, -90, 0]`, looking straight down with the image's top
+    /// towards the nose.
+    pub mount_deg: Option<[f64; 3]>,
+}
+
 /// What an import did.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct ImportReport {
@@ -295,17 +432,74 @@ pub struct ImportReport {
     pub origin: Option<Geodetic>,
     /// Set when the user's edited settings file was kept (and why).
     pub kept_settings: Option<String>,
+    /// Median ground disagreement of consecutive overlapping photos, after any turn, m.
+    pub overlap_median_m: Option<f64>,
+    /// Photos whose image was found turned half a turn from their tags (yaw corrected).
+    pub turned: Vec<String>,
+}
+
+/// Nadir within this: turning the image about the optical axis is then a yaw of 180 deg.
+const NADIR_TOLERANCE_DEG: f64 = 15.0;
+
+/// Runs the image-up check on the written frames and corrects the yaw of turned photos.
+/// Returns the median ground disagreement after correction and the turned indices.
+fn image_up(
+    dir: &Path,
+    camera: &CameraFile,
+    records: &mut [TelemetryRecord],
+) -> Result<(Option<f64>, Vec<usize>), String> {
+    use crate::area::imageup;
+    let k = camera.intrinsics();
+    let pose = |r: &TelemetryRecord| r.measured.camera_pose(camera.chain, camera.gimbal_frame);
+    let mut feats = Vec::with_capacity(records.len());
+    for r in records.iter() {
+        let path = dir.join("frames").join(format!("{:06}.jpg", r.frame));
+        let img = crate::imaging::read_image(&path, opencv::imgcodecs::IMREAD_COLOR)?;
+        feats.push(imageup::features(&img).map_err(|e| format!("{}: {e}", path.display()))?);
+    }
+    let mut votes = Vec::new();
+    for i in 1..records.len() {
+        let (pa, pb) = (pose(&records[i - 1]), pose(&records[i]));
+        if let Some(v) = imageup::vote((i - 1, &feats[i - 1], &pa), (i, &feats[i], &pb), &k, 0.0)
+            .map_err(|e| format!("matching photos {} and {}: {e}", i - 1, i))?
+        {
+            tracing::debug!(pair = ?(i - 1, i), matches = v.matches, median_m = ?v.median_m, "image-up vote");
+            votes.push(v);
+        }
+    }
+    let verdicts = imageup::verdicts(records.len(), &votes);
+    let mut turned = Vec::new();
+    for (i, r) in records.iter_mut().enumerate().filter(|(i, _)| verdicts[*i]) {
+        // A yaw of 180 deg about the gimbal's (or, fixed to the body, the mount's) vertical
+        // is a half turn about the optical axis only for a camera pointing along it.
+        if (r.measured.gimbal_deg[1] + 90.0).abs() > NADIR_TOLERANCE_DEG {
+            tracing::warn!("photo {i} looks turned half a turn, but its camera is not nadir: left as tagged");
+            continue;
+        }
+        let yaw = (r.measured.gimbal_deg[0] + 360.0) % 360.0 - 180.0;
+        r.measured.gimbal_deg[0] = yaw;
+        r.truth.gimbal_deg[0] = yaw;
+        turned.push(i);
+    }
+    // The agreement that remains, each pair with its photos as they now are.
+    let mut medians: Vec<f64> = votes
+        .iter()
+        .map(|v| {
+            let idx = (verdicts[v.a] && turned.contains(&v.a)) as usize * 2
+                + (verdicts[v.b] && turned.contains(&v.b)) as usize;
+            v.median_m[idx]
+        })
+        .filter(|m| m.is_finite())
+        .collect();
+    medians.sort_by(f64::total_cmp);
+    Ok((medians.get(medians.len() / 2).copied(), turned))
 }
 
 /// Imports the photos of `dir` (JPEG) into a dataset at `out`, written beside it and put
 /// in place whole; a non-empty `out` is replaced only with `replace` (`--force`), keeping
 /// a `mavloc.toml` the user edited.
-pub fn import_photos(
-    dir: &Path,
-    out: &Path,
-    calibration: Option<&Path>,
-    replace: bool,
-) -> Result<ImportReport, String> {
+pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<ImportReport, String> {
+    let (calibration, replace) = (opts.calibration.as_deref(), opts.replace);
     if mavloc_data::staged::nested(dir, out) {
         return Err(format!(
             "--out {} and the photos' folder {} are the same or one is inside the other: choose an output folder elsewhere",
@@ -350,8 +544,21 @@ pub fn import_photos(
         }
     }
     if photos.is_empty() {
-        return Err(format!("no photo in {} has the tags a pose needs: {:?}", dir.display(), report.skipped));
+        let (first, why) = &report.skipped[0];
+        let more = match report.skipped.len() {
+            1 => String::new(),
+            n => format!(" (and {} more; each is named above)", n - 1),
+        };
+        return Err(format!("no photo in {} could be used: {first}: {why}{more}", dir.display()));
     }
+    if let Some((_, _, t)) = photos.iter().find(|(_, _, t)| t.vendor != photos[0].2.vendor) {
+        return Err(format!(
+            "{} has {} tags but {} has {}: one camera per dataset",
+            t.name, t.vendor, photos[0].2.name, photos[0].2.vendor
+        ));
+    }
+    let body_mounted = photos[0].2.vendor == "sensefly";
+    let mount_deg = opts.mount_deg.unwrap_or([0.0, -90.0, 0.0]);
     // By capture time; the name breaks ties (DJI writes whole seconds).
     photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     let first = &photos[0].2;
@@ -380,14 +587,28 @@ pub fn import_photos(
             v
         }
         None => {
-            let f35 = first.focal_35mm.expect("checked");
-            // The equivalent focal length refers to the whole sensor; a photo wider than
-            // 4:3 is taken as a crop of a 4:3 sensor of the same width (DJI's 16:9 modes).
-            let sensor_h = (h as f64).max(w as f64 * 3.0 / 4.0);
-            let f = f35 * ((w as f64).powi(2) + sensor_h.powi(2)).sqrt() / FILM_DIAGONAL_MM;
             let cx = (w as f64 - 1.0) / 2.0;
             let cy = (h as f64 - 1.0) / 2.0;
-            (f, f, cx, cy, format!("35 mm-equivalent focal length {f35} mm on the diagonal"))
+            match (first.focal_35mm, first.focal_px) {
+                (Some(f35), _) => {
+                    // The equivalent focal length refers to the whole sensor; a photo wider
+                    // than 4:3 is taken as a crop of a 4:3 sensor of the same width (DJI's
+                    // 16:9 modes).
+                    let sensor_h = (h as f64).max(w as f64 * 3.0 / 4.0);
+                    let f = f35 * ((w as f64).powi(2) + sensor_h.powi(2)).sqrt() / FILM_DIAGONAL_MM;
+                    (f, f, cx, cy, format!("35 mm-equivalent focal length {f35} mm on the diagonal"))
+                }
+                (None, Some(f)) => {
+                    // A file smaller than EXIF's image width is taken as scaled, not cropped:
+                    // nothing in the tags says which (README, "Real photos").
+                    let from = format!(
+                        "focal length {} mm at the focal-plane resolution, scaled to the file's width",
+                        first.focal_mm.unwrap_or(f64::NAN)
+                    );
+                    (f, f, cx, cy, from)
+                }
+                (None, None) => unreachable!("read_tags requires one focal length"),
+            }
         }
     };
     let camera = CameraFile {
@@ -398,7 +619,7 @@ pub fn import_photos(
         cx,
         cy,
         chain: crate::geometry::GimbalChain::YawPitchRoll,
-        gimbal_frame: GimbalFrame::Earth,
+        gimbal_frame: if body_mounted { GimbalFrame::Body } else { GimbalFrame::Earth },
         origin,
     };
     camera.intrinsics().validate().map_err(|e| format!("intrinsics: {e}"))?;
@@ -421,7 +642,7 @@ pub fn import_photos(
         let pose = PoseRecord {
             position: p.into(),
             attitude_deg: t.flight_deg,
-            gimbal_deg: t.gimbal_deg,
+            gimbal_deg: if body_mounted { mount_deg } else { t.gimbal_deg },
             velocity: [0.0; 3],
         };
         records.push(TelemetryRecord {
@@ -433,6 +654,12 @@ pub fn import_photos(
         });
         report.imported.push(t.name.clone());
     }
+    // Which way up: overlapping photos must see the same ground (area::imageup). A photo
+    // whose image is turned half a turn from its tags gets its yaw corrected here, before
+    // any landmark is estimated from it.
+    let check = image_up(out, &camera, &mut records)?;
+    report.overlap_median_m = check.0;
+    report.turned = check.1.iter().map(|&i| photos[i].2.name.clone()).collect();
     let write = |name: &str, bytes: &[u8]| dataset::write_file(out, name, bytes);
     dataset::write_camera(out, &camera)?;
     // The settings photos need (segment water, the photo-survey tuning), so `mavloc area

@@ -16,6 +16,7 @@ pub mod baseline;
 pub mod border;
 pub mod eval;
 pub mod features;
+pub mod imageup;
 pub mod library;
 pub mod offline;
 pub mod residuals;

@@ -6,9 +6,11 @@ use crate::cli::ImportCommand;
 
 pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
     match command {
-        ImportCommand::Photos { dir, out, calibration, force } => {
-            let r = crate::import::import_photos(&dir, &out, calibration.as_deref(), force)
-                .map_err(anyhow::Error::msg)?;
+        ImportCommand::Photos { dir, out, calibration, force, mount_deg } => {
+            // Skipped photos and the image-up check speak through the log.
+            crate::logging::init("info");
+            let opts = crate::import::ImportOptions { calibration, replace: force, mount_deg };
+            let r = crate::import::import_photos(&dir, &out, &opts).map_err(anyhow::Error::msg)?;
             println!(
                 "{}: {} photos imported, {} skipped; fx {:.1} px from the {}",
                 out.display(),
@@ -19,6 +21,14 @@ pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
             );
             for (name, why) in &r.skipped {
                 println!("  skipped {name}: {why}");
+            }
+            if let Some(m) = r.overlap_median_m {
+                println!(
+                    "overlapping photos agree on the ground within {m:.1} m (median over consecutive pairs)"
+                );
+            }
+            for name in &r.turned {
+                println!("  {name}: its image is turned half a turn from its tags (seen from its overlap); yaw corrected by 180 deg");
             }
             if let Some(note) = &r.kept_settings {
                 println!("{note}");
