@@ -30,9 +30,9 @@
 //!   stays pinhole like every other. The estimate is good to a few per cent. Along one straight line of
 //!   nadir photos a focal error trades against height (landmarks move up or down by
 //!   metres) and barely shows in the residual report: README "Real photos" has the table.
-//! - The origin's altitude is EXIF GPS altitude minus RelativeAltitude. EXIF altitude is
-//!   above sea level, not the ellipsoid, so absolute heights in the results are off by the
-//!   geoid (about 30 m at the sample); local heights and map positions are not.
+//! - The origin's altitude is AbsoluteAltitude minus RelativeAltitude (senseFly:
+//!   AltitudeAMSL minus Height), above mean sea level like every altitude in mavloc; the
+//!   result writers add the geoid where a format wants the ellipsoid (GeoJSON).
 //! - Frames are the original JPEGs, copied unchanged unless undistorted (`frames/NNNNNN.jpg`); photos have no
 //!   ground truth, so each record's `true` pose repeats the measured one.
 

@@ -21,6 +21,7 @@
 
 pub mod atomic;
 pub mod dataset;
+pub mod geoid;
 pub mod results;
 pub mod sets;
 pub mod staged;

@@ -205,11 +205,18 @@ pub fn read_landings(path: &Path) -> Result<Vec<LandingRow>, String> {
     Ok(table::read(path)?)
 }
 
-/// `landmarks.ply`: ASCII PLY point cloud in local NED (x north, y east, z down).
-pub fn landmarks_ply(landmarks: &[LandmarkRecord]) -> String {
+/// `landmarks.ply`: ASCII PLY point cloud in local NED (x north, y east, z down), its
+/// origin stated in the header (a PLY has no coordinate reference of its own).
+pub fn landmarks_ply(frame: &LocalFrame, landmarks: &[LandmarkRecord]) -> String {
+    let o = frame.origin;
     let mut s = format!(
         "ply\nformat ascii 1.0\ncomment mavloc area landmarks, local NED metres (x north, y east, z down)\n\
+         comment origin latitude {:.8} longitude {:.8} deg, {:.3} m above mean sea level ({:.3} m above the WGS84 ellipsoid, EGM96)\n\
          element vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float sigma\nend_header\n",
+        o.lat_deg,
+        o.lon_deg,
+        o.alt_m,
+        crate::geoid::ellipsoid_height_m(o.lat_deg, o.lon_deg, o.alt_m),
         landmarks.len()
     );
     for l in landmarks {
@@ -219,33 +226,37 @@ pub fn landmarks_ply(landmarks: &[LandmarkRecord]) -> String {
     s
 }
 
-/// `area.geojson`: landmarks as points and border lines as line strings, in WGS84.
+/// Longitude, latitude and height above the WGS84 ellipsoid (RFC 7946's third
+/// coordinate), and the height above mean sea level, of a local point.
+fn wgs84(frame: &LocalFrame, p: &Vec3) -> ([f64; 3], f64) {
+    let g = frame.to_geodetic(p);
+    ([g.lon_deg, g.lat_deg, crate::geoid::ellipsoid_height_m(g.lat_deg, g.lon_deg, g.alt_m)], g.alt_m)
+}
+
+/// `area.geojson`: landmarks as points and border lines as line strings, in WGS84 with
+/// heights above the ellipsoid (RFC 7946); each landmark also states its height above
+/// mean sea level, and the collection says which height is which.
 pub fn area_geojson(frame: &LocalFrame, landmarks: &[LandmarkRecord], borders: &[Vec<Vec3>]) -> String {
     use geojson::{Feature, FeatureCollection, Geometry, JsonObject};
     let mut features = Vec::new();
     for l in landmarks {
-        let g = frame.to_geodetic(&l.position);
+        let (c, amsl) = wgs84(frame, &l.position);
         let mut props = JsonObject::new();
         props.insert("kind".into(), "landmark".into());
         props.insert("id".into(), l.id.into());
         props.insert("sigma_max_m".into(), l.sigma_max_m.into());
         props.insert("observations".into(), l.observations.into());
+        props.insert("height_amsl_m".into(), ((amsl * 1000.0).round() / 1000.0).into());
         features.push(Feature {
             bbox: None,
-            geometry: Some(Geometry::new_point([g.lon_deg, g.lat_deg, g.alt_m])),
+            geometry: Some(Geometry::new_point(c)),
             id: None,
             properties: Some(props),
             foreign_members: None,
         });
     }
     for (i, line) in borders.iter().enumerate() {
-        let coords: Vec<[f64; 3]> = line
-            .iter()
-            .map(|p| {
-                let g = frame.to_geodetic(p);
-                [g.lon_deg, g.lat_deg, g.alt_m]
-            })
-            .collect();
+        let coords: Vec<[f64; 3]> = line.iter().map(|p| wgs84(frame, p).0).collect();
         let mut props = JsonObject::new();
         props.insert("kind".into(), "border".into());
         props.insert("index".into(), i.into());
@@ -257,15 +268,20 @@ pub fn area_geojson(frame: &LocalFrame, landmarks: &[LandmarkRecord], borders: &
             foreign_members: None,
         });
     }
-    geojson::GeoJson::from(FeatureCollection { bbox: None, features, foreign_members: None }).to_string()
+    let mut members = JsonObject::new();
+    members.insert(
+        "heights".into(),
+        "third coordinate: metres above the WGS84 ellipsoid (mean sea level + EGM96 undulation); height_amsl_m: above mean sea level".into(),
+    );
+    geojson::GeoJson::from(FeatureCollection { bbox: None, features, foreign_members: Some(members) })
+        .to_string()
 }
 
 /// `area.kml`: the same for QGroundControl (Plan view: File > Import KML) and Google Earth.
 /// Written by hand: KML is a few fixed elements, and a crate would add a dependency tree
-/// for nothing QGC needs. KML's absolute altitudes are above mean sea level, mavloc's are
-/// WGS84 ellipsoid heights (tens of metres apart, and no geoid model is at hand), so the
-/// geometry is clamped to the ground for display and each landmark's ellipsoid height is in
-/// its description; `area.geojson` carries the 3D coordinates (RFC 7946 uses the ellipsoid).
+/// for nothing QGC needs. KML's absolute altitudes are above mean sea level, as mavloc's
+/// are (MAVLink's and the photo tags' altitudes), so landmarks and border lines stand at
+/// their estimated heights (`altitudeMode` absolute).
 pub fn area_kml(
     frame: &LocalFrame,
     name: &str,
@@ -282,7 +298,7 @@ pub fn area_kml(
     for (i, line) in borders.iter().enumerate() {
         let _ = write!(
             s,
-            "<Placemark><name>border {i}</name><styleUrl>#border</styleUrl><LineString><altitudeMode>clampToGround</altitudeMode><coordinates>"
+            "<Placemark><name>border {i}</name><styleUrl>#border</styleUrl><LineString><altitudeMode>absolute</altitudeMode><coordinates>"
         );
         for p in line {
             let g = frame.to_geodetic(p);
@@ -295,8 +311,8 @@ pub fn area_kml(
         let g = frame.to_geodetic(&l.position);
         let _ = writeln!(
             s,
-            "<Placemark><name>{}</name><description>sigma {:.2} m, {} observations, ellipsoid height {:.2} m</description><styleUrl>#landmark</styleUrl>\
-             <Point><altitudeMode>clampToGround</altitudeMode><coordinates>{:.8},{:.8},{:.3}</coordinates></Point></Placemark>",
+            "<Placemark><name>{}</name><description>sigma {:.2} m, {} observations, {:.2} m above mean sea level</description><styleUrl>#landmark</styleUrl>\
+             <Point><altitudeMode>absolute</altitudeMode><coordinates>{:.8},{:.8},{:.3}</coordinates></Point></Placemark>",
             l.id, l.sigma_max_m, l.observations, g.alt_m, g.lon_deg, g.lat_deg, g.alt_m
         );
     }
@@ -403,9 +419,24 @@ mod tests {
         assert_eq!(g["features"].as_array().unwrap().len(), 3);
         let line = &g["features"][2]["geometry"]["coordinates"];
         assert!((line[1][1].as_f64().unwrap() - 57.0009).abs() < 1e-4, "100 m north");
+        // GeoJSON: ellipsoid heights (EGM96 N is about +41.7 m at 57 N 10 E), AMSL stated.
+        let h = line[0][2].as_f64().unwrap();
+        let n = crate::geoid::undulation_m(57.0, 10.0);
+        assert!((h - (20.0 + n)).abs() < 1e-6 && n > 35.0 && n < 45.0, "h {h}, N {n}");
+        assert!(g["heights"].as_str().unwrap().contains("ellipsoid"));
+        let point = &g["features"][0];
+        let amsl = point["properties"]["height_amsl_m"].as_f64().unwrap();
+        assert!((point["geometry"]["coordinates"][2].as_f64().unwrap() - amsl - n).abs() < 0.01);
+        // KML: absolute altitudes above mean sea level, as mavloc's own.
         let kml = area_kml(&frame, "a <test>", &sample(), &border);
         assert!(kml.contains("<name>a &lt;test&gt;</name>"));
         assert!(kml.contains("<coordinates>10.00000000,57.00000000,20.000 "));
+        assert!(kml.contains("<altitudeMode>absolute</altitudeMode>") && !kml.contains("clampToGround"));
+        assert!(!kml.contains("ellipsoid"));
         assert_eq!(kml.matches("<Placemark>").count(), 3);
+        let ply = landmarks_ply(&frame, &sample());
+        assert!(ply.contains(
+            "comment origin latitude 57.00000000 longitude 10.00000000 deg, 20.000 m above mean sea level"
+        ));
     }
 }

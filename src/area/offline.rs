@@ -93,7 +93,7 @@ pub fn write_results(
     summary.landmarks = landmarks.len();
     summary.border_lines = borders.len();
     output::write_atomic(&out.join("landmarks.csv"), output::landmarks_csv(landmarks).as_bytes())?;
-    output::write_atomic(&out.join("landmarks.ply"), output::landmarks_ply(landmarks).as_bytes())?;
+    output::write_atomic(&out.join("landmarks.ply"), output::landmarks_ply(frame, landmarks).as_bytes())?;
     output::write_atomic(
         &out.join("area.geojson"),
         output::area_geojson(frame, landmarks, &borders).as_bytes(),
