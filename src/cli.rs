@@ -245,7 +245,8 @@ pub struct AreaArgs {
     /// Process at most this many frames.
     #[arg(long)]
     pub frames: Option<usize>,
-    /// Write masks.png: frames beside their target masks (check the segmenter).
+    /// Write contact sheets of every frame beside its target mask (check the segmenter):
+    /// masks.png, or masks-01.png, masks-02.png, ... 12 frames to a page.
     #[arg(long)]
     pub debug_masks: bool,
 }

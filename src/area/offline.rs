@@ -75,7 +75,8 @@ pub struct RunOptions {
     pub trace: bool,
     /// Stop after this many frames.
     pub max_frames: Option<usize>,
-    /// Write `masks.png`, a contact sheet of frames and their target masks.
+    /// Write contact sheets of every frame beside its target mask: `masks.png`, or
+    /// `masks-01.png`, ... 12 frames to a page.
     pub debug_masks: bool,
 }
 
@@ -218,8 +219,7 @@ pub fn run(
     let mut timing = StageTiming::default();
     let mut frame_ms = Vec::new();
     let mut match_ms = Vec::new();
-    // At most 12 frames on the contact sheet, spread over the run.
-    let sheet_every = (total as usize).div_ceil(12).max(1);
+    // Every frame on the contact sheets, as tiles.
     let mut sheet = Vec::new();
     let start = Instant::now();
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
@@ -257,8 +257,8 @@ pub fn run(
                 continue;
             }
         };
-        if opts.debug_masks && sheet_every > 0 && i % sheet_every == 0 {
-            sheet.push((record.frame, img.clone(), mask.clone()));
+        if opts.debug_masks {
+            sheet.push(super::segment::SheetRow::new(record.frame, &img, &mask)?);
         }
         let (grey, small_mask) = prepare(&img, &mask, downscale)?;
         let pose = ds.camera_pose(&record.measured, s.gimbal.offsets_deg());
@@ -353,7 +353,7 @@ pub fn run(
         }
     }
     if opts.debug_masks {
-        super::segment::contact_sheet(&opts.out.join("masks.png"), &sheet, &marks)?;
+        super::segment::contact_sheets(&opts.out, &sheet, &marks)?;
     }
     Ok(summary)
 }

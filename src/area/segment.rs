@@ -172,20 +172,63 @@ pub fn segment(frame: &Mat, s: &AreaSettings) -> opencv::Result<Option<Mat>> {
 /// tinted red and its outline drawn, one row per frame, with the frame's index; on the
 /// frame, `marks` (full-resolution sightings of converged landmarks and their
 /// reprojections, from [`super::residuals::marks`]).
-pub fn contact_sheet(
-    path: &std::path::Path,
-    rows: &[(u64, Mat, Mat)],
-    marks: &std::collections::BTreeMap<u64, Vec<(crate::geometry::Pixel, Option<crate::geometry::Pixel>)>>,
-) -> opencv::Result<()> {
-    let w = 480;
-    let mut tiles: Vec<Mat> = Vec::new();
-    for (index, frame, mask) in rows {
+/// Width of a contact sheet tile.
+pub const SHEET_TILE_W: i32 = 480;
+/// Frames per contact sheet page.
+pub const SHEET_PAGE: usize = 12;
+
+/// A frame and its mask shrunk to a contact-sheet tile, kept for the sheet at the end of
+/// a run (a full-size copy of every frame would not fit in memory on a long survey).
+pub struct SheetRow {
+    pub index: u64,
+    pub frame: Mat,
+    pub mask: Mat,
+    /// The frame's full width, for the landmarks' pixel coordinates.
+    pub full_width: i32,
+}
+
+impl SheetRow {
+    pub fn new(index: u64, frame: &Mat, mask: &Mat) -> opencv::Result<SheetRow> {
+        let w = SHEET_TILE_W;
         let h = (frame.rows() as f64 * w as f64 / frame.cols() as f64).round() as i32;
         let mut a = Mat::default();
         imgproc::resize(frame, &mut a, Size::new(w, h), 0.0, 0.0, imgproc::INTER_AREA)?;
+        let mut m = Mat::default();
+        imgproc::resize(mask, &mut m, Size::new(w, h), 0.0, 0.0, imgproc::INTER_NEAREST)?;
+        Ok(SheetRow { index, frame: a, mask: m, full_width: frame.cols() })
+    }
+}
+
+/// Contact sheets of every frame, `SHEET_PAGE` to a page: `masks.png` when one page holds
+/// them all, else `masks-01.png`, `masks-02.png`, ... Returns the files written.
+pub fn contact_sheets(
+    dir: &std::path::Path,
+    rows: &[SheetRow],
+    marks: &std::collections::BTreeMap<u64, Vec<(crate::geometry::Pixel, Option<crate::geometry::Pixel>)>>,
+) -> opencv::Result<Vec<std::path::PathBuf>> {
+    let pages: Vec<&[SheetRow]> = rows.chunks(SHEET_PAGE).collect();
+    let mut written = Vec::new();
+    for (i, page) in pages.iter().enumerate() {
+        let name = if pages.len() == 1 { "masks.png".to_string() } else { format!("masks-{:02}.png", i + 1) };
+        let path = dir.join(name);
+        contact_sheet(&path, page, marks)?;
+        written.push(path);
+    }
+    Ok(written)
+}
+
+pub fn contact_sheet(
+    path: &std::path::Path,
+    rows: &[SheetRow],
+    marks: &std::collections::BTreeMap<u64, Vec<(crate::geometry::Pixel, Option<crate::geometry::Pixel>)>>,
+) -> opencv::Result<()> {
+    let w = SHEET_TILE_W;
+    let mut tiles: Vec<Mat> = Vec::new();
+    for SheetRow { index, frame, mask, full_width } in rows {
+        let mut a = frame.try_clone()?;
         // Converged landmarks: a green ring where SIFT saw it, a red line to where the
         // estimate reprojects (drawn 3x longer so a 20 px residual shows on a 480 px tile).
-        let s = w as f64 / frame.cols() as f64;
+        let s = w as f64 / *full_width as f64;
         let at = |p: &crate::geometry::Pixel| Point::new((p.u * s).round() as i32, (p.v * s).round() as i32);
         for (seen, reprojected) in marks.get(index).map(Vec::as_slice).unwrap_or(&[]) {
             if let Some(r) = reprojected {
@@ -197,15 +240,14 @@ pub fn contact_sheet(
             let green = Scalar::new(0.0, 255.0, 0.0, 0.0);
             imgproc::circle(&mut a, at(seen), 4, green, 1, imgproc::LINE_AA, 0)?;
         }
-        let mut m = Mat::default();
-        imgproc::resize(mask, &mut m, Size::new(w, h), 0.0, 0.0, imgproc::INTER_NEAREST)?;
+        let m = mask;
         let mut red = a.try_clone()?;
-        red.set_to(&Scalar::new(0.0, 0.0, 255.0, 0.0), &m)?;
+        red.set_to(&Scalar::new(0.0, 0.0, 255.0, 0.0), m)?;
         let mut b = Mat::default();
         core::add_weighted(&a, 0.55, &red, 0.45, 0.0, &mut b, -1)?;
         imgproc::draw_contours(
             &mut b,
-            &outlines(&m)?,
+            &outlines(m)?,
             -1,
             Scalar::new(0.0, 255.0, 255.0, 0.0),
             2,

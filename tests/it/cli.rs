@@ -496,3 +496,38 @@ fn the_readme_parameter_table_matches_the_code() {
         generated.contains("| `IND_LAND_R` | `indoor.landing_radius_m` | float | m | 0.05 ..= 100 | 0.6 |")
     );
 }
+
+/// `--debug-masks` shows every frame, 12 to a page (a survey's 18 photos used to get a
+/// sheet of at most 12, spread out).
+#[test]
+fn contact_sheets_show_every_frame_twelve_to_a_page() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    mavloc()
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--width",
+            "192",
+            "--height",
+            "108",
+            "--frames",
+            "14",
+        ])
+        .arg("--out")
+        .arg(&ds)
+        .assert()
+        .success();
+    let out = dir.path().join("out");
+    mavloc().args(["area", "--debug-masks", "--dataset"]).arg(&ds).arg("--out").arg(&out).assert().success();
+    let page = |n: &str| {
+        opencv::imgcodecs::imread(out.join(n).to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap()
+    };
+    use opencv::prelude::*;
+    let (first, second) = (page("masks-01.png"), page("masks-02.png"));
+    assert!(!out.join("masks.png").exists() && !out.join("masks-03.png").exists());
+    let tile_h = 270; // 480 px wide tiles of a 16:9 frame
+    assert_eq!((first.rows(), second.rows()), (12 * tile_h, 2 * tile_h), "12 frames, then the other 2");
+}
