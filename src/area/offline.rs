@@ -60,6 +60,14 @@ pub struct RunSummary {
     pub residual_p90_px: Option<f64>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub yaw_off_180_frames: Vec<u64>,
+    /// Attitude refinement (`area.attitude_prior_deg`): median reprojection error of the
+    /// sightings before and after (full-resolution pixels), and the median correction.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_median_before_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_median_after_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub attitude_correction_median_deg: Option<f64>,
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
@@ -337,6 +345,46 @@ pub fn run(
         }
         summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
         output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
+        if s.area.attitude_prior_deg > 0.0 && !results.is_empty() {
+            // Attitude refinement (area::refine): landmarks and per-frame attitude
+            // corrections together, from every sighting of the converged landmarks.
+            let r = super::refine::refine(
+                &seen,
+                &results,
+                &poses,
+                &k,
+                &super::refine::RefineParams {
+                    // A sighting is as good as the bearing noise the filters assume.
+                    pixel_sd: (s.area.bearing_noise_deg.to_radians() * k.fx).max(0.5),
+                    ..super::refine::RefineParams::new(s.area.attitude_prior_deg)
+                },
+            );
+            let scale = downscale as f64;
+            summary.refined_median_before_px = Some(r.median_before_px * scale);
+            summary.refined_median_after_px = Some(r.median_after_px * scale);
+            let mut angles: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
+            if !angles.is_empty() {
+                summary.attitude_correction_median_deg = Some(super::residuals::quantile(&mut angles, 0.5));
+            }
+            let mut csv =
+                String::from("frame,correction_deg,about_north_deg,about_east_deg,about_down_deg\n");
+            for (f, d) in &r.corrections {
+                let g = d.map(f64::to_degrees);
+                csv.push_str(&format!("{f},{:.4},{:.4},{:.4},{:.4}\n", g.norm(), g.x, g.y, g.z));
+            }
+            output::write_atomic(&opts.out.join("attitude.csv"), csv.as_bytes())?;
+            results = r.landmarks;
+            marks = super::residuals::marks(
+                &seen,
+                &results,
+                &poses
+                    .iter()
+                    .map(|(f, p)| (*f, r.corrections.get(f).map_or(*p, |d| super::refine::corrected(p, d))))
+                    .collect(),
+                &k,
+                scale,
+            );
+        }
     }
     summary.complete = true;
     let borders = write_results(&opts.out, &frame, &name, &results, &mut summary)?;

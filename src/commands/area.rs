@@ -90,6 +90,13 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
     if let (Some(m), Some(p90)) = (summary.residual_median_px, summary.residual_p90_px) {
         println!("reprojection residuals of converged landmarks: median {m:.1} px, 90th percentile {p90:.1} px (per frame: residuals.csv)");
     }
+    if let (Some(b), Some(a), Some(d)) = (
+        summary.refined_median_before_px,
+        summary.refined_median_after_px,
+        summary.attitude_correction_median_deg,
+    ) {
+        println!("attitude refinement: sightings reproject within {b:.1} px -> {a:.1} px (median), frames corrected by {d:.2} deg (median; attitude.csv)");
+    }
     for f in &summary.yaw_off_180_frames {
         println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
     }

@@ -666,6 +666,7 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     v.range("area.init_sigma_m", a.init_sigma_m, 0.1, 1000.0);
     v.range("area.ground_down_m", a.ground_down_m, -10_000.0, 10_000.0);
     v.range_int("area.max_descriptors", a.max_descriptors.into(), 1, 1000);
+    v.range("area.attitude_prior_deg", a.attitude_prior_deg, 0.0, 30.0);
     for (key, hsv) in [("area.hsv_low", &a.hsv_low), ("area.hsv_high", &a.hsv_high)] {
         let ok = hsv.len() == 3
             && hsv.iter().all(|c| c.is_finite() && *c >= 0.0)

@@ -258,6 +258,9 @@ pub struct Area {
     pub init_sigma_m: f64,
     pub ground_down_m: f64,
     pub max_descriptors: u32,
+    /// SD of the recorded attitude, degrees: the prior of the attitude refinement run
+    /// after the landmark filters offline (`area::refine`); 0 = no refinement.
+    pub attitude_prior_deg: f64,
     pub segmenter: Segmenter,
     pub hsv_low: Vec<f64>,
     pub hsv_high: Vec<f64>,
@@ -296,6 +299,7 @@ impl Default for Area {
             init_sigma_m: 20.0,
             ground_down_m: 0.0,
             max_descriptors: 8,
+            attitude_prior_deg: 0.0,
             segmenter: Segmenter::Masks,
             hsv_low: vec![90.0, 60.0, 30.0],
             hsv_high: vec![130.0, 255.0, 255.0],
