@@ -65,6 +65,45 @@ pub enum Command {
         #[command(subcommand)]
         command: ImportCommand,
     },
+    /// Estimate calibration constants from a flight.
+    Calibrate {
+        #[command(subcommand)]
+        command: CalibrateCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+pub enum CalibrateCommand {
+    /// The gimbal's static yaw, pitch and roll offsets (area seed sec. 6.11), by least
+    /// squares over every sighting of the landmarks a dataset's flight converges on, or
+    /// of a surveyed marker; prints them with their uncertainty and can write them into a
+    /// configuration file.
+    Gimbal(CalibrateGimbalArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct CalibrateGimbalArgs {
+    /// Dataset folder of the flight (several lines or a turn help: along one straight line
+    /// a roll offset is hard to tell from a sideways shift).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Folder for the area run the sightings come from (default: a temporary one).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// A surveyed marker's position, local NED metres of the dataset (north,east,down),
+    /// with --marker-pixels: it anchors the estimate as the seed's reference marker does.
+    #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "N,E,D", requires = "marker_pixels")]
+    pub marker: Option<[f64; 3]>,
+    /// CSV `frame,u,v`: where the marker is in each frame, full-resolution pixels.
+    #[arg(long, requires = "marker")]
+    pub marker_pixels: Option<PathBuf>,
+    /// SD of the prior on each offset, degrees (it only keeps an unobservable one at 0).
+    #[arg(long, default_value_t = 10.0)]
+    pub prior_deg: f64,
+    /// Write the offsets into this configuration file's [gimbal] section (other lines and
+    /// comments kept).
+    #[arg(long)]
+    pub write: Option<PathBuf>,
 }
 
 #[derive(Debug, Subcommand)]

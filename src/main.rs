@@ -42,5 +42,6 @@ fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Config { command } => commands::config::run(command, global),
         Command::Params { command } => commands::params::run(command, global),
         Command::Import { command } => commands::import::run(command),
+        Command::Calibrate { command } => commands::calibrate::run(command, global),
     }
 }

@@ -194,11 +194,29 @@ impl From<&super::library::TraceEntry> for TraceRow {
 }
 
 /// Runs the configured method over a dataset. `progress(done, total)` after each frame.
-pub fn run(
+pub fn run(opts: &RunOptions, s: &Settings, progress: impl FnMut(u64, u64)) -> anyhow::Result<RunSummary> {
+    Ok(run_observed(opts, s, progress, false)?.0)
+}
+
+/// What a run saw, for estimating things that hold for the whole flight (the gimbal's
+/// static offset, `mavloc calibrate gimbal`): every sighting of a converged landmark at
+/// the pipeline's resolution, the landmarks, and that resolution.
+#[derive(Clone, Debug, Default)]
+pub struct Observations {
+    pub sightings: Vec<(u64, u64, crate::geometry::Pixel)>,
+    pub landmarks: Vec<LandmarkRecord>,
+    pub k: Option<crate::geometry::Intrinsics>,
+    pub downscale: u32,
+}
+
+/// [`run`], also returning the observations when `observe` (the sightings are then kept
+/// for any number of frames).
+pub fn run_observed(
     opts: &RunOptions,
     s: &Settings,
     mut progress: impl FnMut(u64, u64),
-) -> anyhow::Result<RunSummary> {
+    observe: bool,
+) -> anyhow::Result<(RunSummary, Observations)> {
     let ds = Dataset::open(&opts.dataset).map_err(|e| anyhow::anyhow!(e))?;
     fs::create_dir_all(&opts.out)?;
     let k_full = ds.camera.intrinsics();
@@ -210,7 +228,7 @@ pub fn run(
         AreaMethod::Ukf => "ukf",
         AreaMethod::GroundPlane => "ground-plane",
     };
-    let residuals = opts.trace || ds.records.len() <= RESIDUAL_MAX_FRAMES;
+    let residuals = observe || opts.trace || ds.records.len() <= RESIDUAL_MAX_FRAMES;
     let mut seen: Vec<(u64, u64, crate::geometry::Pixel)> = Vec::new();
     let mut poses = std::collections::BTreeMap::new();
     let mut pipeline = match opts.method {
@@ -403,5 +421,10 @@ pub fn run(
     if opts.debug_masks {
         super::segment::contact_sheets(&opts.out, &sheet, &marks)?;
     }
-    Ok(summary)
+    let observations = if observe {
+        Observations { sightings: seen, landmarks: results, k: Some(k), downscale }
+    } else {
+        Observations::default()
+    };
+    Ok((summary, observations))
 }

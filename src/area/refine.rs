@@ -92,170 +92,292 @@ pub fn refine(
     k: &Intrinsics,
     p: &RefineParams,
 ) -> Refined {
-    let index: BTreeMap<u64, usize> = landmarks.iter().enumerate().map(|(i, l)| (l.id, i)).collect();
-    // Frames with sightings, numbered 0..F for the reduced system.
-    let frames: Vec<u64> = {
-        let mut v: Vec<u64> = sightings.iter().map(|s| s.0).filter(|f| poses.contains_key(f)).collect();
-        v.sort_unstable();
-        v.dedup();
-        v
+    let frames: Vec<u64> = poses.keys().copied().collect();
+    let block: BTreeMap<u64, usize> = frames.iter().enumerate().map(|(i, &f)| (f, i)).collect();
+    let pose = |f: u64, d: &Vec3| corrected(&poses[&f], d);
+    let problem = Problem {
+        sightings,
+        landmarks,
+        fixed: &[],
+        block: &block,
+        blocks: frames.len(),
+        pose: &pose,
+        k,
+        params: p,
     };
-    let fidx: BTreeMap<u64, usize> = frames.iter().enumerate().map(|(i, &f)| (f, i)).collect();
-    let mut per_landmark: Vec<Vec<(usize, Pixel)>> = vec![Vec::new(); landmarks.len()];
-    for &(f, id, px) in sightings {
-        if let (Some(&j), Some(&fi)) = (index.get(&id), fidx.get(&f)) {
-            per_landmark[j].push((fi, px));
-        }
+    let r = problem.solve();
+    let corrections = frames.iter().map(|f| (*f, r.blocks[block[f]])).collect();
+    let landmarks =
+        landmarks.iter().zip(&r.xs).map(|(l, x)| LandmarkRecord { position: *x, ..l.clone() }).collect();
+    Refined {
+        landmarks,
+        corrections,
+        median_before_px: r.median_before_px,
+        median_after_px: r.median_after_px,
     }
-    let poses_v: Vec<CameraPose> = frames.iter().map(|f| poses[f]).collect();
-    let mut xs: Vec<Vec3> = landmarks.iter().map(|l| l.position).collect();
-    let mut deltas = vec![Vec3::zeros(); frames.len()];
-    let cost_and_errors = |xs: &[Vec3], deltas: &[Vec3]| -> (f64, Vec<f64>) {
-        let mut cost = deltas.iter().map(|d| 0.5 * (d.norm() / p.prior_rad).powi(2)).sum::<f64>();
-        let mut errs = Vec::new();
-        for (j, obs) in per_landmark.iter().enumerate() {
-            for &(fi, px) in obs {
-                match residual(&corrected(&poses_v[fi], &deltas[fi]), k, &xs[j], px) {
-                    Some(r) => {
-                        let e = r[0].hypot(r[1]);
-                        errs.push(e);
-                        cost += huber_loss(e / p.pixel_sd, p.huber);
-                    }
-                    None => cost += 1e6, // behind a camera
-                }
+}
+
+/// A static gimbal offset, estimated (area seed sec. 6.11, table 6.8/6.9).
+#[derive(Clone, Debug)]
+pub struct Calibration {
+    /// Yaw, pitch, roll offsets added to the reported gimbal angles, degrees.
+    pub offsets_deg: [f64; 3],
+    /// Their standard deviations, degrees.
+    pub sd_deg: [f64; 3],
+    pub median_before_px: f64,
+    pub median_after_px: f64,
+    pub sightings: usize,
+    pub frames: usize,
+}
+
+/// Estimates one offset `(yaw, pitch, roll)` shared by every frame: `pose(frame, offsets)`
+/// gives a frame's pose with offsets (degrees) added to its recorded gimbal angles. The
+/// landmarks are estimated with it, except the `fixed` ones (a surveyed marker: id and
+/// known position), which anchor it as the seed's reference marker does.
+pub fn calibrate(
+    sightings: &[(u64, u64, Pixel)],
+    landmarks: &[LandmarkRecord],
+    fixed: &[(u64, Vec3)],
+    pose: &dyn Fn(u64, &Vec3) -> CameraPose,
+    k: &Intrinsics,
+    prior_deg: f64,
+) -> Calibration {
+    let frames: std::collections::BTreeSet<u64> = sightings.iter().map(|s| s.0).collect();
+    let block: BTreeMap<u64, usize> = frames.iter().map(|&f| (f, 0)).collect();
+    // The block is in degrees here (the configuration's unit), so the prior is too.
+    let params = RefineParams { prior_rad: prior_deg, ..RefineParams::new(prior_deg) };
+    let mut all: Vec<LandmarkRecord> = landmarks.to_vec();
+    all.extend(fixed.iter().map(|(id, x)| LandmarkRecord {
+        id: *id,
+        position: *x,
+        sigma_max_m: 0.0,
+        observations: 0,
+        first_frame: 0,
+        last_frame: 0,
+    }));
+    let fixed_ids: Vec<u64> = fixed.iter().map(|f| f.0).collect();
+    let problem = Problem {
+        sightings,
+        landmarks: &all,
+        fixed: &fixed_ids,
+        block: &block,
+        blocks: 1,
+        pose,
+        k,
+        params: &params,
+    };
+    let r = problem.solve();
+    let o = r.blocks[0];
+    let sd =
+        r.block_covariance.map_or([f64::NAN; 3], |c| [c[(0, 0)].sqrt(), c[(1, 1)].sqrt(), c[(2, 2)].sqrt()]);
+    Calibration {
+        offsets_deg: [o.x, o.y, o.z],
+        sd_deg: sd,
+        median_before_px: r.median_before_px,
+        median_after_px: r.median_after_px,
+        sightings: r.sightings,
+        frames: frames.len(),
+    }
+}
+
+/// A bundle adjustment over 3-parameter pose blocks and 3D landmarks.
+struct Problem<'a> {
+    sightings: &'a [(u64, u64, Pixel)],
+    landmarks: &'a [LandmarkRecord],
+    /// Landmarks held where they are (ids).
+    fixed: &'a [u64],
+    /// Frame -> block.
+    block: &'a BTreeMap<u64, usize>,
+    blocks: usize,
+    /// A frame's pose with its block's parameters.
+    pose: &'a dyn Fn(u64, &Vec3) -> CameraPose,
+    k: &'a Intrinsics,
+    params: &'a RefineParams,
+}
+
+struct Solution {
+    xs: Vec<Vec3>,
+    blocks: Vec<Vec3>,
+    /// Covariance of block 0's parameters (from the reduced normal matrix), when solved.
+    block_covariance: Option<Matrix3<f64>>,
+    median_before_px: f64,
+    median_after_px: f64,
+    sightings: usize,
+}
+
+impl Problem<'_> {
+    fn solve(&self) -> Solution {
+        let p = self.params;
+        let k = self.k;
+        let index: BTreeMap<u64, usize> = self.landmarks.iter().enumerate().map(|(i, l)| (l.id, i)).collect();
+        let is_fixed: Vec<bool> = self.landmarks.iter().map(|l| self.fixed.contains(&l.id)).collect();
+        let mut per_landmark: Vec<Vec<(u64, usize, Pixel)>> = vec![Vec::new(); self.landmarks.len()];
+        for &(f, id, px) in self.sightings {
+            if let (Some(&j), Some(&b)) = (index.get(&id), self.block.get(&f)) {
+                per_landmark[j].push((f, b, px));
             }
         }
-        (cost, errs)
-    };
-    let median = |mut v: Vec<f64>| -> f64 {
-        if v.is_empty() {
-            return f64::NAN;
-        }
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    let (mut cost, errs) = cost_and_errors(&xs, &deltas);
-    let median_before_px = median(errs);
-    let nf = frames.len();
-    let mut lambda = 1e-3;
-    for _ in 0..p.rounds {
-        // Normal equations, blockwise: U (frames), V (landmarks), W (frame x landmark).
-        let mut u = vec![Matrix3::<f64>::identity() / p.prior_rad.powi(2); nf];
-        let mut eu: Vec<Vector3<f64>> = deltas.iter().map(|d| d / p.prior_rad.powi(2)).collect();
-        let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
-        let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
-        let mut w: Vec<Vec<(usize, nalgebra::Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
-        for (j, obs) in per_landmark.iter().enumerate() {
-            for &(fi, px) in obs {
-                let pose = corrected(&poses_v[fi], &deltas[fi]);
-                let Some(r0) = residual(&pose, k, &xs[j], px) else { continue };
-                let n = r0[0].hypot(r0[1]) / p.pixel_sd;
-                let wt = huber_weight(n, p.huber) / p.pixel_sd.powi(2);
-                // Numeric Jacobians, central differences: 2x3 for the frame's correction
-                // (applied on top of the current one) and for the landmark.
-                let mut a = nalgebra::Matrix2x3::<f64>::zeros();
-                let mut b = nalgebra::Matrix2x3::<f64>::zeros();
-                let mut ok = true;
-                for c in 0..3 {
-                    let mut dd = Vec3::zeros();
-                    dd[c] = 1e-7;
-                    let rp = residual(&corrected(&pose, &dd), k, &xs[j], px);
-                    let rm = residual(&corrected(&pose, &-dd), k, &xs[j], px);
-                    let mut dx = Vec3::zeros();
-                    dx[c] = 1e-4;
-                    let xp = residual(&pose, k, &(xs[j] + dx), px);
-                    let xm = residual(&pose, k, &(xs[j] - dx), px);
-                    match (rp, rm, xp, xm) {
-                        (Some(rp), Some(rm), Some(xp), Some(xm)) => {
-                            a[(0, c)] = (rp[0] - rm[0]) / 2e-7;
-                            a[(1, c)] = (rp[1] - rm[1]) / 2e-7;
-                            b[(0, c)] = (xp[0] - xm[0]) / 2e-4;
-                            b[(1, c)] = (xp[1] - xm[1]) / 2e-4;
+        let sightings = per_landmark.iter().map(Vec::len).sum();
+        let nb = self.blocks;
+        let mut xs: Vec<Vec3> = self.landmarks.iter().map(|l| l.position).collect();
+        let mut theta = vec![Vec3::zeros(); nb];
+        let cost_and_errors = |xs: &[Vec3], theta: &[Vec3]| -> (f64, Vec<f64>) {
+            let mut cost = theta.iter().map(|d| 0.5 * (d.norm() / p.prior_rad).powi(2)).sum::<f64>();
+            let mut errs = Vec::new();
+            for (j, obs) in per_landmark.iter().enumerate() {
+                for &(f, b, px) in obs {
+                    match residual(&(self.pose)(f, &theta[b]), k, &xs[j], px) {
+                        Some(r) => {
+                            let e = r[0].hypot(r[1]);
+                            errs.push(e);
+                            cost += huber_loss(e / p.pixel_sd, p.huber);
                         }
-                        _ => ok = false,
+                        None => cost += 1e6, // behind a camera
                     }
                 }
-                if !ok {
-                    continue;
-                }
-                let r = nalgebra::Vector2::new(r0[0], r0[1]);
-                u[fi] += a.transpose() * a * wt;
-                eu[fi] += a.transpose() * r * wt;
-                v[j] += b.transpose() * b * wt;
-                ev[j] += b.transpose() * r * wt;
-                w[j].push((fi, a.transpose() * b * wt));
             }
-        }
-        // Levenberg-Marquardt: damp, eliminate the landmarks, solve for the frames.
-        let mut improved = false;
-        for _ in 0..8 {
-            let mut s = nalgebra::DMatrix::<f64>::zeros(3 * nf, 3 * nf);
-            let mut rhs = nalgebra::DVector::<f64>::zeros(3 * nf);
-            for fi in 0..nf {
-                let ud = u[fi] + Matrix3::from_diagonal(&u[fi].diagonal()) * lambda;
-                s.fixed_view_mut::<3, 3>(3 * fi, 3 * fi).add_assign(&ud);
-                rhs.fixed_rows_mut::<3>(3 * fi).add_assign(&(-eu[fi]));
+            (cost, errs)
+        };
+        let median = |mut v: Vec<f64>| -> f64 {
+            if v.is_empty() {
+                return f64::NAN;
             }
-            let mut vinv = vec![None; xs.len()];
-            for j in 0..xs.len() {
-                if w[j].is_empty() {
-                    continue;
-                }
-                let vd =
-                    v[j] + Matrix3::from_diagonal(&v[j].diagonal()) * lambda + Matrix3::identity() * 1e-9;
-                let Some(vi) = vd.try_inverse() else { continue };
-                for &(f1, w1) in &w[j] {
-                    let wv = w1 * vi;
-                    rhs.fixed_rows_mut::<3>(3 * f1).add_assign(&(wv * ev[j]));
-                    for &(f2, w2) in &w[j] {
-                        let block = wv * w2.transpose();
-                        let mut view = s.fixed_view_mut::<3, 3>(3 * f1, 3 * f2);
-                        view -= block;
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        let (mut cost, errs) = cost_and_errors(&xs, &theta);
+        let median_before_px = median(errs);
+        let mut lambda = 1e-3;
+        let mut last_s: Option<nalgebra::DMatrix<f64>> = None;
+        for _ in 0..p.rounds {
+            // Normal equations, blockwise: U (pose blocks), V (landmarks), W (block x landmark).
+            let mut u = vec![Matrix3::<f64>::identity() / p.prior_rad.powi(2); nb];
+            let mut eu: Vec<Vector3<f64>> = theta.iter().map(|d| d / p.prior_rad.powi(2)).collect();
+            let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
+            let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
+            let mut w: Vec<Vec<(usize, Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
+            for (j, obs) in per_landmark.iter().enumerate() {
+                for &(f, b, px) in obs {
+                    let pose = (self.pose)(f, &theta[b]);
+                    let Some(r0) = residual(&pose, k, &xs[j], px) else { continue };
+                    let n = r0[0].hypot(r0[1]) / p.pixel_sd;
+                    let wt = huber_weight(n, p.huber) / p.pixel_sd.powi(2);
+                    // Numeric Jacobians, central differences: 2x3 for the block's
+                    // parameters and for the landmark.
+                    let mut a = nalgebra::Matrix2x3::<f64>::zeros();
+                    let mut bj = nalgebra::Matrix2x3::<f64>::zeros();
+                    let mut ok = true;
+                    let ht = 1e-6 * p.prior_rad.max(1e-3);
+                    for c in 0..3 {
+                        let mut dt = Vec3::zeros();
+                        dt[c] = ht;
+                        let rp = residual(&(self.pose)(f, &(theta[b] + dt)), k, &xs[j], px);
+                        let rm = residual(&(self.pose)(f, &(theta[b] - dt)), k, &xs[j], px);
+                        let mut dx = Vec3::zeros();
+                        dx[c] = 1e-4;
+                        let xp = residual(&pose, k, &(xs[j] + dx), px);
+                        let xm = residual(&pose, k, &(xs[j] - dx), px);
+                        match (rp, rm, xp, xm) {
+                            (Some(rp), Some(rm), Some(xp), Some(xm)) => {
+                                a[(0, c)] = (rp[0] - rm[0]) / (2.0 * ht);
+                                a[(1, c)] = (rp[1] - rm[1]) / (2.0 * ht);
+                                bj[(0, c)] = (xp[0] - xm[0]) / 2e-4;
+                                bj[(1, c)] = (xp[1] - xm[1]) / 2e-4;
+                            }
+                            _ => ok = false,
+                        }
+                    }
+                    if !ok {
+                        continue;
+                    }
+                    let r = nalgebra::Vector2::new(r0[0], r0[1]);
+                    u[b] += a.transpose() * a * wt;
+                    eu[b] += a.transpose() * r * wt;
+                    if !is_fixed[j] {
+                        v[j] += bj.transpose() * bj * wt;
+                        ev[j] += bj.transpose() * r * wt;
+                        w[j].push((b, a.transpose() * bj * wt));
                     }
                 }
-                vinv[j] = Some(vi);
             }
-            let Some(chol) = s.clone().cholesky() else {
+            // Levenberg-Marquardt: damp, eliminate the landmarks, solve for the blocks.
+            let mut improved = false;
+            for _ in 0..8 {
+                let mut s = nalgebra::DMatrix::<f64>::zeros(3 * nb, 3 * nb);
+                let mut rhs = nalgebra::DVector::<f64>::zeros(3 * nb);
+                for bi in 0..nb {
+                    let ud = u[bi] + Matrix3::from_diagonal(&u[bi].diagonal()) * lambda;
+                    s.fixed_view_mut::<3, 3>(3 * bi, 3 * bi).add_assign(&ud);
+                    rhs.fixed_rows_mut::<3>(3 * bi).add_assign(&(-eu[bi]));
+                }
+                let mut vinv = vec![None; xs.len()];
+                for j in 0..xs.len() {
+                    if w[j].is_empty() {
+                        continue;
+                    }
+                    let vd =
+                        v[j] + Matrix3::from_diagonal(&v[j].diagonal()) * lambda + Matrix3::identity() * 1e-9;
+                    let Some(vi) = vd.try_inverse() else { continue };
+                    for &(b1, w1) in &w[j] {
+                        let wv = w1 * vi;
+                        rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&(wv * ev[j]));
+                        for &(b2, w2) in &w[j] {
+                            let mut view = s.fixed_view_mut::<3, 3>(3 * b1, 3 * b2);
+                            view -= wv * w2.transpose();
+                        }
+                    }
+                    vinv[j] = Some(vi);
+                }
+                let Some(chol) = s.clone().cholesky() else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let dd = chol.solve(&rhs);
+                let step = |bi: usize| Vec3::new(dd[3 * bi], dd[3 * bi + 1], dd[3 * bi + 2]);
+                let new_theta: Vec<Vec3> = (0..nb).map(|bi| theta[bi] + step(bi)).collect();
+                let new_xs: Vec<Vec3> = (0..xs.len())
+                    .map(|j| match vinv[j] {
+                        Some(vi) => {
+                            let mut acc = -ev[j];
+                            for &(bi, wbj) in &w[j] {
+                                acc -= wbj.transpose() * step(bi);
+                            }
+                            xs[j] + vi * acc
+                        }
+                        None => xs[j],
+                    })
+                    .collect();
+                let (new_cost, _) = cost_and_errors(&new_xs, &new_theta);
+                if new_cost < cost {
+                    improved = (cost - new_cost) > 1e-9 * cost;
+                    cost = new_cost;
+                    xs = new_xs;
+                    theta = new_theta;
+                    lambda = (lambda / 10.0).max(1e-9);
+                    last_s = Some(s);
+                    break;
+                }
                 lambda *= 10.0;
-                continue;
-            };
-            let dd = chol.solve(&rhs);
-            let new_deltas: Vec<Vec3> = (0..nf)
-                .map(|fi| deltas[fi] + Vec3::new(dd[3 * fi], dd[3 * fi + 1], dd[3 * fi + 2]))
-                .collect();
-            let new_xs: Vec<Vec3> = (0..xs.len())
-                .map(|j| match vinv[j] {
-                    Some(vi) => {
-                        let mut acc = -ev[j];
-                        for &(fi, wfj) in &w[j] {
-                            acc -= wfj.transpose() * Vector3::new(dd[3 * fi], dd[3 * fi + 1], dd[3 * fi + 2]);
-                        }
-                        xs[j] + vi * acc
-                    }
-                    None => xs[j],
-                })
-                .collect();
-            let (new_cost, _) = cost_and_errors(&new_xs, &new_deltas);
-            if new_cost < cost {
-                improved = (cost - new_cost) > 1e-9 * cost;
-                cost = new_cost;
-                xs = new_xs;
-                deltas = new_deltas;
-                lambda = (lambda / 10.0).max(1e-9);
+            }
+            if !improved {
                 break;
             }
-            lambda *= 10.0;
         }
-        if !improved {
-            break;
+        let (_, errs) = cost_and_errors(&xs, &theta);
+        // The reduced normal matrix's inverse is the blocks' covariance (in units of the
+        // pixel SD, which whitens the residuals), the landmarks marginalised.
+        let block_covariance = last_s
+            .and_then(|s| s.try_inverse())
+            .map(|c| Matrix3::from_iterator(c.view((0, 0), (3, 3)).iter().copied()));
+        Solution {
+            xs,
+            blocks: theta,
+            block_covariance,
+            median_before_px,
+            median_after_px: median(errs),
+            sightings,
         }
     }
-    let (_, errs) = cost_and_errors(&xs, &deltas);
-    let median_after_px = median(errs);
-    let landmarks =
-        landmarks.iter().zip(&xs).map(|(l, x)| LandmarkRecord { position: *x, ..l.clone() }).collect();
-    let corrections = frames.iter().zip(&deltas).map(|(&f, d)| (f, *d)).collect();
-    Refined { landmarks, corrections, median_before_px, median_after_px }
 }
 
 #[cfg(test)]

@@ -6,6 +6,7 @@
 //! to completion but whose result is a failure (the demo's FAIL) returns its own code.
 
 pub mod area;
+pub mod calibrate;
 pub mod config;
 pub mod demo;
 pub mod eval;

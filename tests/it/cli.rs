@@ -531,3 +531,118 @@ fn contact_sheets_show_every_frame_twelve_to_a_page() {
     let tile_h = 270; // 480 px wide tiles of a 16:9 frame
     assert_eq!((first.rows(), second.rows()), (12 * tile_h, 2 * tile_h), "12 frames, then the other 2");
 }
+
+/// `calibrate gimbal` recovers a static gimbal offset (seed sec. 6.11) from a flight's own
+/// landmarks, states its uncertainty, and writes it into a configuration file keeping the
+/// file's other lines.
+#[test]
+fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    mavloc()
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--width",
+            "960",
+            "--height",
+            "540",
+            "--frames",
+            "120",
+        ])
+        .args(["--gimbal-sd-deg", "0", "--position-sd-m", "0,0,0", "--gimbal-offset-deg", "1.5,-2,0.5"])
+        .arg("--out")
+        .arg(&ds)
+        .assert()
+        .success();
+    let config = dir.path().join("mavloc.toml");
+    std::fs::write(&config, "# my drone\n[gimbal]\nchain = \"yaw-pitch-roll\" # kept\n").unwrap();
+    let out =
+        stdout_of(mavloc().args(["calibrate", "gimbal", "--dataset"]).arg(&ds).arg("--write").arg(&config));
+    let value = |key: &str| -> (f64, f64) {
+        let line = out
+            .lines()
+            .find(|l| l.starts_with(&format!("gimbal.{key} = ")))
+            .unwrap_or_else(|| panic!("{out}"));
+        let v: f64 = line.split(' ').nth(2).unwrap().parse().unwrap();
+        let sd: f64 = line.split("(SD ").nth(1).unwrap().split(' ').next().unwrap().parse().unwrap();
+        (v, sd)
+    };
+    // The reported angles carry the offset; the correction is its opposite.
+    for (key, want) in [("yaw_offset_deg", -1.5), ("pitch_offset_deg", 2.0), ("roll_offset_deg", -0.5)] {
+        let (v, sd) = value(key);
+        assert!((v - want).abs() < 0.2, "{key}: {v} (want {want})\n{out}");
+        assert!(sd < 0.2, "{key}: SD {sd}\n{out}");
+    }
+    let written = std::fs::read_to_string(&config).unwrap();
+    assert!(
+        written.starts_with("# my drone\n") && written.contains("chain = \"yaw-pitch-roll\" # kept"),
+        "{written}"
+    );
+    let check = stdout_of(mavloc().args(["config", "check"]).arg(&config));
+    assert!(check.contains("valid"), "{check}");
+    let doc: toml::Table = written.parse().unwrap();
+    let pitch = doc["gimbal"]["pitch_offset_deg"].as_float().unwrap();
+    assert!((pitch - 2.0).abs() < 0.2, "{written}");
+}
+
+/// With a surveyed marker (a shore point, its pixel in each frame where the true camera
+/// sees it) the marker anchors the estimate, as the seed's reference marker does.
+#[test]
+fn calibrate_gimbal_with_a_marker() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    mavloc()
+        .args([
+            "sim",
+            "render",
+            "--scenario",
+            "coastline",
+            "--width",
+            "960",
+            "--height",
+            "540",
+            "--frames",
+            "120",
+        ])
+        .args(["--gimbal-sd-deg", "0", "--position-sd-m", "0,0,0", "--gimbal-offset-deg", "0,-2,0"])
+        .arg("--out")
+        .arg(&ds)
+        .assert()
+        .success();
+    let d = mavloc_data::Dataset::open(&ds).unwrap();
+    let k = d.camera.intrinsics();
+    // The shore point seen in the most frames.
+    let candidates: Vec<_> = d.ground_truth.iter().flatten().step_by(7).copied().collect();
+    let seen_in = |p: &mavloc_geometry::Vec3| -> Vec<(u64, mavloc_geometry::Pixel)> {
+        d.records
+            .iter()
+            .filter_map(|r| {
+                let pose = r.truth.camera_pose(d.camera.chain, d.camera.gimbal_frame);
+                pose.project(&k, p).filter(|px| k.contains(*px)).map(|px| (r.frame, px))
+            })
+            .collect()
+    };
+    let marker = candidates.iter().max_by_key(|p| seen_in(p).len()).unwrap();
+    let sightings = seen_in(marker);
+    assert!(sightings.len() >= 20, "{} sightings", sightings.len());
+    let csv: String = std::iter::once("frame,u,v\n".to_string())
+        .chain(sightings.iter().map(|(f, px)| format!("{f},{:.3},{:.3}\n", px.u, px.v)))
+        .collect();
+    let pixels = dir.path().join("marker.csv");
+    std::fs::write(&pixels, csv).unwrap();
+    let out = stdout_of(
+        mavloc()
+            .args(["calibrate", "gimbal", "--dataset"])
+            .arg(&ds)
+            .arg(format!("--marker={},{},{}", marker.x, marker.y, marker.z))
+            .arg("--marker-pixels")
+            .arg(&pixels),
+    );
+    assert!(out.contains("and the marker"), "{out}");
+    let line = out.lines().find(|l| l.starts_with("gimbal.pitch_offset_deg = ")).unwrap();
+    let v: f64 = line.split(' ').nth(2).unwrap().parse().unwrap();
+    assert!((v - 2.0).abs() < 0.2, "{out}");
+}
