@@ -532,47 +532,50 @@ fn contact_sheets_show_every_frame_twelve_to_a_page() {
     assert_eq!((first.rows(), second.rows()), (12 * tile_h, 2 * tile_h), "12 frames, then the other 2");
 }
 
+/// A coastline flight with exact telemetry but a static gimbal offset (yaw 1.5, pitch -2,
+/// roll 0.5 deg), rendered once per build of the tests.
+fn offset_flight() -> std::path::PathBuf {
+    let noise = mavloc_sim::scenario::NoiseSpec {
+        gimbal_yaw_sd_deg: 0.0,
+        gimbal_pitch_sd_deg: 0.0,
+        position_sd_m: [0.0; 3],
+        gimbal_offset_deg: [1.5, -2.0, 0.5],
+        ..Default::default()
+    };
+    let opts = mavloc_sim::RenderOptions {
+        frames: Some(100),
+        size: Some((960, 540)),
+        noise: Some(noise),
+        ..Default::default()
+    };
+    crate::fixtures::rendered("coastline-100-960x540-gimbal-offset", "coastline", &opts)
+}
+
+/// The value and the SD of `gimbal.KEY` in `calibrate gimbal`'s output.
+fn calibrated(out: &str, key: &str) -> (f64, f64) {
+    let line =
+        out.lines().find(|l| l.starts_with(&format!("gimbal.{key} = "))).unwrap_or_else(|| panic!("{out}"));
+    let v: f64 = line.split(' ').nth(2).unwrap().parse().unwrap();
+    let sd: f64 = line.split("(SD ").nth(1).unwrap().split(' ').next().unwrap().parse().unwrap();
+    (v, sd)
+}
+
 /// `calibrate gimbal` recovers a static gimbal offset (seed sec. 6.11) from a flight's own
 /// landmarks, states its uncertainty, and writes it into a configuration file keeping the
-/// file's other lines.
+/// file's other lines; with a surveyed marker (a shore point, its pixel in each frame where
+/// the true camera sees it) the marker anchors it, as the seed's reference marker does.
 #[test]
 fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
     let dir = tempfile::tempdir().unwrap();
-    let ds = dir.path().join("ds");
-    mavloc()
-        .args([
-            "sim",
-            "render",
-            "--scenario",
-            "coastline",
-            "--width",
-            "960",
-            "--height",
-            "540",
-            "--frames",
-            "120",
-        ])
-        .args(["--gimbal-sd-deg", "0", "--position-sd-m", "0,0,0", "--gimbal-offset-deg", "1.5,-2,0.5"])
-        .arg("--out")
-        .arg(&ds)
-        .assert()
-        .success();
+    let ds = offset_flight();
     let config = dir.path().join("mavloc.toml");
     std::fs::write(&config, "# my drone\n[gimbal]\nchain = \"yaw-pitch-roll\" # kept\n").unwrap();
     let out =
         stdout_of(mavloc().args(["calibrate", "gimbal", "--dataset"]).arg(&ds).arg("--write").arg(&config));
-    let value = |key: &str| -> (f64, f64) {
-        let line = out
-            .lines()
-            .find(|l| l.starts_with(&format!("gimbal.{key} = ")))
-            .unwrap_or_else(|| panic!("{out}"));
-        let v: f64 = line.split(' ').nth(2).unwrap().parse().unwrap();
-        let sd: f64 = line.split("(SD ").nth(1).unwrap().split(' ').next().unwrap().parse().unwrap();
-        (v, sd)
-    };
     // The reported angles carry the offset; the correction is its opposite.
-    for (key, want) in [("yaw_offset_deg", -1.5), ("pitch_offset_deg", 2.0), ("roll_offset_deg", -0.5)] {
-        let (v, sd) = value(key);
+    let want = [("yaw_offset_deg", -1.5), ("pitch_offset_deg", 2.0), ("roll_offset_deg", -0.5)];
+    for (key, want) in want {
+        let (v, sd) = calibrated(&out, key);
         assert!((v - want).abs() < 0.2, "{key}: {v} (want {want})\n{out}");
         assert!(sd < 0.2, "{key}: SD {sd}\n{out}");
     }
@@ -586,35 +589,10 @@ fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
     let doc: toml::Table = written.parse().unwrap();
     let pitch = doc["gimbal"]["pitch_offset_deg"].as_float().unwrap();
     assert!((pitch - 2.0).abs() < 0.2, "{written}");
-}
 
-/// With a surveyed marker (a shore point, its pixel in each frame where the true camera
-/// sees it) the marker anchors the estimate, as the seed's reference marker does.
-#[test]
-fn calibrate_gimbal_with_a_marker() {
-    let dir = tempfile::tempdir().unwrap();
-    let ds = dir.path().join("ds");
-    mavloc()
-        .args([
-            "sim",
-            "render",
-            "--scenario",
-            "coastline",
-            "--width",
-            "960",
-            "--height",
-            "540",
-            "--frames",
-            "120",
-        ])
-        .args(["--gimbal-sd-deg", "0", "--position-sd-m", "0,0,0", "--gimbal-offset-deg", "0,-2,0"])
-        .arg("--out")
-        .arg(&ds)
-        .assert()
-        .success();
+    // The marker.
     let d = mavloc_data::Dataset::open(&ds).unwrap();
     let k = d.camera.intrinsics();
-    // The shore point seen in the most frames.
     let candidates: Vec<_> = d.ground_truth.iter().flatten().step_by(7).copied().collect();
     let seen_in = |p: &mavloc_geometry::Vec3| -> Vec<(u64, mavloc_geometry::Pixel)> {
         d.records
@@ -642,7 +620,8 @@ fn calibrate_gimbal_with_a_marker() {
             .arg(&pixels),
     );
     assert!(out.contains("and the marker"), "{out}");
-    let line = out.lines().find(|l| l.starts_with("gimbal.pitch_offset_deg = ")).unwrap();
-    let v: f64 = line.split(' ').nth(2).unwrap().parse().unwrap();
-    assert!((v - 2.0).abs() < 0.2, "{out}");
+    for (key, want) in want {
+        let (v, _) = calibrated(&out, key);
+        assert!((v - want).abs() < 0.2, "with the marker, {key}: {v} (want {want})\n{out}");
+    }
 }
