@@ -73,13 +73,14 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 );
             }
             println!(
-                "{}: {} frames ({} skipped), localiser {:.0} frames/s ({:.2} ms), reading+preparing {:.1} ms per frame; motion model {}, derotation {}",
+                "{}: {} frames ({} skipped), {:.0} frames/s whole frames: read+decode {:.2} ms, prepare {:.2} ms, localise {:.2} ms per frame; motion model {}, derotation {}",
                 opts.out.display(),
                 s.frames,
                 s.skipped_frames,
                 s.frames_per_s,
-                s.localize_ms,
+                s.read_ms,
                 s.prepare_ms,
+                s.localize_ms,
                 s.motion_model,
                 if s.derotate { "on" } else { "off" }
             );

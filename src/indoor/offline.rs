@@ -81,8 +81,10 @@ fn pose_rotation(r: &TelemetryRecord, ds: &Dataset) -> mavloc_geometry::Rot3 {
     r.measured.camera_pose(ds.camera.chain, ds.camera.gimbal_frame).local_from_camera()
 }
 
-/// Reads and prepares one frame; `None` (with a warning) when it is unreadable.
-fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<Canvas> {
+/// Reads and prepares one frame, with the seconds spent reading and decoding it and
+/// preparing it; `None` (with a warning) when it is unreadable.
+fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<(Canvas, f64, f64)> {
+    let t0 = Instant::now();
     let path = ds.frame_path(r);
     let img = match crate::imaging::read_image(&path, imgcodecs::IMREAD_COLOR) {
         Ok(m) => m,
@@ -91,8 +93,10 @@ fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<Canvas>
             return None;
         }
     };
+    let read_s = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
     match pre.prepare(&img, Some(&pose_rotation(r, ds))) {
-        Ok(c) => Some(c),
+        Ok(c) => Some((c, read_s, t1.elapsed().as_secs_f64())),
         Err(e) => {
             tracing::warn!(frame = r.frame, path = %path.display(), "frame skipped: {e}");
             None
@@ -356,12 +360,19 @@ pub struct RunSummary {
     pub skipped_frames: usize,
     pub motion_model: String,
     pub derotate: bool,
-    /// Frames per second of the localiser alone (histogram, k-NN, particle filter).
+    /// Frames per second of whole frames: reading and decoding the file, preparing the
+    /// frame and localising it (the stages below add up to it).
     pub frames_per_s: f64,
-    /// Mean time to read, downscale and derotate a frame, ms.
+    /// Mean time to read and decode a frame's file, ms.
+    #[serde(default)]
+    pub read_ms: f64,
+    /// Mean time to downscale, derotate and normalise a frame, ms.
     pub prepare_ms: f64,
-    /// Mean localiser time per frame, ms.
+    /// Mean localiser time per frame (histogram, k-NN, particle filter), ms.
     pub localize_ms: f64,
+    /// Frames per second of the localiser alone.
+    #[serde(default)]
+    pub localize_frames_per_s: f64,
     pub complete: bool,
 }
 
@@ -409,16 +420,16 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         derotate: settings.derotate,
         ..RunSummary::default()
     };
-    let (mut prepare_s, mut localize_s) = (0.0, 0.0);
+    let (mut read_s, mut prepare_s, mut localize_s) = (0.0, 0.0, 0.0);
     let mut rows = Vec::with_capacity(total);
     for (i, r) in ds.records.iter().take(total).enumerate() {
-        let t0 = Instant::now();
-        let Some(canvas) = load(&ds, &pre, r) else {
+        let Some((canvas, read, prepare)) = load(&ds, &pre, r) else {
             summary.skipped_frames += 1;
             progress(i + 1, total);
             continue;
         };
-        prepare_s += t0.elapsed().as_secs_f64();
+        read_s += read;
+        prepare_s += prepare;
         let v = (!opts.no_velocity).then(|| Vector2::new(r.measured.velocity[0], r.measured.velocity[1]));
         let t1 = Instant::now();
         let e = loc.step(r.t, &canvas, v);
@@ -440,9 +451,12 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         progress(i + 1, total);
     }
     let n = rows.len().max(1) as f64;
+    summary.read_ms = read_s / n * 1000.0;
     summary.prepare_ms = prepare_s / n * 1000.0;
     summary.localize_ms = localize_s / n * 1000.0;
-    summary.frames_per_s = if localize_s > 0.0 { rows.len() as f64 / localize_s } else { 0.0 };
+    let whole = read_s + prepare_s + localize_s;
+    summary.frames_per_s = if whole > 0.0 { rows.len() as f64 / whole } else { 0.0 };
+    summary.localize_frames_per_s = if localize_s > 0.0 { rows.len() as f64 / localize_s } else { 0.0 };
     summary.complete = true;
     write_trajectory(&opts.out, &rows, &summary)?;
     Ok(summary)

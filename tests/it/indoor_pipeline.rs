@@ -58,6 +58,14 @@ fn trains_on_views_and_tracks_a_flight() {
         };
         let summary = run(&opts, s, |_, _| {}).unwrap();
         assert!(summary.complete && summary.frames == 300);
+        // Frames per second count whole frames: reading, preparing and localising.
+        let whole_ms = summary.read_ms + summary.prepare_ms + summary.localize_ms;
+        assert!(summary.read_ms > 0.0 && summary.prepare_ms > 0.0, "{summary:?}");
+        assert!(
+            (summary.frames_per_s - 1000.0 / whole_ms).abs() < 0.01 * summary.frames_per_s,
+            "{summary:?}"
+        );
+        assert!(summary.localize_frames_per_s > summary.frames_per_s, "{summary:?}");
         let rows = read_trajectory(&out.join("trajectory.csv")).unwrap();
         let (e, _) = evaluate(&flight, out).unwrap();
         // After the first 2 s (global localisation from a uniform start).
