@@ -81,9 +81,13 @@ fn pose_rotation(r: &TelemetryRecord, ds: &Dataset) -> mavloc_geometry::Rot3 {
     r.measured.camera_pose(ds.camera.chain, ds.camera.gimbal_frame).local_from_camera()
 }
 
-/// Reads and prepares one frame, with the seconds spent reading and decoding it and
-/// preparing it; `None` (with a warning) when it is unreadable.
-fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<(Canvas, f64, f64)> {
+/// Reads and prepares one frame; `None` (with a warning) when it is unreadable.
+fn load(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<Canvas> {
+    load_timed(ds, pre, r).map(|(c, _, _)| c)
+}
+
+/// [`load`], with the seconds spent reading and decoding the file and preparing it.
+fn load_timed(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<(Canvas, f64, f64)> {
     let t0 = Instant::now();
     let path = ds.frame_path(r);
     let img = match crate::imaging::read_image(&path, imgcodecs::IMREAD_COLOR) {
@@ -423,7 +427,7 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     let (mut read_s, mut prepare_s, mut localize_s) = (0.0, 0.0, 0.0);
     let mut rows = Vec::with_capacity(total);
     for (i, r) in ds.records.iter().take(total).enumerate() {
-        let Some((canvas, read, prepare)) = load(&ds, &pre, r) else {
+        let Some((canvas, read, prepare)) = load_timed(&ds, &pre, r) else {
             summary.skipped_frames += 1;
             progress(i + 1, total);
             continue;
