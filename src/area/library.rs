@@ -25,9 +25,6 @@ pub struct Landmark {
     next_slot: usize,
     /// Features added (size in eq. 5.20), including the one that created it.
     pub observations: u32,
-    /// Matches its gate refused (eq. 5.11): most of them refused means the matches or
-    /// the estimate are wrong, whatever the covariance says.
-    pub refused: u32,
     pub first_frame: u64,
     pub last_frame: u64,
 }
@@ -42,7 +39,6 @@ impl Landmark {
             descriptors: descriptor.to_vec(),
             next_slot: 0,
             observations: 1,
-            refused: 0,
             first_frame: frame,
             last_frame: frame,
         }
@@ -287,7 +283,6 @@ impl Library {
                 landmark.last_frame = frame;
             } else {
                 stats.gated += 1;
-                landmark.refused += 1;
             }
             if let Some(t) = trace.as_deref_mut() {
                 let p = landmark.ukf.covariance();
@@ -314,15 +309,9 @@ impl Library {
     }
 
     /// Whether a landmark counts as a result (eq. 5.21 below the threshold, and seen often
-    /// enough that the covariance reflects measurements rather than one lucky update), and
-    /// its gate accepted more of its matches than it refused (a landmark whose own gate
-    /// refuses most of what matches it is inconsistent, whatever its covariance says; the
-    /// live coastline's outliers, 11-17 m above the shore, had 4-8 accepted matches over
-    /// spans of 7-26 frames).
+    /// enough that the covariance reflects measurements rather than one lucky update).
     pub fn converged(&self, l: &Landmark) -> bool {
-        l.observations >= self.params.min_observations
-            && l.sigma_max() < self.params.convergence_m
-            && l.refused < l.observations
+        l.observations >= self.params.min_observations && l.sigma_max() < self.params.convergence_m
     }
 
     /// Purge (eq. 5.19-5.20): above `L_max - T`, remove the worst by quality; converged
