@@ -154,7 +154,8 @@ fn rational_f64(f: &exif::Field, i: usize) -> Option<f64> {
 /// Reads a photo's tags; the error names the photo and every missing tag. The size is the
 /// JPEG's own (its frame header), not EXIF's, which some cameras leave at the sensor's
 /// (the senseFly sample says 4000x3000 in files of 3600x2700). EXIF that cannot be parsed
-/// (an odd maker block) is not fatal when the XMP has what the pose needs.
+/// (an odd maker block) is not fatal when the XMP has what the pose needs; a JPEG cut
+/// short is refused.
 pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let bytes = std::fs::read(path).map_err(|e| format!("{name}: {e}"))?;
@@ -306,6 +307,10 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     }
     if !missing.is_empty() {
         return Err(format!("{name}: missing {}", missing.join(", ")));
+    }
+    // Tags come first in the file, so a cut photo still has them: check the image too.
+    if crate::imaging::jpeg_truncated(&bytes) {
+        return Err(format!("{name}: truncated JPEG (the image data ends early)"));
     }
     Ok(tags)
 }
@@ -522,14 +527,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     let mut report = ImportReport::default();
     let mut photos = Vec::new();
     for p in &paths {
-        match read_tags(p).and_then(|t| {
-            // Tags come first in the file, so a cut photo still has them: check the image.
-            let bytes = std::fs::read(p).map_err(|e| format!("{}: {e}", t.name))?;
-            if crate::imaging::jpeg_truncated(&bytes) {
-                return Err(format!("{}: truncated JPEG (the image data ends early)", t.name));
-            }
-            Ok(t)
-        }) {
+        match read_tags(p) {
             Ok(t) => match exif_seconds(&t.time) {
                 Some(s) => photos.push((s, p.clone(), t)),
                 None => {
