@@ -20,9 +20,10 @@ use tracing_subscriber::EnvFilter;
 /// The real stderr once fd 2 has been captured.
 static REAL_STDERR: OnceLock<File> = OnceLock::new();
 
-/// Where mavloc's own diagnostics go: the real stderr (not the capture pipe).
+/// Where mavloc's own diagnostics go: the real stderr (not the capture pipe). Borrowed,
+/// not duplicated: tracing asks for a writer on every event.
 pub fn stderr() -> Box<dyn Write + Send> {
-    match REAL_STDERR.get().and_then(|f| f.try_clone().ok()) {
+    match REAL_STDERR.get() {
         Some(f) => Box::new(f),
         None => Box::new(std::io::stderr()),
     }
