@@ -27,8 +27,9 @@ use mavloc_data::results::LandmarkRecord;
 /// Settings of a refinement.
 #[derive(Clone, Copy, Debug)]
 pub struct RefineParams {
-    /// SD of the recorded attitude, radians (the prior on each correction).
-    pub prior_rad: f64,
+    /// SD of the prior on each block's parameters, in their unit: radians for the
+    /// per-frame rotation corrections, degrees for the gimbal offsets of [`calibrate`].
+    pub prior: f64,
     /// SD of a sighting, pixels (at the pipeline's resolution).
     pub pixel_sd: f64,
     /// Huber's threshold, in SDs.
@@ -38,7 +39,7 @@ pub struct RefineParams {
 
 impl RefineParams {
     pub fn new(prior_deg: f64) -> RefineParams {
-        RefineParams { prior_rad: prior_deg.to_radians(), pixel_sd: 1.0, huber: 2.0, rounds: 30 }
+        RefineParams { prior: prior_deg.to_radians(), pixel_sd: 1.0, huber: 2.0, rounds: 30 }
     }
 }
 
@@ -145,7 +146,7 @@ pub fn calibrate(
     let frames: std::collections::BTreeSet<u64> = sightings.iter().map(|s| s.0).collect();
     let block: BTreeMap<u64, usize> = frames.iter().map(|&f| (f, 0)).collect();
     // The block is in degrees here (the configuration's unit), so the prior is too.
-    let params = RefineParams { prior_rad: prior_deg, ..RefineParams::new(prior_deg) };
+    let params = RefineParams { prior: prior_deg, ..RefineParams::new(prior_deg) };
     let mut all: Vec<LandmarkRecord> = landmarks.to_vec();
     all.extend(fixed.iter().map(|(id, x)| LandmarkRecord {
         id: *id,
@@ -222,7 +223,7 @@ impl Problem<'_> {
         let mut xs: Vec<Vec3> = self.landmarks.iter().map(|l| l.position).collect();
         let mut theta = vec![Vec3::zeros(); nb];
         let cost_and_errors = |xs: &[Vec3], theta: &[Vec3]| -> (f64, Vec<f64>) {
-            let mut cost = theta.iter().map(|d| 0.5 * (d.norm() / p.prior_rad).powi(2)).sum::<f64>();
+            let mut cost = theta.iter().map(|d| 0.5 * (d.norm() / p.prior).powi(2)).sum::<f64>();
             let mut errs = Vec::new();
             for (j, obs) in per_landmark.iter().enumerate() {
                 for &(f, b, px) in obs {
@@ -251,8 +252,8 @@ impl Problem<'_> {
         let mut last_s: Option<nalgebra::DMatrix<f64>> = None;
         for _ in 0..p.rounds {
             // Normal equations, blockwise: U (pose blocks), V (landmarks), W (block x landmark).
-            let mut u = vec![Matrix3::<f64>::identity() / p.prior_rad.powi(2); nb];
-            let mut eu: Vec<Vector3<f64>> = theta.iter().map(|d| d / p.prior_rad.powi(2)).collect();
+            let mut u = vec![Matrix3::<f64>::identity() / p.prior.powi(2); nb];
+            let mut eu: Vec<Vector3<f64>> = theta.iter().map(|d| d / p.prior.powi(2)).collect();
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
             let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
             let mut w: Vec<Vec<(usize, Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
@@ -267,7 +268,7 @@ impl Problem<'_> {
                     let mut a = nalgebra::Matrix2x3::<f64>::zeros();
                     let mut bj = nalgebra::Matrix2x3::<f64>::zeros();
                     let mut ok = true;
-                    let ht = 1e-6 * p.prior_rad.max(1e-3);
+                    let ht = 1e-6 * p.prior.max(1e-3);
                     for c in 0..3 {
                         let mut dt = Vec3::zeros();
                         dt[c] = ht;
