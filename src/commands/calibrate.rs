@@ -52,8 +52,13 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
     crate::logging::init(&settings.daemon.log);
     // The filters' landmarks, not ones already bent by per-frame attitude corrections.
     settings.area.attitude_prior_deg = 0.0;
-    let temp = tempfile_dir()?;
-    let out = a.out.clone().unwrap_or_else(|| temp.clone());
+    // Without --out the run's files go to a temporary folder, removed however this ends.
+    let temp = match &a.out {
+        Some(_) => None,
+        None => Some(tempfile::tempdir().context("cannot create a temporary folder")?),
+    };
+    let out =
+        a.out.clone().or_else(|| temp.as_ref().map(|t| t.path().to_path_buf())).expect("one of the two");
     let opts = RunOptions {
         dataset: a.dataset.clone(),
         out,
@@ -65,7 +70,7 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
     let bar = Progress::new("area", "frames");
     let (summary, obs) = run_observed(&opts, &settings, |d, t| bar.set(d, t), true)?;
     bar.finish();
-    let _ = std::fs::remove_dir_all(&temp);
+    drop(temp);
     let k = obs.k.ok_or_else(|| anyhow!("no frame of {} could be used", a.dataset.display()))?;
     let ds = crate::data::Dataset::open(&a.dataset).map_err(|e| anyhow!(e))?;
     let records: BTreeMap<u64, crate::data::dataset::PoseRecord> =
@@ -145,11 +150,4 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
         println!("written into [gimbal] of {}", path.display());
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// A fresh folder under the system's temporary one, for the area run's files.
-fn tempfile_dir() -> anyhow::Result<std::path::PathBuf> {
-    let dir = std::env::temp_dir().join(format!("mavloc-calibrate-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    Ok(dir)
 }
