@@ -377,9 +377,10 @@ fn load_lenient(layers: &Layers) -> Result<(Loaded, Vec<Problem>), SettingsError
             Err(MergeFailure::Other(e)) => return Err(e),
         }
     };
-    for (k, _) in &excluded {
-        // A left-out value is not in force: its origin would mislead `config show`.
-        if problems.iter().any(|p| &p.key == k) {
+    // A left-out value is not in force: its origin would mislead `config show` (unless a
+    // later layer set the key validly, whose origin stays).
+    for (k, o) in &excluded {
+        if o == "*" || origins.get(k) == Some(o) {
             origins.remove(k);
         }
     }
