@@ -479,8 +479,37 @@ def run_scenario(a, name, out):
                 report["evaluation"] = ev
                 report["mean_m"] = ev["mean_m"]
                 report["median_m"] = ev["median_m"]
+    report["bar"] = issue_bar(report, indoor)
+    report["meets_bar"] = bool(report["bar"]) and all(report["bar"].values())
     json.dump(report, open(os.path.join(out, "report.json"), "w"), indent=2)
     return report
+
+
+def issue_bar(r, indoor):
+    """Issue #18's criteria, each true or false (a figure that was not computed fails).
+    `ok` only says the flight ran to the end."""
+    e = r.get("px4_estimate_vs_truth")
+    e = e if isinstance(e, dict) else {}
+
+    def at_most(v, lim):
+        return v is not None and v <= lim
+
+    def at_least(v, lim):
+        return v is not None and v >= lim
+    if indoor:
+        return {
+            "flown": bool(r.get("ok")),
+            "ekf_horizontal_rms_le_0.15_m": at_most(e.get("horizontal_rms_m"), 0.15),
+            "ekf_horizontal_max_le_0.5_m": at_most(e.get("horizontal_max_m"), 0.5),
+            "vision_fused_ge_99_pct": at_least(e.get("ev_pos_fused_share"), 0.99),
+            "touchdown_le_0.3_m_from_zone": at_most(r.get("touchdown_error_m"), 0.3),
+        }
+    return {
+        "flown": bool(r.get("ok")),
+        "landmarks_ge_1000": at_least(r.get("landmarks"), 1000),
+        "mean_le_1.5_m": at_most(r.get("mean_m"), 1.5),
+        "gimbal_error_median_le_2_deg": at_most(r.get("gimbal_error_median_deg"), 2.0),
+    }
 
 
 def main():
@@ -518,7 +547,7 @@ def main():
         for k in range(a.repeat):
             out = os.path.join(out_root, name) if a.repeat == 1 else os.path.join(out_root, name, f"run-{k + 1}")
             r = run_scenario(a, name, out)
-            keys = ["scenario", "ok", "error", "zone", "touchdown", "touchdown_error_m", "mavloc_rms_m",
+            keys = ["scenario", "ok", "meets_bar", "error", "zone", "touchdown", "touchdown_error_m", "mavloc_rms_m",
                     "mavloc_max_m", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg"]
             print(json.dumps({k2: r[k2] for k2 in keys if k2 in r}, indent=2), flush=True)
             reports.append(r)

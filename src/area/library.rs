@@ -8,11 +8,25 @@ use opencv::features2d::BFMatcher;
 use opencv::prelude::*;
 
 use super::features::Features;
+use super::rays::{self, Ray, Rays};
 use crate::filter::{BearingModel, MeasurementModel, Ukf, UkfParams};
 use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
 use mavloc_data::results::LandmarkRecord;
 
 const DESCRIPTOR_LEN: usize = 128;
+
+/// How much looser than the convergence threshold the rays' own solution may be: the
+/// filter also holds the ground-plane prior, and this check is there for the filter's
+/// false confidence (metres along the ray), not for centimetres.
+const RAYS_SIGMA_FACTOR: f64 = 2.0;
+
+/// How far (in the rays' SD, times the matching gate) the filter's position may lie from
+/// the rays' own: looser than the gate because the rays' covariance counts bearing noise
+/// only, and the vehicle's position noise (2 m vertical per frame in the seed's video)
+/// spreads honest rays too. Measured on three live demo runs: the honest landmarks' distances
+/// run to about 4.5 SD; the ones converged 6-16 m up their rays were 4.6-9.0 SD off or had
+/// no solution at all (a point behind a camera).
+const RAYS_GATE_FACTOR: f64 = 1.2;
 
 /// One landmark: descriptors seen so far (capped) and its position filter.
 pub struct Landmark {
@@ -27,6 +41,8 @@ pub struct Landmark {
     pub observations: u32,
     pub first_frame: u64,
     pub last_frame: u64,
+    /// The rays of the sightings that built it, for the convergence check ([`rays`]).
+    rays: Rays,
 }
 
 impl Landmark {
@@ -41,7 +57,19 @@ impl Landmark {
             observations: 1,
             first_frame: frame,
             last_frame: frame,
+            rays: Rays::default(),
         }
+    }
+
+    /// Records a sighting's ray (the first sighting's too).
+    pub fn seen_along(mut self, origin: Vec3, dir: Vec3) -> Landmark {
+        self.rays.push(Ray { origin, dir });
+        self
+    }
+
+    /// The rays' own solution (see [`rays`]).
+    pub fn triangulation(&self, bearing_sd_rad: f64) -> Option<rays::Triangulation> {
+        rays::triangulate(self.rays.as_slice(), self.ukf.state(), bearing_sd_rad)
     }
 
     fn descriptor_count(&self) -> usize {
@@ -253,9 +281,10 @@ impl Library {
             used[fi] = true;
             stats.matched += 1;
             let px = features.pixels[fi];
+            let dir = pose.direction(k, px);
             // Measured about the pixel's own ray: well conditioned at any camera tilt,
             // nadir photos included (see `BearingModel`).
-            let model = BearingModel::about(pose.position, &pose.direction(k, px));
+            let model = BearingModel::about(pose.position, &dir);
             let z = BearingModel::ZERO;
             let landmark = &mut self.landmarks[li];
             let Ok(pred) = landmark.ukf.predict_measurement(&model, &self.params.bearing_noise) else {
@@ -281,6 +310,7 @@ impl Library {
                 landmark.add_descriptor(row, self.params.max_descriptors);
                 landmark.observations += 1;
                 landmark.last_frame = frame;
+                landmark.rays.push(Ray { origin: pose.position, dir });
             } else {
                 stats.gated += 1;
             }
@@ -308,10 +338,23 @@ impl Library {
         Ok((stats, used))
     }
 
-    /// Whether a landmark counts as a result (eq. 5.21 below the threshold, and seen often
-    /// enough that the covariance reflects measurements rather than one lucky update).
+    /// Whether a landmark counts as a result: eq. 5.21 below the threshold, seen often
+    /// enough that the covariance reflects measurements rather than one lucky update, and
+    /// its own rays agree ([`rays`]): solved alone they fix the point within
+    /// `RAYS_SIGMA_FACTOR` times the threshold and the filter's position lies inside
+    /// their uncertainty (`RAYS_GATE_FACTOR` times the matching gate).
     pub fn converged(&self, l: &Landmark) -> bool {
-        l.observations >= self.params.min_observations && l.sigma_max() < self.params.convergence_m
+        if l.observations < self.params.min_observations || l.sigma_max() >= self.params.convergence_m {
+            return false;
+        }
+        let tri = l.triangulation(self.params.bearing_sd_rad);
+        match tri {
+            Some(t) => {
+                t.sigma_max < RAYS_SIGMA_FACTOR * self.params.convergence_m
+                    && t.mahalanobis(l.ukf.state()) <= RAYS_GATE_FACTOR * self.params.mahalanobis_max
+            }
+            None => false,
+        }
     }
 
     /// Purge (eq. 5.19-5.20): above `L_max - T`, remove the worst by quality; converged
@@ -378,7 +421,7 @@ impl Library {
                 Matrix3::identity() * across.powi(2) + d * d.transpose() * (along.powi(2) - across.powi(2));
             let Ok(ukf) = Ukf::new(ground, p0, self.params.ukf) else { continue };
             let Ok(row) = features.descriptors.at_row::<f32>(fi as i32) else { continue };
-            self.push(Landmark::new(ukf, row, frame));
+            self.push(Landmark::new(ukf, row, frame).seen_along(pose.position, d));
             if let Some(c) = created.as_deref_mut() {
                 c.push((self.next_id - 1, px));
             }
@@ -404,12 +447,57 @@ mod tests {
             let ukf = Ukf::new(Vec3::new(i as f64, 0.0, 0.0), Matrix3::identity() * 1e-4, p.ukf).unwrap();
             let mut l = Landmark::new(ukf, &[0.0; DESCRIPTOR_LEN], 0);
             l.observations = p.min_observations + i;
-            lib.push(l);
+            lib.push(seen_widely(l));
         }
         let (purged, results) = lib.purge(5);
         assert_eq!((purged, results.len()), (4, 4), "12 above l_max - turnover = 8, all converged");
         let tracked: Vec<u64> = lib.landmarks.iter().filter(|l| lib.converged(l)).map(|l| l.id).collect();
         assert_eq!(tracked.len(), 8);
         assert!(results.iter().all(|r| !tracked.contains(&r.id)), "{results:?} vs {tracked:?}");
+    }
+
+    /// Exact rays to the landmark's position from cameras 50 m up along 80 m of track.
+    fn seen_widely(l: Landmark) -> Landmark {
+        let p = *l.ukf.state();
+        [-40.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 40.0].iter().fold(l, |l, &n| {
+            let c = p + Vec3::new(n, -30.0, -50.0);
+            l.seen_along(c, (p - c).normalize())
+        })
+    }
+
+    fn filter_at(p: Vec3, sd: f64) -> Ukf<3> {
+        Ukf::new(p, Matrix3::identity() * sd * sd, UkfParams { alpha: 0.7, beta: 2.0, kappa: 0.0 }).unwrap()
+    }
+
+    /// The #20 tails: a filter claiming 0.3 m whose rays, from 5 m of straight flight at
+    /// 60 m range, cannot tell its point from one 12 m up them is not a result; the same
+    /// filter with rays from a long baseline is; and one whose rays meet elsewhere is not.
+    #[test]
+    fn a_landmark_counts_only_when_its_own_rays_fix_it() {
+        let a = crate::settings::Area::default();
+        let lib = Library::new(LibraryParams::from_settings(&a)).unwrap();
+        let truth = Vec3::new(60.0, 0.0, 0.0);
+        let mut short = Landmark::new(filter_at(truth, 0.3), &[0.0; DESCRIPTOR_LEN], 0);
+        short.observations = 8;
+        for i in 0..8 {
+            let c = Vec3::new(i as f64 * 0.7, 0.0, -50.0);
+            short = short.seen_along(c, (truth - c).normalize());
+        }
+        assert!(!lib.converged(&short), "{:?}", short.triangulation(lib.params.bearing_sd_rad));
+
+        let mut wide = Landmark::new(filter_at(truth, 0.3), &[0.0; DESCRIPTOR_LEN], 0);
+        wide.observations = 8;
+        wide = seen_widely(wide);
+        assert!(lib.converged(&wide), "{:?}", wide.triangulation(lib.params.bearing_sd_rad));
+
+        // Same wide rays, the filter 3 m off where they meet.
+        let mut off =
+            Landmark::new(filter_at(truth + Vec3::new(0.0, 0.0, -3.0), 0.3), &[0.0; DESCRIPTOR_LEN], 0);
+        off.observations = 8;
+        for &n in &[-40.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 40.0] {
+            let c = truth + Vec3::new(n, -30.0, -50.0);
+            off = off.seen_along(c, (truth - c).normalize());
+        }
+        assert!(!lib.converged(&off), "{:?}", off.triangulation(lib.params.bearing_sd_rad));
     }
 }

@@ -19,6 +19,7 @@ pub mod features;
 pub mod imageup;
 pub mod library;
 pub mod offline;
+pub mod rays;
 pub mod refine;
 pub mod residuals;
 pub mod segment;

@@ -68,7 +68,9 @@ fn cliff_short_flight_is_accurate_where_the_ground_plane_fails() {
     let ukf = run_and_eval(&ds, &dir.path().join("ukf"), AreaMethod::Ukf);
     let plane = run_and_eval(&ds, &dir.path().join("plane"), AreaMethod::GroundPlane);
     println!("cliff ukf:\n{ukf}\ncliff ground plane:\n{plane}");
-    assert!(ukf.landmarks >= 30, "{ukf}");
+    // 32 landmarks before the ray check (src/area/rays.rs), 26 with it, as accurate
+    // (1.32 -> 1.42 m mean, the same 2.76 m max): the count is a floor, accuracy the point.
+    assert!(ukf.landmarks >= 20, "{ukf}");
     assert_eq!(ukf.gt20, 0, "{ukf}");
     assert!(ukf.mean_m <= 3.0, "{ukf}");
     assert!(plane.mean_m > 2.0 * ukf.mean_m, "ukf {:.2} m vs ground plane {:.2} m", ukf.mean_m, plane.mean_m);
@@ -95,9 +97,9 @@ fn trace_records_every_update() {
 }
 
 /// Photo-like poses: every frame's attitude 3 deg off on its own, GNSS-grade positions
-/// (0.3/0.3/0.5 m). The landmark filters alone leave metres of error (a tail past 10 m);
-/// refining each frame's attitude with the landmarks (`area.attitude_prior_deg`) brings the
-/// mean under half and removes the tail. (On the seed's video noise, 2 m of height noise
+/// (0.3/0.3/0.5 m). The landmark filters alone leave metres of error; refining each
+/// frame's attitude with the landmarks (`area.attitude_prior_deg`) brings the mean under
+/// half and the worst under 6 m. (On the seed's video noise, 2 m of height noise
 /// per frame, refinement does not help; it is off by default and on for photo surveys.)
 #[test]
 fn attitude_refinement_recovers_photo_like_attitude_errors() {
@@ -134,7 +136,14 @@ fn attitude_refinement_recovers_photo_like_attitude_errors() {
     println!("filters alone:\n{plain}\nrefined:\n{refined}");
     assert_eq!(refined.landmarks, plain.landmarks, "the same landmarks, moved");
     assert!(refined.mean_m < 0.5 * plain.mean_m, "mean {:.2} -> {:.2} m", plain.mean_m, refined.mean_m);
-    assert!(refined.max_m < 6.0 && plain.max_m > 10.0, "max {:.2} -> {:.2} m", plain.max_m, refined.max_m);
+    // The filters' 21 m tail on this flight is set aside by the ray check before
+    // refinement (28 -> 18 landmarks); refinement still shrinks the worst.
+    assert!(
+        refined.max_m < 6.0 && refined.max_m < plain.max_m,
+        "max {:.2} -> {:.2} m",
+        plain.max_m,
+        refined.max_m
+    );
     let (before, after) =
         (summary.refined_median_before_px.unwrap(), summary.refined_median_after_px.unwrap());
     assert!(after < 0.2 * before, "sightings reproject {before:.1} -> {after:.1} px");

@@ -5,10 +5,13 @@
 //! then arming once its pre-arm checks pass (about 4.5 s after the origin).
 //!
 //! Standing on the ground the downward camera sees a hand's width of floor the texton
-//! model was never trained on, so while the autopilot says the vehicle is on the ground
-//! mavloc sends where it stands: the pad (`indoor.pad_x_m/y_m`) until its first estimate
-//! in the air, then the last estimate before touchdown. In the air the pipeline's
-//! estimates go out and these stop.
+//! model was never trained on, so while the vehicle is on the floor mavloc sends where
+//! it stands: the pad (`indoor.pad_x_m/y_m`) until its first estimate in the air, then
+//! the last estimate before touchdown. Off the floor but below `indoor.min_height_m`
+//! (climbing, touching down) it does not know where the vehicle is: the same x and y go
+//! out with an SD of `BLIND_SD_M`, which EKF2 weighs at next to nothing, so it keeps its
+//! own inertial track, while z (the rangefinder's) stays tight. High enough, the
+//! pipeline's estimates go out and these stop.
 
 use std::time::Duration;
 
@@ -29,8 +32,23 @@ const ORIGIN_RETRY: Duration = Duration::from_secs(3);
 pub const ORIGIN_TRIES: u32 = 3;
 /// The pad is placed by hand: a few centimetres.
 const PAD_SD_M: f64 = 0.05;
-/// A pipeline estimate this recent makes a standing one unnecessary.
-const PIPELINE_FRESH: Duration = Duration::from_millis(200);
+/// x and y while off the floor and too low to localise: "somewhere near here". Sent
+/// tight instead (the vehicle "stands" in the air), EKF2 explained the true drift of the
+/// climb as an accelerometer bias and carried that wrong velocity (0.4 m/s) for seconds
+/// after the camera saw again; measured against PX4 v1.16 SIH, the vehicle was lost.
+/// Over a 3 s climb at 30 Hz this still weighs as one measurement of about 1 m SD.
+pub const BLIND_SD_M: f64 = 10.0;
+
+/// Where the vehicle is, for the standing estimates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// On the floor: where it was last seen, to a few centimetres.
+    Standing,
+    /// Off the floor but too low to localise: x and y loose, z tight.
+    Blind,
+    /// High enough: the pipeline's estimates go out, these stop.
+    Seeing,
+}
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum OriginState {
@@ -64,9 +82,8 @@ pub struct GpsDenied {
     standing: (f64, f64, f64),
     state: OriginState,
     vision_since: Option<Mono>,
-    last_pipeline: Option<Mono>,
     next_ground: Mono,
-    on_ground: bool,
+    phase: Phase,
     sent_ground: u64,
     notices: Vec<Notice>,
     floor: Option<(f64, f64)>,
@@ -80,9 +97,8 @@ impl GpsDenied {
             standing: (pad.0, pad.1, PAD_SD_M),
             state: OriginState::Waiting,
             vision_since: None,
-            last_pipeline: None,
             next_ground: Mono::ZERO,
-            on_ground: false,
+            phase: Phase::Seeing,
             sent_ground: 0,
             notices: Vec::new(),
             floor: None,
@@ -107,17 +123,18 @@ impl GpsDenied {
         self.standing
     }
 
-    /// `on_ground`: the vehicle counts as standing (the autopilot says so, or the camera
-    /// is too low to localise); `floor`: where the floor is below it (local z, variance),
-    /// if known, for the estimate's z.
-    /// `on_ground`: the vehicle counts as standing (the autopilot says so, or the camera
-    /// is too low to localise). It stays where it was last seen, with that estimate's SD:
-    /// a take-off is vertical. (Letting the SD grow while unseen was tried against PX4
-    /// SITL: EKF2 then drifted on the ground before lift-off and its controller pushed
-    /// the vehicle 0.4 m/s the other way as it left the floor.) `floor`: where the floor
-    /// is below it (local z, variance), if known, for the estimate's z.
-    pub fn set_state(&mut self, on_ground: bool, floor: Option<(f64, f64)>) {
-        self.on_ground = on_ground;
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// `phase`: on the floor, off it but too low to localise, or high enough. Standing,
+    /// the vehicle is where it was last seen, with that estimate's SD. (Letting the SD
+    /// grow while on the floor was tried against PX4 SITL: EKF2 then drifted before
+    /// lift-off and its controller pushed the vehicle 0.4 m/s the other way as it left
+    /// the floor.) `floor`: where the floor is below it (local z, variance), if known,
+    /// for the estimate's z.
+    pub fn set_state(&mut self, phase: Phase, floor: Option<(f64, f64)>) {
+        self.phase = phase;
         self.floor = floor;
     }
 
@@ -128,8 +145,7 @@ impl GpsDenied {
             return;
         }
         self.vision_since.get_or_insert(now);
-        self.last_pipeline = Some(now);
-        if !self.on_ground {
+        if self.phase == Phase::Seeing {
             let sd = e.cov[0][0].max(e.cov[1][1]).max(0.0).sqrt().max(PAD_SD_M);
             self.standing = (e.north, e.east, sd);
         }
@@ -160,17 +176,20 @@ impl GpsDenied {
         self.vision_since = None;
     }
 
-    fn ground_due(&self, now: Mono) -> bool {
-        self.enabled()
-            && self.on_ground
-            && self.last_pipeline.is_none_or(|t| now.saturating_sub(t) > PIPELINE_FRESH)
+    fn ground_due(&self) -> bool {
+        // From the moment the pipeline pauses, with no wait for its last estimates: EKF2
+        // stops fusing vision after 200 ms without a sample (EV_MAX_INTERVAL) and
+        // restarts by resetting to the next one, which in the air is the loose one
+        // (measured against PX4 SITL: its position went invalid mid-landing). An
+        // estimate still in flight is older than these and EKF2 drops it.
+        self.enabled() && self.phase != Phase::Seeing
     }
 
     pub fn deadline(&self) -> Option<Mono> {
         if !self.enabled() {
             return None;
         }
-        let ground = self.on_ground.then_some(self.next_ground);
+        let ground = (self.phase != Phase::Seeing).then_some(self.next_ground);
         let origin = match self.state {
             OriginState::Waiting => self.vision_since.map(|t| t + ORIGIN_AFTER),
             OriginState::Sent { next, .. } => Some(next),
@@ -206,13 +225,14 @@ impl GpsDenied {
             }
             _ => {}
         }
-        if self.ground_due(now) && self.next_ground <= now {
+        if self.ground_due() && self.next_ground <= now {
             // Keep the cadence when polled late (by less than a period).
             let next = self.next_ground + GROUND_PERIOD;
             self.next_ground = if next > now { next } else { now + GROUND_PERIOD };
             self.vision_since.get_or_insert(now);
             self.sent_ground += 1;
             let (north, east, sd) = self.standing;
+            let sd = if self.phase == Phase::Blind { BLIND_SD_M } else { sd };
             let e = PositionEstimate {
                 autopilot_time: f64::NAN,
                 north,

@@ -339,6 +339,9 @@ pub struct Core {
     /// When a failed result write was last said, and how many failed since unsaid.
     write_warned: Option<Mono>,
     writes_failed_unsaid: u64,
+    /// The downward rangefinder's reading the last time the vehicle stood (m): the
+    /// floor, from where "off the floor" counts.
+    ground_range: f64,
 }
 
 impl Core {
@@ -369,6 +372,7 @@ impl Core {
             gps: GpsDenied::new(gps_origin(&settings), (settings.indoor.pad_x_m, settings.indoor.pad_y_m)),
             events: EventLog::default(),
             prearm_ok: None,
+            ground_range: 0.0,
             latencies: VecDeque::new(),
             health: Health::new(m.heartbeat_hz, watchdog),
             notes: Notes::default(),
@@ -520,7 +524,7 @@ impl Core {
 
     pub fn handle(&mut self, input: Input) {
         self.handle_input(input);
-        self.gps.set_state(self.vision_paused(), self.floor_down());
+        self.update_gps_phase();
     }
 
     fn handle_input(&mut self, input: Input) {
@@ -554,7 +558,7 @@ impl Core {
             self.gps.restart();
             self.prearm_ok = None;
         }
-        self.gps.set_state(self.vision_paused(), self.floor_down());
+        self.update_gps_phase();
         if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
             let command = self.landing.command();
             self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
@@ -769,11 +773,11 @@ impl Core {
                         ));
                     }
                 }
-                self.gps.set_state(self.vision_paused(), self.floor_down());
+                self.update_gps_phase();
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
                 self.autopilot.on_landed_state(e.landed_state);
-                self.gps.set_state(self.vision_paused(), self.floor_down());
+                self.update_gps_phase();
                 if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
                     self.landing.landed();
                 }
@@ -913,10 +917,7 @@ impl Core {
     /// The camera's height above the floor: the downward rangefinder when it spoke in the
     /// last second, else the autopilot's height (the local frame's z = 0 is the ground).
     pub fn height_above_floor(&self) -> Option<f64> {
-        match self.telemetry.range_down {
-            Some((at, m)) if self.now.saturating_sub(at) <= Duration::from_secs(1) => Some(m),
-            _ => self.aligner().vehicle.newest().map(|(_, v)| -v.position.z),
-        }
+        self.fresh_range().or_else(|| self.aligner().vehicle.newest().map(|(_, v)| -v.position.z))
     }
 
     /// Where the floor is below the camera, local z (down, m), and its variance: 0 while
@@ -928,8 +929,8 @@ impl Core {
         if self.standing() {
             return Some((0.0, RANGE_VARIANCE));
         }
-        match self.telemetry.range_down {
-            Some((at, m)) if self.now.saturating_sub(at) <= Duration::from_secs(1) => {
+        match self.fresh_range() {
+            Some(m) => {
                 let (roll, pitch, _) = self
                     .aligner()
                     .vehicle
@@ -938,6 +939,36 @@ impl Core {
                     .unwrap_or((0.0, 0.0, 0.0));
                 Some((-(m * roll.cos() * pitch.cos()), RANGE_VARIANCE))
             }
+            _ => None,
+        }
+    }
+
+    fn update_gps_phase(&mut self) {
+        if self.standing() {
+            if let Some(h) = self.fresh_range() {
+                self.ground_range = h;
+            }
+        }
+        self.gps.set_state(self.gps_phase(), self.floor_down());
+    }
+
+    /// For the standing estimates: on the floor (the autopilot says so, or the camera
+    /// has not left it), off it but too low to localise, or high enough.
+    pub fn gps_phase(&self) -> gpsdenied::Phase {
+        use gpsdenied::Phase;
+        let lifted = self.height_above_floor().is_some_and(|h| h > self.ground_range + LIFT_OFF_M);
+        if self.standing() || (self.too_low() && !lifted) {
+            Phase::Standing
+        } else if self.too_low() {
+            Phase::Blind
+        } else {
+            Phase::Seeing
+        }
+    }
+
+    fn fresh_range(&self) -> Option<f64> {
+        match self.telemetry.range_down {
+            Some((at, m)) if self.now.saturating_sub(at) <= Duration::from_secs(1) => Some(m),
             _ => None,
         }
     }
@@ -1431,6 +1462,10 @@ fn param_name(id: &mavlink::types::CharArray<16>) -> Option<String> {
 /// Variance of the floor's distance as the vision estimate's z: PX4's default
 /// rangefinder noise (EKF2_RNG_NOISE, 0.1 m).
 const RANGE_VARIANCE: f64 = 0.01;
+
+/// Higher than this above the floor's reading, the vehicle has left the floor (a
+/// rangefinder's noise is a centimetre or two; SIH's leaves 0 as the vehicle lifts).
+const LIFT_OFF_M: f64 = 0.05;
 
 /// Variance reported for what the pipeline does not measure (z, attitude): large enough
 /// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.
