@@ -68,7 +68,13 @@ fn model(dictionary: Dictionary, count: usize) -> Model {
     Model {
         format: MODEL_FORMAT.into(),
         version: MODEL_VERSION,
-        frame: FrameParams { work_width: 320, work_fx: 228.0, derotate: true, normalise: true },
+        frame: FrameParams {
+            work_width: 320,
+            work_fx: 228.0,
+            derotate: true,
+            normalise: true,
+            height_ref_m: None,
+        },
         dictionary,
         histograms,
         positions,
@@ -90,12 +96,12 @@ fn model(dictionary: Dictionary, count: usize) -> Model {
 fn stages(c: &mut Criterion) {
     let (frames, k) = frames(8);
     let pre = Preprocessor::new(k, 320, true, (6, 6));
-    let canvases: Vec<Canvas> = frames.iter().map(|(f, r)| pre.prepare(f, Some(r)).unwrap()).collect();
+    let canvases: Vec<Canvas> = frames.iter().map(|(f, r)| pre.prepare(f, Some(r), None).unwrap()).collect();
     let dict = dictionary(&canvases, 20);
 
     let mut g = c.benchmark_group("indoor_prepare");
     g.bench_function("downscale+derotate 640x480", |b| {
-        b.iter(|| pre.prepare(black_box(&frames[0].0), Some(&frames[0].1)).unwrap())
+        b.iter(|| pre.prepare(black_box(&frames[0].0), Some(&frames[0].1), None).unwrap())
     });
     g.finish();
 

@@ -532,15 +532,18 @@ def main():
     out_root = os.path.abspath(a.out)
     if "indoor" in scenarios and not a.model:
         cache = os.path.join(out_root, ".cache")
-        a.model = os.path.join(cache, "floor.model")
+        # Rescaled to the floor's scale from 1 m (indoor.height_ref_m), so it localises
+        # from 0.4 m up; a new name, so a cache of the older kind is not taken for it.
+        a.model = os.path.join(cache, "floor-h1.model")
         if not os.path.exists(a.model):
             os.makedirs(cache, exist_ok=True)
             train = os.path.join(cache, "floor-train")
             print("sitl: training the floor model once (5000 rendered views) into", a.model, flush=True)
-            subprocess.run([a.mavloc, "sim", "render", "--scenario", "indoor-floor", "--views", "5000", "--out", train,
-                            "--force"], check=True, stdout=subprocess.DEVNULL)
-            subprocess.run([a.mavloc, "indoor", "train", "--dataset", train, "--out", a.model], check=True,
-                           stdout=subprocess.DEVNULL)
+            if not os.path.exists(os.path.join(train, "telemetry.jsonl")):
+                subprocess.run([a.mavloc, "sim", "render", "--scenario", "indoor-floor", "--views", "5000", "--out",
+                                train, "--force"], check=True, stdout=subprocess.DEVNULL)
+            subprocess.run([a.mavloc, "indoor", "train", "--dataset", train, "--out", a.model,
+                            "--set", "indoor.height_ref_m=1.0"], check=True, stdout=subprocess.DEVNULL)
     ok = True
     for name in scenarios:
         reports = []

@@ -364,6 +364,7 @@ impl IndoorLive {
         let mut pre =
             Preprocessor::new(k, i.work_width, i.derotate, (i.patch_w as usize, i.patch_h as usize));
         pre.normalise = i.normalise;
+        pre.height_ref = crate::indoor::offline::height_ref(i);
         let rel = (pre.work.fx - model.frame.work_fx).abs() / model.frame.work_fx;
         if rel > 0.1 {
             tracing::warn!(
@@ -401,7 +402,9 @@ impl LivePipeline for IndoorLive {
     fn process(&mut self, frame: &LiveFrame) -> Report {
         let mut report = Report::default();
         let attitude = frame.pose.camera.local_from_camera();
-        let canvas = match self.pre.prepare(&frame.image, Some(&attitude)) {
+        // The floor is the local frame's z = 0 (indoor: PX4's height is the floor distance).
+        let height = -frame.pose.camera.position.z;
+        let canvas = match self.pre.prepare(&frame.image, Some(&attitude), Some(height)) {
             Ok(c) => c,
             Err(e) => {
                 report.events.push(format!("indoor: frame {} unusable: {e}", frame.index));

@@ -8,6 +8,14 @@
 //! nadir, so every frame describes the same footprint whatever the heading, roll and pitch;
 //! textons are not rotation invariant, and without this a turned vehicle sees other
 //! textons on the same floor. Parts of the disk the camera did not see are masked out.
+//!
+//! With a reference height (`indoor.height_ref_m`, kept in the model) the virtual camera's
+//! focal length is also scaled by `height / height_ref`, so the floor appears at the scale
+//! it has from the reference height whatever the height: textons are not scale invariant
+//! either. Below the reference the camera sees only the middle of the disk (the rest is
+//! masked out), above it the disk is a magnified middle of the frame. This is what lets
+//! the vehicle localise while climbing or descending through heights the model was not
+//! trained at.
 
 use mavloc_geometry::{Intrinsics, Rot3};
 use nalgebra::{Matrix3, Vector3};
@@ -37,8 +45,14 @@ pub struct Preprocessor {
     /// Remove brightness and contrast: Y to a fixed mean and SD over the valid pixels, U
     /// and V scaled about neutral by the same factor (an affine change of RGB is undone).
     pub normalise: bool,
+    /// Rescale to the floor's scale from this camera height (m); `None`: no rescaling.
+    pub height_ref: Option<f64>,
     patch: (usize, usize),
 }
+
+/// The rescaling is bounded: below a quarter of the reference height too little of the
+/// disk is seen to describe the place, above four times it the magnified middle is blur.
+const SCALE_RANGE: (f64, f64) = (0.25, 4.0);
 
 /// Intrinsics of the same camera at `scale` times the resolution (pixel centres kept).
 pub fn scaled(k: &Intrinsics, scale: f64) -> Intrinsics {
@@ -66,7 +80,7 @@ impl Preprocessor {
     pub fn new(camera: Intrinsics, work_width: u32, derotate: bool, patch: (usize, usize)) -> Preprocessor {
         let scale = (work_width as f64 / camera.width as f64).min(1.0);
         let work = scaled(&camera, scale);
-        Preprocessor { camera, work, derotate, normalise: false, patch }
+        Preprocessor { camera, work, derotate, normalise: false, height_ref: None, patch }
     }
 
     /// Side of the derotated canvas: the largest disk the level camera sees whole.
@@ -74,14 +88,27 @@ impl Preprocessor {
         self.work.width.min(self.work.height) as usize
     }
 
+    /// The virtual camera's focal length over the real one's for a camera `height` above
+    /// the floor: 1 without a reference height (or a usable height).
+    pub fn scale(&self, height: Option<f64>) -> f64 {
+        match (self.height_ref, height) {
+            (Some(r), Some(h)) if r > 0.0 && h.is_finite() && h > 0.0 => {
+                (h / r).clamp(SCALE_RANGE.0, SCALE_RANGE.1)
+            }
+            _ => 1.0,
+        }
+    }
+
     /// The homography from working-resolution pixels to canvas pixels for a camera with
-    /// rotation "local <- camera (OpenCV axes)".
-    pub fn homography(&self, local_from_camera: &Rot3) -> Matrix3<f64> {
+    /// rotation "local <- camera (OpenCV axes)", its virtual focal length `scale` times the
+    /// real one ([`Preprocessor::scale`]).
+    pub fn homography(&self, local_from_camera: &Rot3, scale: f64) -> Matrix3<f64> {
         let k = &self.work;
         let kw = Matrix3::new(k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0);
         let c = (self.side() as f64 - 1.0) / 2.0;
-        // Same focal length: one canvas pixel is one working pixel at the nadir.
-        let kv = Matrix3::new(k.fx, 0.0, c, 0.0, k.fx, c, 0.0, 0.0, 1.0);
+        // At scale 1 one canvas pixel is one working pixel at the nadir.
+        let f = k.fx * scale;
+        let kv = Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0);
         let kw_inv = kw.try_inverse().expect("intrinsics with non-zero focal lengths are invertible");
         kv * virtual_camera().transpose() * local_from_camera.matrix() * kw_inv
     }
@@ -94,8 +121,9 @@ impl Preprocessor {
 
     /// Prepares a BGR frame at the camera's resolution. `attitude` is the camera's
     /// rotation "local <- camera (OpenCV axes)"; without it, or with derotation off, the
-    /// whole downscaled frame is used as the seed does.
-    pub fn prepare(&self, bgr: &Mat, attitude: Option<&Rot3>) -> opencv::Result<Canvas> {
+    /// whole downscaled frame is used as the seed does. `height`: the camera's height
+    /// above the floor, for the rescaling to the reference height (if there is one).
+    pub fn prepare(&self, bgr: &Mat, attitude: Option<&Rot3>, height: Option<f64>) -> opencv::Result<Canvas> {
         if (bgr.cols(), bgr.rows()) != (self.camera.width as i32, self.camera.height as i32) {
             return Err(opencv::Error::new(
                 opencv::core::StsBadSize,
@@ -128,7 +156,7 @@ impl Preprocessor {
                 Ok(Canvas { img, mask })
             }
             Some(r) => {
-                let h = self.homography(r);
+                let h = self.homography(r, self.scale(height));
                 let hm = Mat::from_slice_2d(&[
                     [h[(0, 0)], h[(0, 1)], h[(0, 2)]],
                     [h[(1, 0)], h[(1, 1)], h[(1, 2)]],
@@ -256,12 +284,44 @@ mod tests {
             let pose = CameraPose { position: Vec3::new(0.0, 0.0, -height), attitude: r * mavloc_geometry::gimbal_from_camera().inverse() };
             let point = Vec3::new(north, east, 0.0);
             let px = pose.project(&k, &point).unwrap();
-            let h = pre.homography(&r);
+            let h = pre.homography(&r, 1.0);
             let q = h * Vector3::new(px.u, px.v, 1.0);
             let (u, v) = (q.x / q.z, q.y / q.z);
             let (dn, de) = pre.canvas_offset(u, v);
             prop_assert!((dn * height - north).abs() < 1e-9 && (de * height - east).abs() < 1e-9);
         }
+
+        /// With a reference height, a floor point lands where the level camera at the
+        /// reference height would see it, from any height and tilt: the floor keeps one
+        /// scale on the canvas.
+        #[test]
+        fn with_a_reference_height_the_floor_keeps_its_scale(
+            roll in -0.2f64..0.2, pitch in -0.2f64..0.2, yaw in -PI..PI,
+            north in -0.15f64..0.15, east in -0.15f64..0.15, height in 0.4f64..2.0,
+        ) {
+            let k = Intrinsics::from_hfov(320, 240, 70f64.to_radians());
+            let mut pre = Preprocessor::new(k, 320, true, (6, 6));
+            pre.height_ref = Some(1.0);
+            let r = down_camera(roll, pitch, yaw);
+            let pose = CameraPose { position: Vec3::new(0.0, 0.0, -height), attitude: r * mavloc_geometry::gimbal_from_camera().inverse() };
+            let px = pose.project(&k, &Vec3::new(north, east, 0.0)).unwrap();
+            let q = pre.homography(&r, pre.scale(Some(height))) * Vector3::new(px.u, px.v, 1.0);
+            let (dn, de) = pre.canvas_offset(q.x / q.z, q.y / q.z);
+            // canvas_offset is per metre of height at scale 1: times the reference height.
+            prop_assert!((dn - north).abs() < 1e-9 && (de - east).abs() < 1e-9, "{dn} {de} vs {north} {east}");
+        }
+    }
+
+    #[test]
+    fn the_scale_is_bounded_and_off_without_a_reference() {
+        let k = Intrinsics::from_hfov(320, 240, 1.2);
+        let mut pre = Preprocessor::new(k, 320, true, (6, 6));
+        assert_eq!(pre.scale(Some(0.5)), 1.0, "no reference: no rescaling");
+        pre.height_ref = Some(1.0);
+        assert_eq!(pre.scale(Some(0.5)), 0.5);
+        assert_eq!(pre.scale(Some(0.01)), SCALE_RANGE.0);
+        assert_eq!(pre.scale(Some(f64::NAN)), 1.0);
+        assert_eq!(pre.scale(None), 1.0);
     }
 
     #[test]

@@ -26,6 +26,11 @@ pub struct FrameParams {
     pub derotate: bool,
     /// Brightness and contrast normalised before histograms.
     pub normalise: bool,
+    /// Frames were rescaled to the floor's scale as seen from this camera height (m), by
+    /// the camera's height at each frame ([`crate::indoor::derotate`]). Absent: not
+    /// rescaled (models trained before, or with `indoor.height_ref_m = 0`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub height_ref_m: Option<f64>,
 }
 
 /// Where the training labels came from and what training saw.
@@ -209,7 +214,13 @@ pub(crate) mod tests {
         Model {
             format: MODEL_FORMAT.into(),
             version: MODEL_VERSION,
-            frame: FrameParams { work_width: 320, work_fx: 228.5, derotate: true, normalise: true },
+            frame: FrameParams {
+                work_width: 320,
+                work_fx: 228.5,
+                derotate: true,
+                normalise: true,
+                height_ref_m: None,
+            },
             dictionary: Dictionary { w: 1, h: 1, textons: vec![vec![0.0; 3], vec![255.0; 3]] },
             histograms: vec![vec![1.0, 0.0], vec![0.0, 1.0]],
             positions: vec![[0.0, 0.0], [1.0, 1.0]],

@@ -99,7 +99,8 @@ fn load_timed(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<(
     };
     let read_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
-    match pre.prepare(&img, Some(&pose_rotation(r, ds))) {
+    let height = -r.measured.position[2];
+    match pre.prepare(&img, Some(&pose_rotation(r, ds)), Some(height)) {
         Ok(c) => Some((c, read_s, t1.elapsed().as_secs_f64())),
         Err(e) => {
             tracing::warn!(frame = r.frame, path = %path.display(), "frame skipped: {e}");
@@ -116,7 +117,13 @@ fn preprocessor(ds: &Dataset, s: &Indoor) -> Preprocessor {
         (s.patch_w as usize, s.patch_h as usize),
     );
     p.normalise = s.normalise;
+    p.height_ref = height_ref(s);
     p
+}
+
+/// `indoor.height_ref_m`, `None` when off (0).
+pub fn height_ref(s: &Indoor) -> Option<f64> {
+    (s.height_ref_m > 0.0).then_some(s.height_ref_m)
 }
 
 /// Learns the configured dictionary from patches in image order: the seed starts from
@@ -281,6 +288,7 @@ pub fn train(
             work_fx: pre.work.fx,
             derotate: s.derotate,
             normalise: s.normalise,
+            height_ref_m: pre.height_ref,
         },
         dictionary,
         histograms,
@@ -396,6 +404,7 @@ pub fn model_settings(model: &Model, s: &Indoor) -> Indoor {
     settings.work_width = model.frame.work_width;
     settings.derotate = model.frame.derotate;
     settings.normalise = model.frame.normalise;
+    settings.height_ref_m = model.frame.height_ref_m.unwrap_or(0.0);
     settings.patch_w = model.dictionary.w as u32;
     settings.patch_h = model.dictionary.h as u32;
     settings

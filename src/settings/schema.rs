@@ -360,6 +360,10 @@ pub struct Indoor {
     /// Frames taken lower than this above the floor (the downward rangefinder, else the
     /// autopilot's height) are not localised: the model never saw the floor that close.
     pub min_height_m: f64,
+    /// Frames are rescaled to the floor's scale as seen from this camera height (m), by
+    /// the camera's height at each frame (0 = off). Set at training; runs take the
+    /// model's.
+    pub height_ref_m: f64,
     /// Where the vehicle stands before its first fix in the air, in the floor's frame.
     pub pad_x_m: f64,
     pub pad_y_m: f64,
@@ -395,6 +399,7 @@ impl Default for Indoor {
             landing_precision: true,
             gps_denied: false,
             min_height_m: 0.5,
+            height_ref_m: 0.0,
             pad_x_m: 0.0,
             pad_y_m: 0.0,
             origin: Vec::new(),

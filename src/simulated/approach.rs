@@ -85,6 +85,7 @@ pub fn run(
         (model.dictionary.w, model.dictionary.h),
     );
     pre.normalise = model.frame.normalise;
+    pre.height_ref = model.frame.height_ref_m;
     let mut rng = rand::rngs::StdRng::seed_from_u64(opts.seed);
     let noise = Normal::new(0.0, 1.0).map_err(|e| e.to_string())?;
     let dt = 1.0 / FRAME_RATE_HZ;
@@ -159,7 +160,9 @@ pub fn run(
             let mut frame = renderer.render(&pose, &k);
             views::apply(&opts.appearance, frame.width as usize, frame.height as usize, &mut frame.rgb);
             let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
-            let canvas = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
+            let canvas = pre
+                .prepare(&bgr, Some(&pose.local_from_camera()), Some(-pose.position.z))
+                .map_err(|e| e.to_string())?;
             let measured_v =
                 vel + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng)) * VELOCITY_NOISE_M_S;
             let e = loc.step(t, &canvas, Some(measured_v));

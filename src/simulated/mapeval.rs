@@ -53,6 +53,7 @@ pub fn evaluate(
     let k = scenario.intrinsics();
     let mut pre = Preprocessor::new(k, s.work_width, s.derotate, (s.patch_w as usize, s.patch_h as usize));
     pre.normalise = s.normalise;
+    pre.height_ref = crate::indoor::offline::height_ref(s);
     let shots = views::random_views(&spec, count, seed);
     let done = std::sync::atomic::AtomicUsize::new(0);
     let canvases: Vec<(Canvas, [f64; 2])> = shots
@@ -62,7 +63,9 @@ pub fn evaluate(
             let mut frame = renderer.render(&pose, &k);
             views::apply(appearance, frame.width as usize, frame.height as usize, &mut frame.rgb);
             let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
-            let c = pre.prepare(&bgr, Some(&pose.local_from_camera())).map_err(|e| e.to_string())?;
+            let c = pre
+                .prepare(&bgr, Some(&pose.local_from_camera()), Some(-pose.position.z))
+                .map_err(|e| e.to_string())?;
             progress(done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1, count);
             Ok((c, [state.position.x, state.position.y]))
         })

@@ -51,6 +51,17 @@ pub fn rendered(key: &str, scenario: &str, opts: &RenderOptions) -> PathBuf {
     })
 }
 
+/// A flight over the indoor floor at 0.5 m instead of 1 m (0.4-0.6 m with its swing), the
+/// heights a vehicle climbs and descends through, 320x240.
+pub fn low_indoor_flight(frames: usize) -> PathBuf {
+    cached(&format!("indoor-floor-flight-{frames}-320x240-at-0.5m"), |out| {
+        let mut scenario = Scenario::load("indoor-floor").unwrap();
+        scenario.mission.altitude_m = 0.5;
+        let opts = RenderOptions { frames: Some(frames), size: Some((320, 240)), ..Default::default() };
+        render_dataset(&scenario, &opts, out, |_, _| {}).unwrap();
+    })
+}
+
 /// 400 random views of the indoor floor at 320x240: the training set of the small model.
 pub fn indoor_views() -> PathBuf {
     let opts = RenderOptions { views: Some(400), size: Some((320, 240)), ..Default::default() };

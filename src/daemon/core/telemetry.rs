@@ -17,6 +17,10 @@ use crate::geometry::{Geodetic, LocalFrame, Vec3};
 use crate::settings::Settings;
 use mavloc_geometry::GimbalAngles;
 
+/// A downward distance at or above this (cm), and above the sensor's maximum, is a
+/// negative distance wrapped round in the u16 field: no rangefinder reads 600 m.
+const WRAPPED_CM: u16 = 60_000;
+
 pub fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
     let g = &s.gimbal;
     (
@@ -218,8 +222,15 @@ impl Telemetry {
                 if d.orientation == MavSensorOrientation::MAV_SENSOR_ROTATION_PITCH_270 =>
             {
                 // PX4 SIH sends a distance below the floor (the vehicle settling into
-                // the ground) wrapped round to 655 m: above the maximum is no reading.
-                if d.current_distance <= d.max_distance || d.max_distance == 0 {
+                // the ground) wrapped round to 655 m: that is the floor, not "no reading".
+                // Taken as none, the height fell back to the autopilot's, made of mavloc's
+                // own z, and against PX4 SITL a vehicle that had settled 0.3 m into SIH's
+                // ground had its ground-level frames localised: EKF2 drifted, PX4 never
+                // saw the landing. Any other reading above the maximum is no reading.
+                let wrapped = d.current_distance >= WRAPPED_CM && d.current_distance > d.max_distance;
+                if wrapped {
+                    self.range_down = Some((rx, 0.0));
+                } else if d.current_distance <= d.max_distance || d.max_distance == 0 {
                     let m = d.current_distance as f64 * 0.01;
                     let below = d.current_distance <= d.min_distance;
                     self.range_down = Some((rx, if below { 0.0 } else { m }));

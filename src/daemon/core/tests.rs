@@ -953,4 +953,13 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     sim.run_until(secs(18));
     assert!(!sim.core.vision_paused(), "1 m up: the pipeline's turn");
     assert!(vision(&sim, secs(17), secs(18)).is_empty());
+    // Down again and settled into SIH's ground: its rangefinder sends the negative
+    // distance wrapped round to 655 m. That is the floor, not a missing reading (which
+    // would fall back to the autopilot's height and localise the floor at arm's length).
+    for i in 0..20 {
+        sim.run_until(secs(18) + Duration::from_millis(100 * i));
+        sim.deliver(range(65_506));
+    }
+    assert_eq!(sim.core.height_above_floor(), Some(0.0));
+    assert!(sim.core.too_low() && sim.core.vision_paused());
 }
