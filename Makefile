@@ -84,8 +84,7 @@ check-long: deps
 #   MAVLOC_PX4_DIR=/path/to/PX4-Autopilot/build/px4_sitl_default make sitl
 # Results in results/sitl/<scenario>/ (report.json, PX4's .ulg, logs). Skipped without it.
 # SITL_ARGS="--aim border": mavloc points the gimbal instead of the mission.
-# A release build, as on a drone: the dev profile's mavloc (opt-level 1) added its own
-# processing time to the vision latency EKF2 sees (median 197 ms from capture to send).
+# A release build, as a drone runs it (the dev profile compiles mavloc at opt-level 1).
 sitl: deps
 	@if [ -z "$(MAVLOC_PX4_DIR)" ]; then \
 	  echo "make sitl: skipped: set MAVLOC_PX4_DIR to a PX4 v1.16 SITL build folder (build/px4_sitl_default), built outside this project (README, Against PX4 SITL)"; \

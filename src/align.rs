@@ -601,9 +601,10 @@ mod tests {
 
     proptest! {
         /// An autopilot clock running at another rate (a simulator's lockstep clock, 1 %
-        /// slow against PX4 SIH here) is followed: a minute of 1 Hz TIMESYNC with jittery
-        /// round trips maps times both ways to within 2 ms, where the one shortest round
-        /// trip of the window was up to the whole window's drift off.
+        /// slow against PX4 SIH here) is followed: a minute of 1 Hz TIMESYNC with round
+        /// trips of up to 100 ms, each way's delay drawn on its own, maps times both ways to
+        /// within 5 ms, where the one shortest round trip of the window was up to the whole
+        /// window's drift off (900 ms at 3 %).
         #[test]
         fn timesync_follows_a_clock_that_runs_at_another_rate(
             rate in -0.03f64..0.03, offset in -1000.0f64..1000.0, seed in 0u64..1000,
@@ -619,9 +620,9 @@ mod tests {
             }
             let now = 5060.0;
             let err = c.to_autopilot(now).unwrap() - ap(now);
-            prop_assert!(err.abs() < 0.002, "to_autopilot off by {:.1} ms", err * 1e3);
+            prop_assert!(err.abs() < 0.005, "to_autopilot off by {:.1} ms", err * 1e3);
             let back = c.to_local(ap(now)).unwrap() - now;
-            prop_assert!(back.abs() < 0.002, "to_local off by {:.1} ms", back * 1e3);
+            prop_assert!(back.abs() < 0.005, "to_local off by {:.1} ms", back * 1e3);
         }
     }
 
