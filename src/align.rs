@@ -45,6 +45,9 @@ pub struct ClockSync {
     stamps: VecDeque<(f64, f64)>,
     /// (local time, round trip, offset local - autopilot) of recent TIMESYNC replies.
     syncs: VecDeque<(f64, f64, f64)>,
+    /// The line fitted through `syncs` (`timesync_line`), refitted when they change: the
+    /// mappings below run on every message and frame.
+    line: Option<(f64, f64, f64)>,
     last_stamp: Option<f64>,
     /// Local arrival of the stamp that set `last_stamp`.
     last_arrival: Option<f64>,
@@ -71,7 +74,13 @@ impl Default for ClockSync {
 
 impl ClockSync {
     pub fn new() -> ClockSync {
-        ClockSync { stamps: VecDeque::new(), syncs: VecDeque::new(), last_stamp: None, last_arrival: None }
+        ClockSync {
+            stamps: VecDeque::new(),
+            syncs: VecDeque::new(),
+            line: None,
+            last_stamp: None,
+            last_arrival: None,
+        }
     }
 
     /// Whether a stamp arriving at `arrival` can be true: not further ahead of the last
@@ -98,6 +107,7 @@ impl ClockSync {
         if rebooted {
             self.stamps.clear();
             self.syncs.clear();
+            self.line = None;
         }
         let newest = match self.last_stamp {
             Some(last) if !rebooted => last.max(stamp),
@@ -135,6 +145,7 @@ impl ClockSync {
         while self.syncs.len() > 64 {
             self.syncs.pop_front();
         }
+        self.line = self.timesync_line();
     }
 
     /// The TIMESYNC offset as a line in local time: `(t0, offset at t0, rate)`, a least
@@ -173,14 +184,14 @@ impl ClockSync {
 
     /// Local minus autopilot time at local time `local`.
     fn offset_at(&self, local: f64) -> Option<f64> {
-        match self.timesync_line() {
+        match self.line {
             Some((t0, o0, rate)) => Some(o0 + rate * (local - t0)),
             None => self.stamps.front().map(|&(_, d)| d),
         }
     }
 
     pub fn to_local(&self, autopilot: f64) -> Option<f64> {
-        match self.timesync_line() {
+        match self.line {
             // local = autopilot + o0 + rate (local - t0), solved for local.
             Some((t0, o0, rate)) => Some((autopilot + o0 - rate * t0) / (1.0 - rate)),
             None => self.offset().0.map(|o| autopilot + o),

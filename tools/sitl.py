@@ -532,8 +532,9 @@ def main():
     out_root = os.path.abspath(a.out)
     if "indoor" in scenarios and not a.model:
         cache = os.path.join(out_root, ".cache")
-        # Rescaled to the floor's scale from 1 m (indoor.height_ref_m), so it localises
-        # from 0.4 m up; a new name, so a cache of the older kind is not taken for it.
+        # Rescaled to the floor's scale from 1 m (indoor.height_ref_m), so heights away
+        # from 1 m keep the trained scale; a new name, so a cache of the older kind is not
+        # taken for it.
         a.model = os.path.join(cache, "floor-h1.model")
         if not os.path.exists(a.model):
             os.makedirs(cache, exist_ok=True)

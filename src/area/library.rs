@@ -347,14 +347,10 @@ impl Library {
         if l.observations < self.params.min_observations || l.sigma_max() >= self.params.convergence_m {
             return false;
         }
-        let tri = l.triangulation(self.params.bearing_sd_rad);
-        match tri {
-            Some(t) => {
-                t.sigma_max < RAYS_SIGMA_FACTOR * self.params.convergence_m
-                    && t.mahalanobis(l.ukf.state()) <= RAYS_GATE_FACTOR * self.params.mahalanobis_max
-            }
-            None => false,
-        }
+        l.triangulation(self.params.bearing_sd_rad).is_some_and(|t| {
+            t.sigma_max < RAYS_SIGMA_FACTOR * self.params.convergence_m
+                && t.mahalanobis(l.ukf.state()) <= RAYS_GATE_FACTOR * self.params.mahalanobis_max
+        })
     }
 
     /// Purge (eq. 5.19-5.20): above `L_max - T`, remove the worst by quality; converged

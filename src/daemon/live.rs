@@ -361,10 +361,7 @@ impl IndoorLive {
         let mut settings = s.clone();
         settings.indoor = model_settings(&model, &s.indoor);
         let i = &settings.indoor;
-        let mut pre =
-            Preprocessor::new(k, i.work_width, i.derotate, (i.patch_w as usize, i.patch_h as usize));
-        pre.normalise = i.normalise;
-        pre.height_ref = crate::indoor::offline::height_ref(i);
+        let pre = crate::indoor::offline::preprocessor(k, i);
         let rel = (pre.work.fx - model.frame.work_fx).abs() / model.frame.work_fx;
         if rel > 0.1 {
             tracing::warn!(

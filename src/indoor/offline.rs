@@ -25,6 +25,7 @@ use super::knn::Knn;
 use super::localizer::{Localizer, LocalizerParams};
 use super::model::{from_matrix, FrameParams, Model, TrainingInfo, MODEL_FORMAT, MODEL_VERSION};
 use super::textons::{Dictionary, Learning};
+use crate::geometry::Intrinsics;
 use crate::settings::{DictionaryMethod, Indoor};
 use mavloc_data::dataset::{Dataset, TelemetryRecord};
 use mavloc_data::results::{trajectory_csv, TrajectoryRow};
@@ -109,21 +110,13 @@ fn load_timed(ds: &Dataset, pre: &Preprocessor, r: &TelemetryRecord) -> Option<(
     }
 }
 
-fn preprocessor(ds: &Dataset, s: &Indoor) -> Preprocessor {
-    let mut p = Preprocessor::new(
-        ds.camera.intrinsics(),
-        s.work_width,
-        s.derotate,
-        (s.patch_w as usize, s.patch_h as usize),
-    );
+/// The frame preparation `[indoor]` configures for a camera with intrinsics `k` (for a
+/// run, the settings [`model_settings`] gives, so frames are prepared as in training).
+pub fn preprocessor(k: Intrinsics, s: &Indoor) -> Preprocessor {
+    let mut p = Preprocessor::new(k, s.work_width, s.derotate, (s.patch_w as usize, s.patch_h as usize));
     p.normalise = s.normalise;
-    p.height_ref = height_ref(s);
+    p.height_ref = (s.height_ref_m > 0.0).then_some(s.height_ref_m);
     p
-}
-
-/// `indoor.height_ref_m`, `None` when off (0).
-pub fn height_ref(s: &Indoor) -> Option<f64> {
-    (s.height_ref_m > 0.0).then_some(s.height_ref_m)
 }
 
 /// Learns the configured dictionary from patches in image order: the seed starts from
@@ -158,7 +151,7 @@ pub fn train(
     if ds.records.is_empty() {
         return Err(format!("{} has no frames", opts.dataset.display()));
     }
-    let pre = preprocessor(&ds, s);
+    let pre = preprocessor(ds.camera.intrinsics(), s);
     let patch = (s.patch_w as usize, s.patch_h as usize);
 
     // 1. Dictionary, from random patches of images spread over the dataset.
@@ -415,7 +408,7 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     let ds = Dataset::open(&opts.dataset)?;
     let model = Model::load(&opts.model)?;
     let settings = model_settings(&model, s);
-    let pre = preprocessor(&ds, &settings);
+    let pre = preprocessor(ds.camera.intrinsics(), &settings);
     let rel = (pre.work.fx - model.frame.work_fx).abs() / model.frame.work_fx;
     if rel > 0.1 {
         tracing::warn!(

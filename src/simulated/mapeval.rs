@@ -8,7 +8,7 @@ use opencv::prelude::*;
 use rayon::prelude::*;
 
 use crate::imaging::bgr_from_rgb;
-use crate::indoor::derotate::{Canvas, Preprocessor};
+use crate::indoor::derotate::Canvas;
 use crate::indoor::mapeval::{self, MapEvaluation};
 use crate::settings::Indoor;
 use mavloc_sim::{views, Mission, Renderer, Scenario, World};
@@ -51,9 +51,7 @@ pub fn evaluate(
     let mission = Mission::plan(&world)?;
     let renderer = Renderer::new(&world);
     let k = scenario.intrinsics();
-    let mut pre = Preprocessor::new(k, s.work_width, s.derotate, (s.patch_w as usize, s.patch_h as usize));
-    pre.normalise = s.normalise;
-    pre.height_ref = crate::indoor::offline::height_ref(s);
+    let pre = crate::indoor::offline::preprocessor(k, s);
     let shots = views::random_views(&spec, count, seed);
     let done = std::sync::atomic::AtomicUsize::new(0);
     let canvases: Vec<(Canvas, [f64; 2])> = shots
