@@ -51,7 +51,7 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
     let state = dir.path().join("state");
     let seen = closed_loop(
         "area",
-        30.0,
+        45.0,
         &state,
         &[
             "--set",
@@ -67,14 +67,16 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
             "--vehicle",
             "--duration",
             "--vehicle",
-            "25",
+            "40",
         ],
     );
     let text = log(&state);
     assert_eq!(seen["daemon_exit"], 0, "{text}");
     assert!(seen["lmk"].as_u64().unwrap() > 0, "DEBUG_VECT LMK streamed: {seen}");
+    // The first landmarks converge about 20-25 s into this flight (a 25 s flight on a loaded
+    // machine ended with none), so the flight is 40 s.
     assert!(seen["named"]["LMK_CONV"].as_f64().unwrap() > 0.0, "{seen}");
-    assert!(seen["named"]["FR_DONE"].as_f64().unwrap() > 75.0, "about 6 Hz for 25 s: {seen}");
+    assert!(seen["named"]["FR_DONE"].as_f64().unwrap() > 120.0, "about 6 Hz for 40 s: {seen}");
     let states = seen["daemon_heartbeat_states"].as_array().unwrap();
     assert!(states.iter().any(|s| s == 4), "MAV_STATE_ACTIVE while flying: {states:?}");
     // Gimbal-manager control taken once, pitch/yaw setpoints accepted by the vehicle.
