@@ -19,7 +19,7 @@ export MAVLOC_PYTHON := $(abspath $(VENV))/bin/python
 CARGO ?= cargo
 SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 
-.PHONY: deps build-deps demo test check-long sitl build release install install-files uninstall deb deb-files clean
+.PHONY: deps build-deps demo test check-long bench sitl build release install install-files uninstall deb deb-files clean
 
 # Debian packages, installed only when missing.
 define apt_install
@@ -79,6 +79,15 @@ check-long: deps
 	  echo "demo run $$i: exit $$code, coastline landmark $$worst"; \
 	  [ $$code -eq 0 ] && passed=$$((passed + 1)); \
 	done; echo "demo: $$passed of $(DEMO_RUNS) runs passed"; [ $$passed -eq $(DEMO_RUNS) ]
+
+# Criterion benches of the hot stages (release), then one table of their medians beside
+# the frames/s and accuracy of full runs made in the same invocation on rendered data
+# (rendered once into target/bench-data). Benches are short (1 s warm-up, 3 s each):
+# compare rows of one run, the machine is shared and noisy.
+bench: deps
+	$(CARGO) bench --bench indoor --bench area -- --warm-up-time 1 --measurement-time 3
+	$(CARGO) build --release --quiet
+	$(MAVLOC_PYTHON) tools/bench_table.py --bin target/release/mavloc --data target/bench-data
 
 # mavloc against PX4 SITL (SIH, no Gazebo), built by you outside this project:
 #   MAVLOC_PX4_DIR=/path/to/PX4-Autopilot/build/px4_sitl_default make sitl

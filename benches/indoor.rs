@@ -1,6 +1,7 @@
 //! The indoor loop's stages (indoor seed sec. 3.3), on one core where the stage is serial:
-//! preparing a frame (downscale + derotation), full-sampling and random-sampling
-//! histograms, k-NN (brute force against a kiddo k-d tree at 500 and 50 000 training
+//! preparing a frame (a whole canvas for training; 400 patches gathered for flight),
+//! full-sampling and random-sampling histograms, the particle estimate (the seed's MAP
+//! against the mode), k-NN (brute force against a kiddo k-d tree at 500 and 50 000 training
 //! samples), systematic resampling against the seed's resampling wheel, the particle
 //! filter step, and the whole per-frame loop of the target (400-sample histogram,
 //! k-NN over 1000 samples, 100 and 500 particles). Frames come from the indoor-floor scenario.
@@ -9,7 +10,7 @@ use std::hint::black_box;
 use std::num::NonZero;
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use mavloc::filter::particle::{resampling_wheel, systematic};
+use mavloc::filter::particle::{resampling_wheel, systematic, Gaussian2, ParticleFilter};
 use mavloc::indoor::derotate::{Canvas, Preprocessor};
 use mavloc::indoor::knn::Knn;
 use mavloc::indoor::localizer::{Localizer, LocalizerParams};
@@ -17,6 +18,7 @@ use mavloc::indoor::model::{FrameParams, Model, TrainingInfo, MODEL_FORMAT, MODE
 use mavloc::indoor::textons::{Dictionary, Learning};
 use mavloc::settings::MotionModel;
 use mavloc_sim::{views, Mission, Renderer, Scenario, World};
+use nalgebra::{Matrix2, Vector2};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use rand::{Rng, SeedableRng};
@@ -100,8 +102,16 @@ fn stages(c: &mut Criterion) {
     let dict = dictionary(&canvases, 20);
 
     let mut g = c.benchmark_group("indoor_prepare");
-    g.bench_function("downscale+derotate 640x480", |b| {
+    g.bench_function("whole canvas 640x480 (training)", |b| {
         b.iter(|| pre.prepare(black_box(&frames[0].0), Some(&frames[0].1), None).unwrap())
+    });
+    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+    let mut patches = Vec::new();
+    g.bench_function("sample 400 patches 640x480 (flight)", |b| {
+        b.iter(|| {
+            pre.sample(black_box(&frames[0].0), Some(&frames[0].1), None, 400, &mut rng, &mut patches)
+                .unwrap()
+        })
     });
     g.finish();
 
@@ -112,17 +122,14 @@ fn stages(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new("full_sampling_one_core", n), |b| {
             b.iter(|| d.histogram_full_serial(black_box(&canvases[1].img), Some(&canvases[1].mask)))
         });
+        // The flight path: 400 patches gathered from a frame, classified (AVX2 and FMA
+        // where the CPU has them).
         let classifier = d.classifier();
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let mut patches = Vec::new();
+        pre.sample(&frames[1].0, Some(&frames[1].1), None, 400, &mut rng, &mut patches).unwrap();
         g.bench_function(BenchmarkId::new("random_400", n), |b| {
-            b.iter(|| {
-                classifier.histogram_random(
-                    black_box(&canvases[1].img),
-                    Some(&canvases[1].mask),
-                    400,
-                    &mut rng,
-                )
-            })
+            b.iter(|| classifier.histogram_of_patches(black_box(&patches)))
         });
     }
     g.finish();
@@ -162,6 +169,20 @@ fn stages(c: &mut Criterion) {
     g.bench_function("resampling_wheel_100", |b| b.iter(|| resampling_wheel(black_box(&weights), &mut rng)));
     g.finish();
 
+    // The particle filter's point estimate: the seed's O(M^2) MAP against the O(M) mode,
+    // on the same 500 particles after a few updates.
+    let mut g = c.benchmark_group("indoor_estimate");
+    let mut pf = ParticleFilter::new(500, Vector2::new(-4.0, -4.0), Vector2::new(4.0, 4.0), 1);
+    let process = Gaussian2::new(&(Matrix2::identity() * 0.0025)).unwrap();
+    let rank = [Gaussian2::new(&(Matrix2::identity() * 0.04)).unwrap()];
+    for i in 0..20 {
+        pf.predict(Vector2::new(0.02, 0.0), &process);
+        pf.update(&[Vector2::new(0.02 * i as f64, 0.5)], &rank);
+    }
+    g.bench_function("map_500", |b| b.iter(|| black_box(&pf).map_estimate(&process)));
+    g.bench_function("mode_500", |b| b.iter(|| black_box(&pf).mode_estimate(0.2)));
+    g.finish();
+
     let mut g = c.benchmark_group("indoor_frame");
     let m = model(dict.clone(), 1000);
     // The seed's 100 particles against the default 500, in the same run.
@@ -178,7 +199,9 @@ fn stages(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new("loop_400_samples_knn_1000", name), |b| {
             b.iter(|| {
                 t += 1.0 / 15.0;
-                loc.step(t, black_box(&canvases[2]), Some(v)).position
+                loc.step_frame(t, &pre, black_box(&frames[2].0), Some(&frames[2].1), None, Some(v))
+                    .unwrap()
+                    .position
             })
         });
     }

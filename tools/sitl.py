@@ -534,8 +534,8 @@ def main():
         cache = os.path.join(out_root, ".cache")
         # Rescaled to the floor's scale from 1 m (indoor.height_ref_m), so heights away
         # from 1 m keep the trained scale; a new name, so a cache of the older kind is not
-        # taken for it.
-        a.model = os.path.join(cache, "floor-h1.model")
+        # taken for it (the suffix follows mavloc's model version).
+        a.model = os.path.join(cache, "floor-h1-v2.model")
         if not os.path.exists(a.model):
             os.makedirs(cache, exist_ok=True)
             train = os.path.join(cache, "floor-train")

@@ -68,6 +68,7 @@ fn indoor(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode>
         println!("mean |error| x, y      {:.3} m, {:.3} m", e.mean_err_x_m, e.mean_err_y_m);
         println!("RMS error              {:.3} m (x {:.3} m, y {:.3} m)", e.rmse_m, e.rmse_x_m, e.rmse_y_m);
         println!("RMS error after 2 s    {:.3} m", e.rmse_after_2s_m);
+        println!("largest after 2 s      {:.3} m", e.max_err_after_2s_m);
         println!("largest error          {:.3} m", e.max_err_m);
         println!(
             "lag                    {} frames (RMS {:.3} m when shifted)",

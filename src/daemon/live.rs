@@ -401,20 +401,26 @@ impl LivePipeline for IndoorLive {
         let attitude = frame.pose.camera.local_from_camera();
         // The floor is the local frame's z = 0 (indoor: PX4's height is the floor distance).
         let height = -frame.pose.camera.position.z;
-        let canvas = match self.pre.prepare(&frame.image, Some(&attitude), Some(height)) {
-            Ok(c) => c,
-            Err(e) => {
-                report.events.push(format!("indoor: frame {} unusable: {e}", frame.index));
-                return report;
-            }
-        };
         let v = frame.pose.vehicle.velocity;
         let t = frame.pose.autopilot_time;
         // With no GPS the autopilot's velocity is made of these very estimates (and its
         // IMU): fed back as the motion model it turns an error into a drift that feeds
         // itself (measured against PX4 SITL). The localiser fits its own velocity then.
         let velocity = (!self.settings.indoor.gps_denied).then(|| Vector2::new(v.x, v.y));
-        let e = self.localizer.step(t, &canvas, velocity);
+        let e = match self.localizer.step_frame(
+            t,
+            &self.pre,
+            &frame.image,
+            Some(&attitude),
+            Some(height),
+            velocity,
+        ) {
+            Ok(e) => e,
+            Err(e) => {
+                report.events.push(format!("indoor: frame {} unusable: {e}", frame.index));
+                return report;
+            }
+        };
         self.frames += 1;
         report.processed = true;
         let truth = frame.truth.unwrap_or([f64::NAN; 3]);

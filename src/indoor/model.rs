@@ -13,7 +13,9 @@ use serde::{Deserialize, Serialize};
 use super::textons::Dictionary;
 
 pub const MODEL_FORMAT: &str = "mavloc-indoor-model";
-pub const MODEL_VERSION: u32 = 1;
+/// 2: canvases sampled bilinearly from the camera frame itself (no area downscale first),
+/// as flight now gathers its patches; a version-1 model saw slightly smoother textures.
+pub const MODEL_VERSION: u32 = 2;
 
 /// How frames were turned into histograms; a run must do the same.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -28,7 +30,7 @@ pub struct FrameParams {
     pub normalise: bool,
     /// Frames were rescaled to the floor's scale as seen from this camera height (m), by
     /// the camera's height at each frame ([`crate::indoor::derotate`]). Absent: not
-    /// rescaled (models trained before, or with `indoor.height_ref_m = 0`).
+    /// rescaled (models trained before, or with `indoor.height_ref_m` negative).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub height_ref_m: Option<f64>,
 }

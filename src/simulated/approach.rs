@@ -160,12 +160,18 @@ pub fn run(
             let mut frame = renderer.render(&pose, &k);
             views::apply(&opts.appearance, frame.width as usize, frame.height as usize, &mut frame.rgb);
             let bgr = bgr_from_rgb(&frame.rgb, frame.height).map_err(|e| e.to_string())?;
-            let canvas = pre
-                .prepare(&bgr, Some(&pose.local_from_camera()), Some(-pose.position.z))
-                .map_err(|e| e.to_string())?;
             let measured_v =
                 vel + Vector2::new(noise.sample(&mut rng), noise.sample(&mut rng)) * VELOCITY_NOISE_M_S;
-            let e = loc.step(t, &canvas, Some(measured_v));
+            let e = loc
+                .step_frame(
+                    t,
+                    &pre,
+                    &bgr,
+                    Some(&pose.local_from_camera()),
+                    Some(-pose.position.z),
+                    Some(measured_v),
+                )
+                .map_err(|e| e.to_string())?;
             estimate = Some((e.position, e.spread));
             if trigger.update(e.position, e.spread).is_ok() {
                 row.fired = true;
