@@ -123,6 +123,10 @@ enum Mode {
     Searching { agreed_since: Option<f64> },
     /// New particles only near the estimate; `supported`: when a neighbour last fell near it.
     Tracking { supported: f64 },
+    /// Tracking from a position given by the caller (a GPS-denied take-off pad): never
+    /// searching again, where a jump across the floor would be fed to an autopilot that
+    /// flies on these estimates alone.
+    Given,
 }
 
 /// Tracking from a known start: renewed particles within about this (SD, m) of the mean.
@@ -315,10 +319,8 @@ impl Localizer {
                     }
                 }
             }
+            Mode::Given => {}
             Mode::Tracking { supported } => {
-                // Infinite: just started from a given position, the clock starts now.
-                let supported = if supported.is_finite() { supported } else { t };
-                self.mode = Mode::Tracking { supported };
                 if neighbours.iter().any(|z| (z - position).norm() <= SUPPORT_M) {
                     self.mode = Mode::Tracking { supported: t };
                 } else if (t - supported).abs() > LOST_AFTER_S {
@@ -331,7 +333,7 @@ impl Localizer {
 
     /// True while tracking a found (or given) position rather than searching the floor.
     pub fn tracking(&self) -> bool {
-        matches!(self.mode, Mode::Tracking { .. })
+        matches!(self.mode, Mode::Tracking { .. } | Mode::Given)
     }
 
     /// Applies what can change mid-flight (motion model, its SD, samples per histogram);
@@ -358,8 +360,7 @@ impl Localizer {
         self.pf.set_sensor_resetting(true);
         self.history.clear();
         self.last_t = None;
-        // Supported from the first frame on (the clock starts then).
-        self.mode = Mode::Tracking { supported: f64::INFINITY };
+        self.mode = Mode::Given;
     }
 }
 
@@ -448,6 +449,27 @@ mod tests {
         }
         let (e, kidnapped) = last.unwrap();
         assert!((e.position - kidnapped).norm() < 0.3, "found again: {:?} vs {kidnapped:?}", e.position);
+    }
+
+    /// From a given start (a GPS-denied pad) the filter never searches the floor again,
+    /// however long the frames point elsewhere.
+    #[test]
+    fn a_track_from_a_given_start_is_never_given_up() {
+        let mut loc = Localizer::new(
+            &grid_model(),
+            LocalizerParams { particles: 300, ..params(MotionModel::Velocity) },
+        )
+        .unwrap();
+        let pad = Vector2::new(-2.0, -2.0);
+        loc.start_at(pad, 0.1);
+        let far = seen_at(Vector2::new(3.0, 3.0));
+        let mut e = None;
+        for i in 0..(15.0 * (LOST_AFTER_S + 3.0)) as usize {
+            e = Some(loc.step_histogram(i as f64 / 15.0, &far, Some(Vector2::zeros())));
+        }
+        assert!(loc.tracking());
+        let e = e.unwrap();
+        assert!((e.position - pad).norm() < 1.6, "held near the pad: {:?}", e.position);
     }
 
     #[test]
