@@ -325,7 +325,7 @@ impl View<'_> {
     /// the frame.
     #[inline]
     fn pixel(&self, u: f32, v: f32) -> Option<[f32; 3]> {
-        self.source(u, v).map(|(x, y)| self.value(x, y))
+        self.source(u, v).map(|(x, y)| self.value::<0>(x, y))
     }
 
     /// Y, U, V at camera position `(x, y)` (in `[0, width - 1] x [0, height - 1]`): the
@@ -334,8 +334,9 @@ impl View<'_> {
     /// block, not interpolated: a quarter of the reads of bilinear interpolation between
     /// four blocks, and the half-block shift it allows is what random sampling does anyway.
     #[inline(always)]
-    fn value(&self, x: f32, y: f32) -> [f32; 3] {
-        let b = self.block;
+    /// `B`: the block side as a constant (loops unrolled), or 0 to read it from `self`.
+    fn value<const B: usize>(&self, x: f32, y: f32) -> [f32; 3] {
+        let b = if B == 0 { self.block } else { B };
         let half = (b - 1) as f32 * 0.5;
         let x0 = ((x - half + 0.5) as usize).min(self.width - b);
         let y0 = ((y - half + 0.5) as usize).min(self.height - b);
@@ -356,6 +357,17 @@ impl View<'_> {
     /// source) into `out` (`w * h * 3` values).
     #[inline(always)]
     fn gather(&self, x: usize, y: usize, w: usize, h: usize, out: &mut [f32]) {
+        // The block side as a constant for the common sizes: the summing loops unroll.
+        match self.block {
+            1 => self.gather_block::<1>(x, y, w, h, out),
+            2 => self.gather_block::<2>(x, y, w, h, out),
+            3 => self.gather_block::<3>(x, y, w, h, out),
+            _ => self.gather_block::<0>(x, y, w, h, out),
+        }
+    }
+
+    #[inline(always)]
+    fn gather_block<const B: usize>(&self, x: usize, y: usize, w: usize, h: usize, out: &mut [f32]) {
         let g = &self.g;
         let (xmax, ymax) = ((self.width - 1) as f32, (self.height - 1) as f32);
         let mut px_out = out.chunks_exact_mut(3);
@@ -371,7 +383,7 @@ impl View<'_> {
                 let sx = (px * iz).clamp(0.0, xmax);
                 let sy = (py * iz).clamp(0.0, ymax);
                 if let Some(o) = px_out.next() {
-                    o.copy_from_slice(&self.value(sx, sy));
+                    o.copy_from_slice(&self.value::<B>(sx, sy));
                 }
                 px += g[0];
                 py += g[3];
