@@ -322,97 +322,15 @@ impl Classifier {
     /// Index of the nearest texton to a patch laid out as textons are (`w * h` pixels of
     /// Y, U, V, row-major): the flight path, where patches are gathered from the camera
     /// frame directly ([`super::derotate::Preprocessor::sample`]).
-    #[inline]
     pub fn nearest_flat(&self, patch: &[f32]) -> usize {
         debug_assert_eq!(patch.len(), self.dim);
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU has AVX2 and FMA (checked just above).
-            return unsafe { self.nearest_flat_avx2(patch) };
-        }
-        self.nearest_flat_impl::<false>(patch)
+        let mut counts = vec![0u64; self.n.max(1)];
+        self.tables().count(patch, &mut counts);
+        counts.iter().position(|c| *c > 0).unwrap_or(0)
     }
 
-    /// The same compiled for AVX2 and FMA: one fused multiply-add per 8 textons and patch
-    /// value instead of two SSE multiplies and two adds. Chosen at run time so one binary
-    /// runs on any x86-64 (and on ARM through the portable path).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn nearest_flat_avx2(&self, patch: &[f32]) -> usize {
-        self.nearest_flat_impl::<true>(patch)
-    }
-
-    #[inline(always)]
-    fn nearest_flat_impl<const FMA: bool>(&self, patch: &[f32]) -> usize {
-        // The group count as a constant, so the sums stay in registers (a run-time count
-        // kept them on the stack: 0.78 us per patch instead of 0.1).
-        match self.norms.len() {
-            1 => self.nearest_flat_groups::<FMA, 1>(patch),
-            2 => self.nearest_flat_groups::<FMA, 2>(patch),
-            3 => self.nearest_flat_groups::<FMA, 3>(patch),
-            4 => self.nearest_flat_groups::<FMA, 4>(patch),
-            _ => self.nearest_flat_by_group::<FMA>(patch),
-        }
-    }
-
-    /// `G` groups at once, even and odd patch values in separate sums: 2 x `G`
-    /// independent chains of multiply-adds instead of one chain per group, which waits on
-    /// each add's latency.
-    #[inline(always)]
-    fn nearest_flat_groups<const FMA: bool, const G: usize>(&self, patch: &[f32]) -> usize {
-        let mut even = [[0.0f32; LANES]; G];
-        let mut odd = [[0.0f32; LANES]; G];
-        let fma = |acc: &mut [f32; LANES], w: &[f32; LANES], v: f32| {
-            for l in 0..LANES {
-                acc[l] = if FMA { w[l].mul_add(v, acc[l]) } else { acc[l] + w[l] * v };
-            }
-        };
-        let mut k = 0;
-        while k + 1 < self.dim {
-            let (v0, v1) = (patch[k], patch[k + 1]);
-            for (g, (e, o)) in even.iter_mut().zip(odd.iter_mut()).enumerate() {
-                fma(e, &self.weights[g * self.dim + k], v0);
-                fma(o, &self.weights[g * self.dim + k + 1], v1);
-            }
-            k += 2;
-        }
-        if k < self.dim {
-            for (g, e) in even.iter_mut().enumerate() {
-                fma(e, &self.weights[g * self.dim + k], patch[k]);
-            }
-        }
-        let mut best = (f32::INFINITY, 0);
-        for (g, (norm, (e, o))) in self.norms.iter().zip(even.iter().zip(&odd)).enumerate() {
-            for l in 0..LANES {
-                let score = norm[l] + e[l] + o[l];
-                if score < best.0 {
-                    best = (score, g * LANES + l);
-                }
-            }
-        }
-        best.1.min(self.n.saturating_sub(1))
-    }
-
-    /// [`Self::nearest_flat_impl`] for dictionaries of more than 32 textons: one group
-    /// after the other.
-    #[inline(always)]
-    fn nearest_flat_by_group<const FMA: bool>(&self, patch: &[f32]) -> usize {
-        let mut best = (f32::INFINITY, 0);
-        for (g, norm) in self.norms.iter().enumerate() {
-            let mut acc = *norm;
-            let weights = &self.weights[g * self.dim..(g + 1) * self.dim];
-            for (wk, v) in weights.iter().zip(patch) {
-                for l in 0..LANES {
-                    acc[l] = if FMA { wk[l].mul_add(*v, acc[l]) } else { acc[l] + wk[l] * v };
-                }
-            }
-            for (l, score) in acc.iter().enumerate() {
-                if *score < best.0 {
-                    best = (*score, g * LANES + l);
-                }
-            }
-        }
-        best.1.min(self.n.saturating_sub(1))
+    fn tables(&self) -> Tables<'_> {
+        Tables { weights: &self.weights, norms: &self.norms, dim: self.dim, n: self.n }
     }
 
     /// Values per patch (`w * h * 3`).
@@ -425,10 +343,46 @@ impl Classifier {
     pub fn histogram_of_patches(&self, patches: &[f32]) -> Vec<f32> {
         let mut counts = vec![0u64; self.n];
         if self.n > 0 && self.dim > 0 {
-            for p in patches.chunks_exact(self.dim) {
-                counts[self.nearest_flat(p)] += 1;
+            self.tables().count(patches, &mut counts);
+        }
+        normalise(&counts)
+    }
+
+    /// The same for patches of B, G, R block sums
+    /// ([`super::derotate::Preprocessor::sample_raw`]) whose normalised Y, U, V are
+    /// `gain * yuv_from_bgr * sums + offset` per pixel. The distance to texton `t` is
+    /// `|t|^2 - 2 t . (gain M q + c)`: the map moves onto the textons, once per frame
+    /// (`scratch` keeps the moved ones), and the patches are searched as they were read.
+    pub fn histogram_of_raw(
+        &self,
+        sums: &[f32],
+        gain: f32,
+        offset: [f32; 3],
+        yuv_from_bgr: &[[f32; 3]; 3],
+        scratch: &mut (Vec<[f32; LANES]>, Vec<[f32; LANES]>),
+    ) -> Vec<f32> {
+        let mut counts = vec![0u64; self.n];
+        if self.n == 0 || self.dim == 0 || !self.dim.is_multiple_of(3) {
+            return normalise(&counts);
+        }
+        let (weights, norms) = scratch;
+        weights.clear();
+        weights.resize(self.weights.len(), [0.0; LANES]);
+        norms.clone_from(&self.norms);
+        for g in 0..self.norms.len() {
+            for p in 0..self.dim / 3 {
+                let k = g * self.dim + p * 3;
+                // -2 t per channel (Y, U, V) of this pixel, 8 textons at once.
+                let a = [self.weights[k], self.weights[k + 1], self.weights[k + 2]];
+                for l in 0..LANES {
+                    for (j, w) in weights[k..k + 3].iter_mut().enumerate() {
+                        w[l] = gain * (0..3).map(|c| a[c][l] * yuv_from_bgr[c][j]).sum::<f32>();
+                    }
+                    norms[g][l] += (0..3).map(|c| a[c][l] * offset[c]).sum::<f32>();
+                }
             }
         }
+        Tables { weights, norms, dim: self.dim, n: self.n }.count(sums, &mut counts);
         normalise(&counts)
     }
 
@@ -471,6 +425,117 @@ impl Classifier {
             }
         }
         normalise(&counts)
+    }
+}
+
+/// Texton weights laid out for the search (`weights[g * dim + k][l] = -2 t[g * 8 + l][k]`,
+/// `norms[g][l] = |t|^2`, +inf in padding lanes), the dictionary's own or moved for raw
+/// patches ([`Classifier::histogram_of_raw`]).
+struct Tables<'a> {
+    weights: &'a [[f32; LANES]],
+    norms: &'a [[f32; LANES]],
+    dim: usize,
+    n: usize,
+}
+
+impl Tables<'_> {
+    /// Adds the nearest texton of every patch (`dim` values each) to `counts`.
+    fn count(&self, patches: &[f32], counts: &mut [u64]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU has AVX2 and FMA (checked just above).
+            return unsafe { self.count_avx2(patches, counts) };
+        }
+        self.count_impl::<false>(patches, counts)
+    }
+
+    /// The same compiled for AVX2 and FMA: one fused multiply-add per 8 textons and patch
+    /// value instead of two SSE multiplies and two adds. Chosen at run time so one binary
+    /// runs on any x86-64 (and on ARM through the portable path).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn count_avx2(&self, patches: &[f32], counts: &mut [u64]) {
+        self.count_impl::<true>(patches, counts)
+    }
+
+    #[inline(always)]
+    fn count_impl<const FMA: bool>(&self, patches: &[f32], counts: &mut [u64]) {
+        for p in patches.chunks_exact(self.dim) {
+            counts[self.nearest::<FMA>(p)] += 1;
+        }
+    }
+
+    #[inline(always)]
+    fn nearest<const FMA: bool>(&self, patch: &[f32]) -> usize {
+        // The group count as a constant, so the sums stay in registers (a run-time count
+        // kept them on the stack: 0.78 us per patch instead of 0.13).
+        match self.norms.len() {
+            1 => self.nearest_groups::<FMA, 1>(patch),
+            2 => self.nearest_groups::<FMA, 2>(patch),
+            3 => self.nearest_groups::<FMA, 3>(patch),
+            4 => self.nearest_groups::<FMA, 4>(patch),
+            _ => self.nearest_by_group::<FMA>(patch),
+        }
+    }
+
+    /// `G` groups at once, even and odd patch values in separate sums: 2 x `G`
+    /// independent chains of multiply-adds instead of one chain per group, which waits on
+    /// each add's latency.
+    #[inline(always)]
+    fn nearest_groups<const FMA: bool, const G: usize>(&self, patch: &[f32]) -> usize {
+        let mut even = [[0.0f32; LANES]; G];
+        let mut odd = [[0.0f32; LANES]; G];
+        let fma = |acc: &mut [f32; LANES], w: &[f32; LANES], v: f32| {
+            for l in 0..LANES {
+                acc[l] = if FMA { w[l].mul_add(v, acc[l]) } else { acc[l] + w[l] * v };
+            }
+        };
+        let mut k = 0;
+        while k + 1 < self.dim {
+            let (v0, v1) = (patch[k], patch[k + 1]);
+            for (g, (e, o)) in even.iter_mut().zip(odd.iter_mut()).enumerate() {
+                fma(e, &self.weights[g * self.dim + k], v0);
+                fma(o, &self.weights[g * self.dim + k + 1], v1);
+            }
+            k += 2;
+        }
+        if k < self.dim {
+            for (g, e) in even.iter_mut().enumerate() {
+                fma(e, &self.weights[g * self.dim + k], patch[k]);
+            }
+        }
+        let mut best = (f32::INFINITY, 0);
+        for (g, (norm, (e, o))) in self.norms.iter().zip(even.iter().zip(&odd)).enumerate() {
+            for l in 0..LANES {
+                let score = norm[l] + e[l] + o[l];
+                if score < best.0 {
+                    best = (score, g * LANES + l);
+                }
+            }
+        }
+        best.1.min(self.n.saturating_sub(1))
+    }
+
+    /// [`Self::nearest_groups`] for dictionaries of more than 32 textons: one group after
+    /// the other.
+    #[inline(always)]
+    fn nearest_by_group<const FMA: bool>(&self, patch: &[f32]) -> usize {
+        let mut best = (f32::INFINITY, 0);
+        for (g, norm) in self.norms.iter().enumerate() {
+            let mut acc = *norm;
+            let weights = &self.weights[g * self.dim..(g + 1) * self.dim];
+            for (wk, v) in weights.iter().zip(patch) {
+                for l in 0..LANES {
+                    acc[l] = if FMA { wk[l].mul_add(*v, acc[l]) } else { acc[l] + wk[l] * v };
+                }
+            }
+            for (l, score) in acc.iter().enumerate() {
+                if *score < best.0 {
+                    best = (*score, g * LANES + l);
+                }
+            }
+        }
+        best.1.min(self.n.saturating_sub(1))
     }
 }
 
@@ -663,8 +728,8 @@ mod tests {
                 assert!(d[c.nearest(&img, x, y)] <= d[plain] * (1.0 + 1e-4) + 1e-2, "at {x},{y}");
                 // The flat path (AVX2 and FMA where the CPU has them) agrees.
                 assert!(d[c.nearest_flat(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2, "flat at {x},{y}");
-                assert!(d[c.nearest_flat_impl::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
-                assert!(d[c.nearest_flat_by_group::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
+                assert!(d[c.tables().nearest::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
+                assert!(d[c.tables().nearest_by_group::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
             }
         }
     }
