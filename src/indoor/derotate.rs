@@ -423,24 +423,31 @@ impl View<'_> {
     /// source) into `out` (`w * h * 3` values).
     #[inline(always)]
     fn gather(&self, x: usize, y: usize, w: usize, h: usize, out: &mut [f32]) {
-        // The block side as a constant for the common sizes: the summing loops unroll.
-        match self.block {
-            1 => self.gather_block::<1, false>(x, y, w, h, out),
-            2 => self.gather_block::<2, false>(x, y, w, h, out),
-            3 => self.gather_block::<3, false>(x, y, w, h, out),
-            _ => self.gather_block::<0, false>(x, y, w, h, out),
-        };
+        self.gather_as::<false>(x, y, w, h, out);
     }
 
     /// [`View::gather`] as B, G, R block sums; returns the sums of Y and Y^2 over the
     /// patch's pixels in units of the sums (`YUV_FROM_BGR[0] . sums`).
     #[inline(always)]
     fn gather_sums(&self, x: usize, y: usize, w: usize, h: usize, out: &mut [f32]) -> (f64, f64) {
+        self.gather_as::<true>(x, y, w, h, out)
+    }
+
+    #[inline(always)]
+    fn gather_as<const RAW: bool>(
+        &self,
+        x: usize,
+        y: usize,
+        w: usize,
+        h: usize,
+        out: &mut [f32],
+    ) -> (f64, f64) {
+        // The block side as a constant for the common sizes: the summing loops unroll.
         match self.block {
-            1 => self.gather_block::<1, true>(x, y, w, h, out),
-            2 => self.gather_block::<2, true>(x, y, w, h, out),
-            3 => self.gather_block::<3, true>(x, y, w, h, out),
-            _ => self.gather_block::<0, true>(x, y, w, h, out),
+            1 => self.gather_block::<1, RAW>(x, y, w, h, out),
+            2 => self.gather_block::<2, RAW>(x, y, w, h, out),
+            3 => self.gather_block::<3, RAW>(x, y, w, h, out),
+            _ => self.gather_block::<0, RAW>(x, y, w, h, out),
         }
     }
 

@@ -319,27 +319,13 @@ impl Classifier {
         best.1.min(self.n.saturating_sub(1))
     }
 
-    /// Index of the nearest texton to a patch laid out as textons are (`w * h` pixels of
-    /// Y, U, V, row-major): the flight path, where patches are gathered from the camera
-    /// frame directly ([`super::derotate::Preprocessor::sample`]).
-    pub fn nearest_flat(&self, patch: &[f32]) -> usize {
-        debug_assert_eq!(patch.len(), self.dim);
-        let mut counts = vec![0u64; self.n.max(1)];
-        self.tables().count(patch, &mut counts);
-        counts.iter().position(|c| *c > 0).unwrap_or(0)
-    }
-
     fn tables(&self) -> Tables<'_> {
         Tables { weights: &self.weights, norms: &self.norms, dim: self.dim, n: self.n }
     }
 
-    /// Values per patch (`w * h * 3`).
-    pub fn patch_len(&self) -> usize {
-        self.dim
-    }
-
     /// Normalised histogram of the nearest textons of `patches` (consecutive patches of
-    /// [`Self::patch_len`] values); all zeros when there are none.
+    /// `w * h` pixels of Y, U, V, laid out as textons are: the patches
+    /// [`super::derotate::Preprocessor::sample`] gathers); all zeros when there are none.
     pub fn histogram_of_patches(&self, patches: &[f32]) -> Vec<f32> {
         let mut counts = vec![0u64; self.n];
         if self.n > 0 && self.dim > 0 {
@@ -727,7 +713,10 @@ mod tests {
                 // Ties within float rounding may go either way.
                 assert!(d[c.nearest(&img, x, y)] <= d[plain] * (1.0 + 1e-4) + 1e-2, "at {x},{y}");
                 // The flat path (AVX2 and FMA where the CPU has them) agrees.
-                assert!(d[c.nearest_flat(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2, "flat at {x},{y}");
+                let mut counts = vec![0u64; dict.len()];
+                c.tables().count(&buf, &mut counts);
+                let flat = counts.iter().position(|n| *n > 0).unwrap();
+                assert!(d[flat] <= d[plain] * (1.0 + 1e-4) + 1e-2, "flat at {x},{y}");
                 assert!(d[c.tables().nearest::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
                 assert!(d[c.tables().nearest_by_group::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
             }
