@@ -14,6 +14,10 @@ struct Level {
 }
 
 impl Level {
+    fn new(width: usize, height: usize, rgb: Vec<[f32; 3]>) -> Level {
+        Level { width, height, rgb }
+    }
+
     fn halve(&self) -> Level {
         let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
         let mut rgb = Vec::with_capacity(w * h);
@@ -31,13 +35,19 @@ impl Level {
                 rgb.push(acc);
             }
         }
-        Level { width: w, height: h, rgb }
+        Level::new(w, h, rgb)
     }
 
     /// Mirrored-repeat index: ... 2 1 0 | 0 1 2 ... n-1 | n-1 n-2 ...
+    // The renderer calls this eight times per pixel: inside the texture it is the index
+    // itself, and a power-of-two period (the detail texture) needs a mask, not a division.
+    #[inline]
     fn wrap(i: i64, n: usize) -> usize {
+        if (i as u64) < n as u64 {
+            return i as usize;
+        }
         let period = 2 * n as i64;
-        let m = i.rem_euclid(period);
+        let m = if period & (period - 1) == 0 { i & (period - 1) } else { i.rem_euclid(period) };
         if m < n as i64 {
             m as usize
         } else {
@@ -45,9 +55,10 @@ impl Level {
         }
     }
 
+    #[inline]
     fn bilinear(&self, x: f64, y: f64) -> [f32; 3] {
         let (x, y) = (x - 0.5, y - 0.5); // texel centres at +0.5
-        let (x0, y0) = (x.floor(), y.floor());
+        let (x0, y0) = (floor(x), floor(y));
         let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
         let (x0, y0) = (x0 as i64, y0 as i64);
         let xs = [Self::wrap(x0, self.width), Self::wrap(x0 + 1, self.width)];
@@ -63,6 +74,18 @@ impl Level {
     }
 }
 
+/// `x.floor()` without the libm call (x86-64 without SSE4.1 has no floor instruction):
+/// exact for |x| < 2^52, which texture coordinates are.
+#[inline]
+fn floor(x: f64) -> f64 {
+    let t = x as i64 as f64;
+    if t > x {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
 /// A texture draped over the ground: image column = east, image row = south.
 #[derive(Clone, Debug)]
 pub struct Texture {
@@ -75,7 +98,7 @@ impl Texture {
     /// From RGB values in 0..=255 (row-major), `width x height`.
     pub fn from_rgb(width: usize, height: usize, rgb: Vec<[f32; 3]>, metres_per_texel: f64) -> Texture {
         assert_eq!(rgb.len(), width * height, "texture size mismatch");
-        let mut levels = vec![Level { width, height, rgb }];
+        let mut levels = vec![Level::new(width, height, rgb)];
         while levels.last().is_some_and(|l| l.width > 1 || l.height > 1) && levels.len() < 16 {
             let next = levels.last().expect("non-empty").halve();
             levels.push(next);
@@ -148,8 +171,9 @@ impl Texture {
     /// Colour at ground position (north, east) for a pixel footprint of `footprint`
     /// metres: picks the mip level whose texels are about that size.
     pub fn sample(&self, north: f64, east: f64, footprint: f64) -> [f32; 3] {
-        let ratio = (footprint / self.metres_per_texel).max(1.0);
-        let level = (ratio.log2().floor() as usize).min(self.levels.len() - 1);
+        let ratio = footprint / self.metres_per_texel;
+        // log2 only when the footprint spans two texels or more (level 0 otherwise).
+        let level = if ratio < 2.0 { 0 } else { (ratio.log2().floor() as usize).min(self.levels.len() - 1) };
         let scale = self.metres_per_texel * (1u64 << level) as f64;
         // The texture is centred on the local origin, so a texture that covers a scene
         // (the indoor floor) covers it without a mirror line through its middle.
