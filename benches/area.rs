@@ -4,7 +4,7 @@
 //! whole frame at steady state. Frames come from the coastline mission.
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
-use mavloc::area::features::{prepare, FeatureExtractor};
+use mavloc::area::features::{prepare, FeatureExtractor, Pieces};
 use mavloc::area::library::{Landmark, LibraryParams};
 use mavloc::area::{AreaPipeline, FrameInput};
 use mavloc::filter::{bearing_noise, BearingModel, Ukf, UkfParams};
@@ -57,6 +57,10 @@ fn stages(c: &mut Criterion) {
     c.bench_function("area_band_dilation_seed", |b| b.iter(|| ex.band_by_dilation(&f0.mask).unwrap()));
     let band = ex.band(&f0.mask).unwrap();
     c.bench_function("area_sift_in_band_2000", |b| b.iter(|| ex.extract(&f0.grey, &band, false).unwrap()));
+    // The same frame with SIFT over the band's whole bounding box (before the pieces).
+    c.bench_function("area_sift_in_band_one_box", |b| {
+        b.iter(|| ex.extract_in(&f0.grey, &band, false, Pieces::OneBox).unwrap())
+    });
 
     // A library at steady state: run the pipeline over the first 39 frames.
     let mut pipeline = AreaPipeline::new(&s.area, k).unwrap();

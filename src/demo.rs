@@ -59,6 +59,8 @@ pub struct Frames {
 #[derive(Clone, Debug)]
 pub struct CoastResult {
     pub frames: Frames,
+    /// The live run's `summary.json` (stage times per frame).
+    pub summary: Option<crate::area::offline::RunSummary>,
     pub eval: AreaEvaluation,
     pub daemon_ok: bool,
 }
@@ -110,6 +112,13 @@ impl fmt::Display for DemoReport {
         writeln!(f, "mavloc demo: simulated vehicle + mavloc run (sim camera), MAVLink over UDP loopback")?;
         writeln!(f, "  coastline (area pipeline, seed noise: gimbal 0.5 deg, position 0.5/0.5/2 m):")?;
         writeln!(f, "    frames processed {}, dropped {}", c.frames.processed, c.frames.dropped)?;
+        if let Some(s) = &c.summary {
+            writeln!(
+                f,
+                "    per frame: prepare {:.1} ms, band {:.1} ms, SIFT {:.1} ms, match+estimate {:.1} ms, purge+add {:.1} ms",
+                s.prepare_ms, s.band_ms, s.sift_ms, s.match_estimate_ms, s.purge_add_ms
+            )?;
+        }
         writeln!(
             f,
             "    landmarks {}, >20 m {}, mean distance to the true shore {:.2} m (median {:.2}, max {:.2}); border line mean {:.2} m",
@@ -261,9 +270,9 @@ fn coastline(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Res
     let dir = opts.out.join("coastline");
     let _ = std::fs::remove_dir_all(&dir);
     progress(&format!("coastline: flying {:.0} s with the area pipeline live", opts.coast_s));
-    // 960x540, the band kept at the seed's 50 px of a full-HD frame.
+    // 960x540 at 15 frames/s, the band kept at the seed's 50 px of a full-HD frame.
     let sets: Vec<String> =
-        ["camera.width=960", "camera.height=540", "camera.fps=6", "area.downscale=1", "area.band_px=25"]
+        ["camera.width=960", "camera.height=540", "camera.fps=15", "area.downscale=1", "area.band_px=25"]
             .iter()
             .map(|s| s.to_string())
             .collect();
@@ -286,7 +295,10 @@ fn coastline(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Res
         .map_err(anyhow::Error::msg)?;
     plot::landmark_views(&results.join("views.png"), &points, &world.ground_truth, &border, title)
         .map_err(anyhow::Error::msg)?;
-    Ok(CoastResult { frames: frames(&dir.join("state")), eval, daemon_ok })
+    let summary = std::fs::read_to_string(results.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok());
+    Ok(CoastResult { frames: frames(&dir.join("state")), summary, eval, daemon_ok })
 }
 
 fn indoor(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Result<IndoorResult> {

@@ -42,6 +42,15 @@ impl Features {
     }
 }
 
+/// How the band is cut for SIFT.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pieces {
+    /// The band's bounding box, whole.
+    OneBox,
+    /// Strips of it shrunk to their band pixels ([`band_regions`]).
+    Strips,
+}
+
 /// Builds bands and extracts features.
 pub struct FeatureExtractor {
     first: core::Ptr<SIFT>,
@@ -127,6 +136,18 @@ impl FeatureExtractor {
 
     /// SIFT keypoints and descriptors inside `band` of the grey frame.
     pub fn extract(&mut self, grey: &Mat, band: &Band, first: bool) -> opencv::Result<Features> {
+        self.extract_in(grey, band, first, Pieces::Strips)
+    }
+
+    /// [`FeatureExtractor::extract`] over the band cut as `pieces` (one box: to check and
+    /// benchmark the pieces against).
+    pub fn extract_in(
+        &mut self,
+        grey: &Mat,
+        band: &Band,
+        first: bool,
+        pieces: Pieces,
+    ) -> opencv::Result<Features> {
         let distance = &band.distance;
         let band = &band.mask;
         let mut points = Mat::default();
@@ -142,8 +163,12 @@ impl FeatureExtractor {
         }
         let bbox = imgproc::bounding_rect(&points)?;
         let full = Rect::new(0, 0, grey.cols(), grey.rows());
-        let long_side = bbox.width.max(bbox.height);
-        let regions = band_regions(band, bbox, (long_side + STRIP_PX - 1) / STRIP_PX)?;
+        let regions = match pieces {
+            Pieces::OneBox => vec![bbox],
+            Pieces::Strips => {
+                band_regions(band, bbox, (bbox.width.max(bbox.height) + STRIP_PX - 1) / STRIP_PX)?
+            }
+        };
         let sift = if first { &mut self.first } else { &mut self.later };
         // (keypoint in frame pixels, its region, its descriptor row there)
         let mut found: Vec<(KeyPoint, usize, i32)> = Vec::new();
@@ -158,7 +183,8 @@ impl FeatureExtractor {
             let grey_roi = Mat::roi(grey, roi)?;
             // Only this region's own band pixels: no keypoint is found twice.
             let mut band_roi = Mat::zeros(roi.height, roi.width, core::CV_8UC1)?.to_mat()?;
-            let inner = Rect::new(core_rect.x - roi.x, core_rect.y - roi.y, core_rect.width, core_rect.height);
+            let inner =
+                Rect::new(core_rect.x - roi.x, core_rect.y - roi.y, core_rect.width, core_rect.height);
             Mat::roi(band, *core_rect)?.copy_to(&mut Mat::roi_mut(&mut band_roi, inner)?)?;
             let mut kps = Vector::<KeyPoint>::new();
             let mut descriptors = Mat::default();
@@ -342,14 +368,23 @@ mod tests {
                 ]);
                 imgproc::fill_convex_poly(&mut mask, &pts, Scalar::all(255.0), imgproc::LINE_8, 0).unwrap();
             } else {
-                imgproc::circle(&mut mask, Point::new(480, 270), 200, Scalar::all(255.0), -1, imgproc::LINE_8, 0)
-                    .unwrap();
+                imgproc::circle(
+                    &mut mask,
+                    Point::new(480, 270),
+                    200,
+                    Scalar::all(255.0),
+                    -1,
+                    imgproc::LINE_8,
+                    0,
+                )
+                .unwrap();
             }
             let band = ex.band(&mask).unwrap().mask;
             let mut points = Mat::default();
             core::find_non_zero(&band, &mut points).unwrap();
             let bbox = imgproc::bounding_rect(&points).unwrap();
-            let pieces = band_regions(&band, bbox, (bbox.width.max(bbox.height) + STRIP_PX - 1) / STRIP_PX).unwrap();
+            let pieces =
+                band_regions(&band, bbox, (bbox.width.max(bbox.height) + STRIP_PX - 1) / STRIP_PX).unwrap();
             let mut seen = blank(960, 540, 0.0).unwrap();
             for r in &pieces {
                 let mut roi = Mat::roi_mut(&mut seen, *r).unwrap();
@@ -386,7 +421,8 @@ mod tests {
             let (x, y) = (rng.uniform(0, 960).unwrap(), rng.uniform(0, 540).unwrap());
             let r = rng.uniform(2, 14).unwrap();
             let v = rng.uniform(0, 256).unwrap() as f64;
-            imgproc::circle(&mut blobs, Point::new(x, y), r, Scalar::all(v), -1, imgproc::LINE_AA, 0).unwrap();
+            imgproc::circle(&mut blobs, Point::new(x, y), r, Scalar::all(v), -1, imgproc::LINE_AA, 0)
+                .unwrap();
         }
         let mut grey = Mat::default();
         imgproc::gaussian_blur(&blobs, &mut grey, Size::new(0, 0), 1.0, 1.0, core::BORDER_DEFAULT).unwrap();
@@ -395,25 +431,11 @@ mod tests {
         imgproc::fill_convex_poly(&mut mask, &pts, Scalar::all(255.0), imgproc::LINE_8, 0).unwrap();
         let band = ex.band(&mask).unwrap();
         let pieces = ex.extract(&grey, &band, false).unwrap();
-        // One box around the whole band, as before the pieces.
-        let mut points = Mat::default();
-        core::find_non_zero(&band.mask, &mut points).unwrap();
-        let b = imgproc::bounding_rect(&points).unwrap();
-        let roi = Rect::new(b.x - ROI_MARGIN, b.y - ROI_MARGIN, b.width + 2 * ROI_MARGIN, b.height + 2 * ROI_MARGIN)
-            & Rect::new(0, 0, 960, 540);
-        let mut kps = Vector::<KeyPoint>::new();
-        let mut d = Mat::default();
-        let mut sift = SIFT::create(4000, 3, 0.04, 10.0, 1.6).unwrap();
-        sift.detect_and_compute(&Mat::roi(&grey, roi).unwrap(), &Mat::roi(&band.mask, roi).unwrap(), &mut kps, &mut d, false)
-            .unwrap();
+        let one = ex.extract_in(&grey, &band, false, Pieces::OneBox).unwrap();
+        let kps = &one.pixels;
         assert!(kps.len() > 100, "{} keypoints: the test needs texture", kps.len());
-        let found = kps
-            .iter()
-            .filter(|k| {
-                let (x, y) = (k.pt().x as f64 + roi.x as f64, k.pt().y as f64 + roi.y as f64);
-                pieces.pixels.iter().any(|p| (p.u - x).hypot(p.v - y) < 0.5)
-            })
-            .count();
+        let found =
+            kps.iter().filter(|k| pieces.pixels.iter().any(|p| (p.u - k.u).hypot(p.v - k.v) < 0.5)).count();
         assert!(
             found * 100 >= kps.len() * 95,
             "pieces found {found} of one box's {} keypoints ({} in all)",

@@ -40,6 +40,9 @@ pub struct RunSummary {
     pub frames_per_s: f64,
     pub landmarks: usize,
     pub border_lines: usize,
+    /// Per frame: reading the files (offline), segmenting and the grey conversion.
+    #[serde(default)]
+    pub prepare_ms: f64,
     pub band_ms: f64,
     pub sift_ms: f64,
     pub match_estimate_ms: f64,
@@ -51,6 +54,9 @@ pub struct RunSummary {
     /// library if descriptors were not capped (SIFT depends on how much band is in view).
     pub match_ms_at_50: Option<f64>,
     pub match_ms_at_500: Option<f64>,
+    /// Live runs: the median frame time (ms, preparation included) of each minute.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub frame_ms_per_minute: Vec<f64>,
     /// Reprojection residuals of converged landmarks (pixels at full resolution), when
     /// computed (`residuals.csv`): the median and 90th percentile over frames of each
     /// frame's median, weighted by its matches; and frames whose yaw looks off by 180 deg.
@@ -248,7 +254,9 @@ pub fn run_observed(
     // Every frame on the contact sheets, as tiles.
     let mut sheet = Vec::new();
     let start = Instant::now();
+    let mut preparing = std::time::Duration::ZERO;
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
+        let t_read = Instant::now();
         let frame_path = ds.frame_path(record);
         let mask_path = ds.mask_path(record);
         // The frame and its mask, or why this frame cannot be used (naming the file).
@@ -287,6 +295,7 @@ pub fn run_observed(
             sheet.push(super::segment::SheetRow::new(record.frame, &img, &mask)?);
         }
         let (grey, small_mask) = prepare(&img, &mask, downscale)?;
+        preparing += t_read.elapsed();
         let pose = ds.camera_pose(&record.measured, s.gimbal.offsets_deg());
         match pipeline.as_mut() {
             Some(p) => {
@@ -336,6 +345,7 @@ pub fn run_observed(
     summary.frames_per_s =
         if summary.elapsed_s > 0.0 { summary.frames as f64 / summary.elapsed_s } else { 0.0 };
     let per_frame = |d: std::time::Duration| d.as_secs_f64() * 1000.0 / summary.frames.max(1) as f64;
+    summary.prepare_ms = per_frame(preparing);
     summary.band_ms = per_frame(timing.band);
     summary.sift_ms = per_frame(timing.sift);
     summary.match_estimate_ms = per_frame(timing.match_estimate);

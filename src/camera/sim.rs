@@ -30,6 +30,8 @@ pub fn intrinsics(s: &Settings) -> Result<Intrinsics, String> {
 
 /// Poses older than this are not rendered: the vehicle is not reporting.
 const MAX_POSE_AGE_S: f64 = 0.5;
+/// How often a tick whose pose is not newer than the last frame's looks again (s).
+const POSE_POLL_S: f64 = 0.004;
 
 pub struct SimCamera {
     renderer: Renderer<'static>,
@@ -40,8 +42,14 @@ pub struct SimCamera {
     ctx: SourceContext,
     period: f64,
     next_due: f64,
+    /// When the current frame is due (`next_due` is the next wake-up, which may be a
+    /// look for a newer pose in between).
+    tick: f64,
     index: u64,
     last_pose_t: f64,
+    /// This minute's render times (ms) and ticks with no new pose, logged each minute:
+    /// a simulated camera slower than its rate says so.
+    minute: (f64, Vec<f64>, u64, u64),
 }
 
 impl SimCamera {
@@ -63,9 +71,11 @@ impl SimCamera {
             k,
             period: 1.0 / s.camera.fps,
             next_due: ctx.now(),
+            tick: ctx.now(),
             ctx,
             index: 0,
             last_pose_t: f64::NEG_INFINITY,
+            minute: (f64::NAN, Vec::new(), 0, 0),
         })
     }
 
@@ -114,11 +124,46 @@ impl FrameSource for SimCamera {
             if !self.ctx.sleep_until(self.next_due) {
                 return Ok(None);
             }
-            self.next_due = (self.next_due + self.period).max(self.ctx.now());
+            let now = self.ctx.now();
+            if self.minute.0.is_nan() {
+                self.minute.0 = now;
+            } else if now - self.minute.0 >= 60.0 {
+                let (start, ms, same, old) = std::mem::replace(&mut self.minute, (now, Vec::new(), 0, 0));
+                let mut ms = ms;
+                ms.sort_by(f64::total_cmp);
+                tracing::info!(
+                    "sim camera: {} frames in the last {:.0} s ({:.1} frames/s of {:.1}), render median {:.1} ms; {same} ticks with no newer pose, {old} with none newer than {MAX_POSE_AGE_S} s",
+                    ms.len(),
+                    now - start,
+                    ms.len() as f64 / (now - start),
+                    1.0 / self.period,
+                    ms.get(ms.len() / 2).copied().unwrap_or(f64::NAN)
+                );
+            }
             let latest = *self.ctx.latest_pose.lock().expect("pose");
-            let Some((t, pose)) = latest else { continue };
+            let current = latest.filter(|(t, _)| now - t <= MAX_POSE_AGE_S);
+            // Telemetry a little late (the vehicle shares the machine, a datagram waits):
+            // look again shortly for a newer pose rather than lose the frame, for up to
+            // half a period after the tick.
+            if current.is_some_and(|(t, _)| t <= self.last_pose_t) && now < self.tick + 0.5 * self.period {
+                self.next_due = now + POSE_POLL_S;
+                continue;
+            }
+            // This tick is taken. The camera's clock does not slip with its render time: a
+            // frame rendered late is made up by the next coming at once; only a camera more
+            // than a period behind starts its schedule again from now.
+            self.tick += self.period;
+            if self.tick < now - self.period {
+                self.tick = now;
+            }
+            self.next_due = self.tick;
             // No telemetry, no picture; and never the same pose twice.
-            if self.ctx.now() - t > MAX_POSE_AGE_S || t <= self.last_pose_t {
+            let Some((t, pose)) = current else {
+                self.minute.3 += 1;
+                continue;
+            };
+            if t <= self.last_pose_t {
+                self.minute.2 += 1;
                 continue;
             }
             self.last_pose_t = t;
@@ -128,7 +173,9 @@ impl FrameSource for SimCamera {
                 }
             }
             let seen_from = self.perturb(&pose);
+            let t_render = std::time::Instant::now();
             let frame = self.renderer.render(&seen_from, &self.k);
+            self.minute.1.push(t_render.elapsed().as_secs_f64() * 1e3);
             let image = crate::imaging::bgr_from_rgb(&frame.rgb, frame.height)?;
             let mask = opencv::core::Mat::new_rows_cols_with_data(
                 frame.height as i32,
@@ -158,5 +205,59 @@ impl FrameSource for SimCamera {
             1.0 / self.period,
             if self.noise.is_some() { ", with the scenario's noise" } else { "" }
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::AtomicBool;
+    use std::sync::{Arc, Mutex};
+    use std::time::{Duration, Instant};
+
+    /// A pose that arrives a little after the frame is due (telemetry late on a busy
+    /// machine) is waited for, not skipped to the next frame: the frame comes within half
+    /// a period of its tick, from that pose.
+    #[test]
+    fn a_frame_waits_for_a_pose_a_little_late_instead_of_skipping_a_period() {
+        let mut s = Settings::default();
+        s.camera.scenario = "coastline".into();
+        s.camera.width = 96;
+        s.camera.height = 54;
+        // A period within the pose age limit (0.5 s), long enough for a loaded machine.
+        s.camera.fps = 3.0;
+        s.camera.sim_noise = false;
+        let ctx = SourceContext {
+            started: Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: None,
+        };
+        let latest = ctx.latest_pose.clone();
+        let pose = CameraPose::from_gimbal(
+            Vec3::new(0.0, 0.0, -30.0),
+            crate::geometry::GimbalChain::YawPitchRoll,
+            GimbalAngles::from_degrees(0.0, -60.0, 0.0),
+            crate::geometry::Mount::Earth,
+        );
+        let mut cam = SimCamera::open(&s, ctx).unwrap();
+        let started = cam.ctx.started;
+        *latest.lock().unwrap() = Some((cam.ctx.now(), pose));
+        let first = cam.next().unwrap().expect("a frame from the first pose");
+        assert_eq!(first.index, 0);
+        // The second frame is due a period after the first; its pose comes 0.05 s late.
+        let due = cam.tick;
+        let feeder = std::thread::spawn(move || {
+            let at = started + Duration::from_secs_f64(due + 0.05);
+            std::thread::sleep(at.saturating_duration_since(Instant::now()));
+            let t = started.elapsed().as_secs_f64();
+            *latest.lock().unwrap() = Some((t, pose));
+            t
+        });
+        let second = cam.next().unwrap().expect("a second frame");
+        let at = started.elapsed().as_secs_f64() - due;
+        let fed = feeder.join().unwrap();
+        assert_eq!(second.capture_s, fed, "rendered from the late pose");
+        assert!(at < 0.5 / 3.0, "the late pose's frame came {at:.3} s after its tick: a period was skipped");
     }
 }

@@ -83,7 +83,8 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
     );
     if summary.method == "ukf" {
         println!(
-            "per frame: band {:.1} ms, SIFT {:.1} ms, match+estimate {:.1} ms, purge+add {:.1} ms",
+            "per frame: read+segment {:.1} ms, band {:.1} ms, SIFT {:.1} ms, match+estimate {:.1} ms, purge+add {:.1} ms",
+            summary.prepare_ms,
             summary.band_ms, summary.sift_ms, summary.match_estimate_ms, summary.purge_add_ms
         );
     }

@@ -50,6 +50,12 @@ use mavloc_data::table::Appender;
 /// Area results are rewritten every this many frames.
 pub const AREA_CHECKPOINT_FRAMES: u64 = 25;
 
+/// Frames the area pipeline may have waiting: its results are a map, not a control
+/// input, so a frame a quarter of a second late is as good as one on time, and a short
+/// queue rides out the moments when the pipeline shares the cores with the camera (the
+/// simulated camera renders on both). The indoor pipeline keeps only the newest frame.
+pub const AREA_QUEUE_FRAMES: usize = 4;
+
 /// The files of an area result set.
 const AREA_FILES: [&str; 6] =
     ["landmarks.csv", "landmarks.ply", "area.geojson", "area.kml", "border.csv", "summary.json"];
@@ -79,6 +85,14 @@ pub struct AreaLive {
     id_offset: u64,
     origin: Geodetic,
     frames: u64,
+    /// Time spent per stage over the run; segmenting and the grey conversion as `prepare`.
+    timing: crate::area::StageTiming,
+    prepare: std::time::Duration,
+    /// Frame times (ms) since `minute_start`, and the median of each minute before: does
+    /// the frame cost stay flat as the library fills (logged and in `summary.json`)?
+    minute_ms: Vec<f64>,
+    minute_start: std::time::Instant,
+    minute_medians: Vec<f64>,
     no_mask_warned: bool,
     started: std::time::Instant,
     settings: crate::settings::Area,
@@ -120,6 +134,11 @@ impl AreaLive {
             id_offset,
             origin,
             frames: 0,
+            timing: crate::area::StageTiming::default(),
+            prepare: std::time::Duration::ZERO,
+            minute_ms: Vec::new(),
+            minute_start: std::time::Instant::now(),
+            minute_medians: Vec::new(),
             no_mask_warned: false,
             started: std::time::Instant::now(),
             settings: s.area.clone(),
@@ -145,11 +164,20 @@ impl AreaLive {
     fn write(&self) -> io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
         let landmarks = self.all_landmarks();
         let elapsed = self.started.elapsed().as_secs_f64();
+        let per_frame = |d: std::time::Duration| d.as_secs_f64() * 1000.0 / self.frames.max(1) as f64;
+        // Live, frames/s is the camera's rate when the pipeline keeps up; the stage times
+        // say how much of each frame's interval the pipeline used.
         let mut summary = RunSummary {
             method: "ukf".into(),
             frames: self.frames,
             elapsed_s: elapsed,
             frames_per_s: if elapsed > 0.0 { self.frames as f64 / elapsed } else { 0.0 },
+            prepare_ms: per_frame(self.prepare),
+            band_ms: per_frame(self.timing.band),
+            sift_ms: per_frame(self.timing.sift),
+            match_estimate_ms: per_frame(self.timing.match_estimate),
+            purge_add_ms: per_frame(self.timing.purge_add),
+            frame_ms_per_minute: self.minute_medians.clone(),
             complete: self.finished,
             ..RunSummary::default()
         };
@@ -199,6 +227,7 @@ impl LivePipeline for AreaLive {
         if let Some(o) = frame.origin {
             self.origin = o;
         }
+        let t_prepare = std::time::Instant::now();
         // The configured segmenter (water, HSV) decides the target, as in `mavloc area`;
         // with `masks` the camera's own mask does (the sim camera's, a dataset's).
         let segmented = match crate::area::segment::segment(&frame.image, &self.settings) {
@@ -224,6 +253,7 @@ impl LivePipeline for AreaLive {
                 return report;
             }
         };
+        let prepared = t_prepare.elapsed();
         let input =
             FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
         if self.aim {
@@ -237,6 +267,26 @@ impl LivePipeline for AreaLive {
             }
         };
         self.frames += 1;
+        self.prepare += prepared;
+        self.timing += r.timing;
+        let t = r.timing;
+        self.minute_ms
+            .push((prepared + t.band + t.sift + t.match_estimate + t.purge_add).as_secs_f64() * 1e3);
+        if self.minute_start.elapsed() >= std::time::Duration::from_secs(60) {
+            let ms = &mut self.minute_ms;
+            ms.sort_by(f64::total_cmp);
+            let at = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
+            let (median, p95, max) = (at(0.5), at(0.95), at(1.0));
+            tracing::info!(
+                "area: last minute {} frames, frame time median {median:.1} ms, 95th percentile {p95:.1} ms, max {max:.1} ms; {} landmarks tracked, {} converged",
+                ms.len(),
+                r.landmarks,
+                self.results.len() + r.converged.len()
+            );
+            self.minute_medians.push((median * 10.0).round() / 10.0);
+            ms.clear();
+            self.minute_start = std::time::Instant::now();
+        }
         report.processed = true;
         let before = self.results.len();
         report.new_landmarks = r.converged.iter().map(|l| l.position.into()).collect();

@@ -570,17 +570,24 @@ async fn serve(
 /// clock, not the autopilot's: an autopilot reboot restarts its clock (the camera must
 /// not wait for it to pass the old one), and a stamp from the future (a bad clock, a
 /// spoofed frame) is not taken, so it cannot hold back every true pose after it.
+/// How long the sim camera holds the gimbal's last report (s).
+const SIM_GIMBAL_HOLD_S: f64 = 0.1;
+
 fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
     if core.settings().camera.sim_pose == crate::settings::SimPose::Truth {
         return feed_truth(core, live, now);
     }
     let now = now.secs();
-    let Some((t, _)) = core.aligner().vehicle.newest() else { return };
-    let Some(local) = core.aligner().clock.to_local(t) else { return };
+    let a = core.aligner();
+    let Some((t, _)) = a.vehicle.newest() else { return };
+    let Some(local) = a.clock.to_local(t) else { return };
     if local <= live.fed_pose_local || local > now + MAX_POSE_LEAD_S {
         return;
     }
-    if let Ok(p) = core.aligner().align(local, now) {
+    // The gimbal as it last reported, up to a report interval back: waiting for a gimbal
+    // report to pass the vehicle's newest sample held the 15 frames/s camera to 13.3
+    // (the gimbal reports at 10-20 Hz, the vehicle at 50).
+    if let Ok(p) = a.align_holding_gimbal(local, now, SIM_GIMBAL_HOLD_S) {
         live.fed_pose_local = local;
         *live.ctx.latest_pose.lock().expect("pose") = Some((local, p.camera));
     }
@@ -702,7 +709,8 @@ fn stop_worker(live: &mut Live) {
 
 fn start_worker(core: &Core, live: &mut Live, k: PipelineKind) {
     let factory = factory(k, live.results.clone(), live.run.clone());
-    let w = Worker::start(factory, core.settings().clone(), live.worker_tx.clone());
+    let depth = if k == PipelineKind::Area { live::AREA_QUEUE_FRAMES } else { 1 };
+    let w = Worker::start(factory, core.settings().clone(), depth, live.worker_tx.clone());
     live.worker = Some((k, w));
 }
 

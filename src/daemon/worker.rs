@@ -1,9 +1,12 @@
 //! The pipeline worker: one blocking thread that owns the running pipeline, so the async
 //! side (link, timers) never waits on image processing.
 //!
-//! Frames come through a one-slot mailbox: a new frame replaces one the worker has not
-//! taken yet (counted as dropped), because a late pose estimate is worth less than the
-//! next one. A pipeline that panics on a frame is reported, rebuilt from its factory,
+//! Frames come through a short mailbox of `depth` frames: a frame arriving at a full
+//! mailbox pushes out the oldest one waiting (counted as dropped). The indoor pipeline
+//! waits with one frame at most, because a late pose estimate is worth less than the next
+//! one; the area pipeline's results are a map, so it keeps a few
+//! ([`super::live::AREA_QUEUE_FRAMES`]) to ride out moments when the camera and the
+//! pipeline share the cores. A pipeline that panics on a frame is reported, rebuilt from its factory,
 //! and the worker goes on with the next frame: one bad frame must not stop the daemon.
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -73,7 +76,8 @@ pub enum Event {
 
 #[derive(Default)]
 struct Mailbox {
-    frame: Option<LiveFrame>,
+    frames: std::collections::VecDeque<LiveFrame>,
+    depth: usize,
     requests: Vec<Request>,
 }
 
@@ -85,10 +89,17 @@ pub struct Worker {
 }
 
 impl Worker {
-    /// Starts a worker; `events` receives reports (the daemon's side is async, so the
-    /// worker only ever does non-blocking sends).
-    pub fn start(factory: Factory, settings: Settings, events: tokio::sync::mpsc::Sender<Event>) -> Worker {
-        let shared = Arc::new((Mutex::new(Mailbox::default()), Condvar::new()));
+    /// Starts a worker whose mailbox holds `depth` frames (at least one); `events`
+    /// receives reports (the daemon's side is async, so the worker only ever does
+    /// non-blocking sends).
+    pub fn start(
+        factory: Factory,
+        settings: Settings,
+        depth: usize,
+        events: tokio::sync::mpsc::Sender<Event>,
+    ) -> Worker {
+        let mailbox = Mailbox { depth: depth.max(1), ..Mailbox::default() };
+        let shared = Arc::new((Mutex::new(mailbox), Condvar::new()));
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let s2 = shared.clone();
         let thread = std::thread::Builder::new()
@@ -98,13 +109,15 @@ impl Worker {
         Worker { shared, thread: Some(thread), dropped }
     }
 
-    /// Offers a frame; replaces (and counts) one not yet taken.
+    /// Offers a frame; at a full mailbox the oldest waiting frame is dropped (and counted).
     pub fn offer(&self, frame: LiveFrame) {
         let (m, cv) = &*self.shared;
         let mut mb = m.lock().expect("mailbox");
-        if mb.frame.replace(frame).is_some() {
+        if mb.frames.len() >= mb.depth {
+            mb.frames.pop_front();
             self.dropped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         }
+        mb.frames.push_back(frame);
         cv.notify_one();
     }
 
@@ -159,10 +172,10 @@ fn run(
     loop {
         let (frame, requests) = {
             let mut mb = m.lock().expect("mailbox");
-            while mb.frame.is_none() && mb.requests.is_empty() {
+            while mb.frames.is_empty() && mb.requests.is_empty() {
                 mb = cv.wait(mb).expect("mailbox");
             }
-            (mb.frame.take(), std::mem::take(&mut mb.requests))
+            (mb.frames.pop_front(), std::mem::take(&mut mb.requests))
         };
         for r in requests {
             match r {
@@ -278,7 +291,7 @@ mod tests {
         let out = dir.path().to_path_buf();
         let factory: Factory =
             Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));
-        let w = Worker::start(factory, Settings::default(), tx);
+        let w = Worker::start(factory, Settings::default(), 1, tx);
         let mut events = Vec::new();
         for i in 0..6 {
             w.offer(frame(i));
@@ -305,7 +318,7 @@ mod tests {
         let out = dir.path().join("gone");
         let factory: Factory =
             Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));
-        let w = Worker::start(factory, Settings::default(), tx);
+        let w = Worker::start(factory, Settings::default(), 1, tx);
         w.stop();
         let failed = rx.blocking_recv().unwrap();
         assert!(
@@ -313,5 +326,57 @@ mod tests {
             "{failed:?}"
         );
         assert!(matches!(rx.blocking_recv().unwrap(), Event::Stopped { files } if files.is_empty()));
+    }
+
+    /// Holds each frame until the test lets it go.
+    struct Gated {
+        started: std::sync::mpsc::Sender<u64>,
+        gate: std::sync::mpsc::Receiver<()>,
+    }
+
+    impl LivePipeline for Gated {
+        fn process(&mut self, f: &LiveFrame) -> Report {
+            let _ = self.started.send(f.index);
+            let _ = self.gate.recv();
+            Report { counters: vec![("FRAME", f.index as f32)], ..Report::default() }
+        }
+        fn apply(&mut self, _: &Settings) {}
+        fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+            Ok(Vec::new())
+        }
+    }
+
+    /// Five frames arrive while the pipeline is busy with one: a mailbox of three keeps
+    /// the newest three and drops two, a mailbox of one keeps the newest.
+    #[test]
+    fn a_busy_pipeline_keeps_the_newest_depth_frames_and_counts_the_rest_dropped() {
+        for (depth, kept) in [(3usize, vec![0u64, 3, 4, 5]), (1, vec![0, 5])] {
+            let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+            let (started_tx, started) = std::sync::mpsc::channel();
+            let (gate_tx, gate) = std::sync::mpsc::channel();
+            let parts = Mutex::new(Some((started_tx, gate)));
+            let factory: Factory = Box::new(move |_| {
+                let (started, gate) = parts.lock().unwrap().take().expect("built once");
+                Ok(Box::new(Gated { started, gate }) as Box<dyn LivePipeline>)
+            });
+            let w = Worker::start(factory, Settings::default(), depth, tx);
+            w.offer(frame(0));
+            assert_eq!(started.recv_timeout(std::time::Duration::from_secs(5)).unwrap(), 0);
+            for i in 1..=5 {
+                w.offer(frame(i));
+            }
+            for _ in 0..kept.len() {
+                gate_tx.send(()).unwrap();
+            }
+            let mut done = Vec::new();
+            while done.len() < kept.len() {
+                if let Event::Pipeline(PipelineEvent::Report { report, .. }) = rx.blocking_recv().unwrap() {
+                    done.push(report.counters[0].1 as u64);
+                }
+            }
+            assert_eq!(done, kept, "depth {depth}");
+            assert_eq!(w.dropped.load(std::sync::atomic::Ordering::Relaxed), 5 - (kept.len() as u64 - 1));
+            w.stop();
+        }
     }
 }
