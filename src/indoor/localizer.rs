@@ -81,11 +81,20 @@ const LOST_AFTER_S: f64 = 5.0;
 const MIN_SUPPORT_SHARE: f64 = 0.15;
 /// Tracking a position the filter found itself: renewed particles within about this (SD,
 /// m) of the estimate. Tighter than from a given start (`TRACKING_RECOVERY_SD_M`, which
-/// must absorb a pad position that is off): measured over two unseen floors, 1 m let a
-/// look-alike 1.5 m away take the track (max error 1.79 m), 0.5 m kept it within 0.61 m.
-const FOUND_RECOVERY_SD_M: f64 = 0.5;
-/// A neighbour this close to the estimate (m) supports the track.
-const SUPPORT_M: f64 = 1.5 * FOUND_RECOVERY_SD_M;
+/// must absorb a pad position that is off). Renewed particles are a reach: a look-alike
+/// within it takes the track for a frame or three when the neighbours point there, and the
+/// largest errors were that reach. Measured over 1000-view models of floors 11-17 (tools/
+/// indoor_seeds.py; 11-14 to choose, 15-17 to check): 0.5 m gave largest errors after the
+/// first 2 s of 0.70-0.81 m, 0.15 m gave 0.25-0.53 m and RMS 0.01-0.04 m lower. A
+/// track the recovery cannot pull back is found lost by its support (`SUPPORT_M`). This
+/// holds with the vehicle's velocity measured; a velocity fitted to the estimates
+/// themselves drifts with them, and the wider reach (`FOUND_RECOVERY_FITTED_SD_M`) is
+/// what pulls it back (with 0.15 m the test flight's fitted-velocity run locked 3 m off).
+const FOUND_RECOVERY_SD_M: f64 = 0.15;
+const FOUND_RECOVERY_FITTED_SD_M: f64 = 0.5;
+/// A neighbour this close to the estimate (m) supports the track (as wide as the 0.5 m
+/// recovery's reach it was measured with: the lost-track rule's 15 % is tuned to it).
+const SUPPORT_M: f64 = 0.75;
 /// Radius of the disk whose particle mass picks the posterior's mode, metres.
 const MODE_RADIUS_M: f64 = 0.2;
 /// Frames further apart than this restart the velocity fit (a gap in the stream).
@@ -115,6 +124,8 @@ pub struct Localizer {
     found: Vec<Neighbour>,
     last_t: Option<f64>,
     history: VecDeque<(f64, Vector2<f64>)>,
+    /// The last step moved the particles by a measured velocity (not a fitted one).
+    velocity_measured: bool,
     last_spread: (f64, f64),
     mode: Mode,
     /// Tracking: per frame of the last `LOST_AFTER_S`, whether the estimate was supported.
@@ -172,6 +183,7 @@ impl Localizer {
             found: Vec::new(),
             last_t: None,
             history: VecDeque::new(),
+            velocity_measured: false,
             last_spread: (f64::INFINITY, f64::INFINITY),
             mode: Mode::Searching { agreed_since: None },
             support: VecDeque::new(),
@@ -193,6 +205,15 @@ impl Localizer {
                     (self.fitted_velocity() * dt, self.process)
                 }
             }
+        }
+    }
+
+    /// The reach of renewed particles while tracking a position found by the filter.
+    fn found_recovery_sd(&self) -> f64 {
+        if self.velocity_measured {
+            FOUND_RECOVERY_SD_M
+        } else {
+            FOUND_RECOVERY_FITTED_SD_M
         }
     }
 
@@ -265,6 +286,8 @@ impl Localizer {
         };
         self.last_t = Some(t);
         let (displacement, process) = self.motion(dt, velocity);
+        self.velocity_measured = self.params.motion == MotionModel::Velocity
+            && velocity.is_some_and(|v| v.iter().all(|c| c.is_finite()));
         let process_g = Gaussian2::new(&process).unwrap_or_else(|| {
             Gaussian2::new(&(Matrix2::identity() * 1e-4)).expect("a positive diagonal is positive definite")
         });
@@ -317,7 +340,7 @@ impl Localizer {
                 } else {
                     let since = agreed_since.unwrap_or(t);
                     if t - since >= TRACK_AFTER_S {
-                        self.pf.set_local_recovery(Some(FOUND_RECOVERY_SD_M));
+                        self.pf.set_local_recovery(Some(self.found_recovery_sd()));
                         // No sensor resetting either: renewed particles start at the
                         // neighbours near the mean, and a look-alike place within reach
                         // then takes a good track in one frame (measured over seven unseen
@@ -333,6 +356,8 @@ impl Localizer {
             }
             Mode::Given => {}
             Mode::Tracking { since } => {
+                // The velocity may come and go (telemetry), and the reach with it.
+                self.pf.set_local_recovery(Some(self.found_recovery_sd()));
                 // Support: the nearest neighbour near the estimate. Any of the k would do
                 // by chance (a wrong track on a 7 m floor met one within reach every few
                 // frames and was never given up).

@@ -131,9 +131,11 @@ fn a_model_rescaled_to_a_reference_height_tracks_a_flight_below_its_views() {
     let plain = median_error("plain", &Indoor { height_ref_m: -1.0, ..Indoor::default() });
     let rescaled = median_error("rescaled", &Indoor { height_ref_m: 1.0, ..Indoor::default() });
     println!("flight at 0.5 m, median error: plain model {plain:.3} m, rescaled {rescaled:.3} m");
-    // Measured: plain 0.133 m, rescaled 0.070 m (with 5000 views and 400 frames at
-    // 640x480: 0.383 and 0.072 m, README).
-    assert!(rescaled < 0.1 && rescaled < 0.7 * plain, "plain {plain:.3} m, rescaled {rescaled:.3} m");
+    // Measured: plain 0.173-0.292 m, rescaled 0.102 m (0.061 m before the tracking
+    // filter's renewed particles were kept within 0.15 m instead of 0.5 m, which cut the
+    // largest errors over ten unseen floors from 0.46-0.81 m to 0.25-0.53 m; with 5000
+    // views and 400 frames at 640x480: 0.383 and 0.072 m, README).
+    assert!(rescaled < 0.12 && rescaled < 0.7 * plain, "plain {plain:.3} m, rescaled {rescaled:.3} m");
 }
 
 #[test]
