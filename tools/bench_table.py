@@ -87,3 +87,6 @@ def main():
               f"{su['frames_per_s']:,.1f} frames/s |")
         print(f"| area accuracy, same run | {ev['landmarks']} landmarks, mean {ev['mean_m']:.2f} m, max {ev['max_m']:.2f} m, "
               f"{ev['gt20']} over 20 m |")
+
+if __name__ == "__main__":
+    main()
