@@ -489,17 +489,6 @@ impl Aligner {
 
     /// The pose at local capture time `capture`, seen from local time `now`.
     pub fn align(&self, capture: f64, now: f64) -> Result<AlignedPose, AlignError> {
-        self.align_holding_gimbal(capture, now, self.params.hold_s)
-    }
-
-    /// [`Aligner::align`], taking the gimbal's newest report for up to `gimbal_hold_s`
-    /// after it (the simulated camera poses at the vehicle's newest sample).
-    pub fn align_holding_gimbal(
-        &self,
-        capture: f64,
-        now: f64,
-        gimbal_hold_s: f64,
-    ) -> Result<AlignedPose, AlignError> {
         let t = self.clock.to_autopilot(capture).ok_or(AlignError::NoClock)?;
         let p = &self.params;
         let vehicle = match self.vehicle.at(t, p.max_gap_s, p.hold_s) {
@@ -510,7 +499,7 @@ impl Aligner {
         let (roll, pitch, yaw) = vehicle.attitude.euler_angles();
         let body = body_rotation(roll, pitch, yaw);
         let (camera, from_gimbal) = if self.gimbal_live(now) {
-            let g = match self.gimbal.at(t, p.max_gap_s, gimbal_hold_s) {
+            let g = match self.gimbal.at(t, p.max_gap_s, p.hold_s) {
                 Ok(g) => g,
                 Err(Missing::Ahead { .. }) => return Err(AlignError::Wait),
                 Err(m) => return Err(AlignError::Gimbal(m)),

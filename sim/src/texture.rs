@@ -14,10 +14,6 @@ struct Level {
 }
 
 impl Level {
-    fn new(width: usize, height: usize, rgb: Vec<[f32; 3]>) -> Level {
-        Level { width, height, rgb }
-    }
-
     fn halve(&self) -> Level {
         let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
         let mut rgb = Vec::with_capacity(w * h);
@@ -35,7 +31,7 @@ impl Level {
                 rgb.push(acc);
             }
         }
-        Level::new(w, h, rgb)
+        Level { width: w, height: h, rgb }
     }
 
     /// Mirrored-repeat index: ... 2 1 0 | 0 1 2 ... n-1 | n-1 n-2 ...
@@ -98,7 +94,7 @@ impl Texture {
     /// From RGB values in 0..=255 (row-major), `width x height`.
     pub fn from_rgb(width: usize, height: usize, rgb: Vec<[f32; 3]>, metres_per_texel: f64) -> Texture {
         assert_eq!(rgb.len(), width * height, "texture size mismatch");
-        let mut levels = vec![Level::new(width, height, rgb)];
+        let mut levels = vec![Level { width, height, rgb }];
         while levels.last().is_some_and(|l| l.width > 1 || l.height > 1) && levels.len() < 16 {
             let next = levels.last().expect("non-empty").halve();
             levels.push(next);

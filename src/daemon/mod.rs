@@ -570,9 +570,6 @@ async fn serve(
 /// clock, not the autopilot's: an autopilot reboot restarts its clock (the camera must
 /// not wait for it to pass the old one), and a stamp from the future (a bad clock, a
 /// spoofed frame) is not taken, so it cannot hold back every true pose after it.
-/// How long the sim camera holds the gimbal's last report (s).
-const SIM_GIMBAL_HOLD_S: f64 = 0.1;
-
 fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
     if core.settings().camera.sim_pose == crate::settings::SimPose::Truth {
         return feed_truth(core, live, now);
@@ -584,10 +581,7 @@ fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
     if local <= live.fed_pose_local || local > now + MAX_POSE_LEAD_S {
         return;
     }
-    // The gimbal as it last reported, up to a report interval back: waiting for a gimbal
-    // report to pass the vehicle's newest sample held the 15 frames/s camera to 13.3
-    // (the gimbal reports at 10-20 Hz, the vehicle at 50).
-    if let Ok(p) = a.align_holding_gimbal(local, now, SIM_GIMBAL_HOLD_S) {
+    if let Ok(p) = a.align(local, now) {
         live.fed_pose_local = local;
         *live.ctx.latest_pose.lock().expect("pose") = Some((local, p.camera));
     }

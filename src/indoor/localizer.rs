@@ -192,17 +192,19 @@ impl Localizer {
     }
 
     /// The motion step's displacement and noise for a frame `dt` after the last one.
-    fn motion(&self, dt: f64, velocity: Option<Vector2<f64>>) -> (Vector2<f64>, Matrix2<f64>) {
+    /// Displacement and process covariance over `dt`, and whether a measured velocity
+    /// gave them.
+    fn motion(&self, dt: f64, velocity: Option<Vector2<f64>>) -> (Vector2<f64>, Matrix2<f64>, bool) {
         match self.params.motion {
-            MotionModel::Noise => (Vector2::zeros(), self.process),
+            MotionModel::Noise => (Vector2::zeros(), self.process, false),
             MotionModel::Velocity => {
                 if let Some(v) = velocity.filter(|v| v.iter().all(|c| c.is_finite())) {
                     let sd = self.params.velocity_sigma_m_s * dt;
                     // A floor keeps the particles from collapsing onto a few copies.
                     let var = sd * sd + 1e-6;
-                    (v * dt, Matrix2::identity() * var)
+                    (v * dt, Matrix2::identity() * var, true)
                 } else {
-                    (self.fitted_velocity() * dt, self.process)
+                    (self.fitted_velocity() * dt, self.process, false)
                 }
             }
         }
@@ -285,9 +287,8 @@ impl Localizer {
             None => 0.0,
         };
         self.last_t = Some(t);
-        let (displacement, process) = self.motion(dt, velocity);
-        self.velocity_measured = self.params.motion == MotionModel::Velocity
-            && velocity.is_some_and(|v| v.iter().all(|c| c.is_finite()));
+        let (displacement, process, measured) = self.motion(dt, velocity);
+        self.velocity_measured = measured;
         let process_g = Gaussian2::new(&process).unwrap_or_else(|| {
             Gaussian2::new(&(Matrix2::identity() * 1e-4)).expect("a positive diagonal is positive definite")
         });
@@ -520,11 +521,13 @@ mod tests {
     #[test]
     fn velocity_model_moves_particles_by_the_telemetry_velocity() {
         let mut loc = Localizer::new(&tiny(), params(MotionModel::Velocity)).unwrap();
-        let (d, q) = loc.motion(0.1, Some(Vector2::new(1.0, -2.0)));
+        let (d, q, measured) = loc.motion(0.1, Some(Vector2::new(1.0, -2.0)));
+        assert!(measured);
         assert!((d - Vector2::new(0.1, -0.2)).norm() < 1e-12);
         assert!(q[(0, 0)] < 1e-4);
         // Without telemetry and before the estimates agree, no displacement is invented.
-        let (d, _) = loc.motion(0.1, None);
+        let (d, _, measured) = loc.motion(0.1, None);
+        assert!(!measured);
         assert_eq!(d, Vector2::zeros());
         // A steady track gives its velocity back.
         loc.last_spread = (0.1, 0.1);
