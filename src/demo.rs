@@ -373,6 +373,8 @@ fn indoor(opts: &DemoOptions, progress: &mut impl FnMut(&str)) -> anyhow::Result
     let est: Vec<(f64, f64, f64)> = flying.iter().map(|r| (r.t, r.x, r.y)).collect();
     let tru: Vec<(f64, f64)> = flying.iter().map(|r| (r.true_x, r.true_y)).collect();
     let mut eval = measure(&est, &tru);
+    let fix: Vec<bool> = flying.iter().map(|r| r.fix).collect();
+    crate::indoor::eval::measure_fixes(&mut eval, &est, &tru, &fix);
     if let (Some(a), Some(b)) = (flying.first(), flying.last()) {
         eval.frames_per_s = flying.len() as f64 / (b.t - a.t).max(1e-9);
     }

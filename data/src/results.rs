@@ -147,9 +147,19 @@ pub struct TrajectoryRow {
     pub true_x: f64,
     #[serde(serialize_with = "fixed::dp4")]
     pub true_y: f64,
+    /// 1 when the estimate is a position fix (the particles agree on one place), 0 while
+    /// the filter still searches the floor. Files written before the column: every row 1.
+    #[serde(serialize_with = "fixed::bool01", deserialize_with = "fixed::de_bool01", default = "yes")]
+    pub fix: bool,
 }
 
-pub const TRAJECTORY_HEADER: &str = "frame,t,x,y,sigma_x,sigma_y,true_x,true_y";
+fn yes() -> bool {
+    true
+}
+
+pub const TRAJECTORY_HEADER: &str = "frame,t,x,y,sigma_x,sigma_y,true_x,true_y,fix";
+/// The columns of `trajectory.csv` before `fix` (still read).
+const TRAJECTORY_HEADER_V1: &str = "frame,t,x,y,sigma_x,sigma_y,true_x,true_y";
 
 impl Row for TrajectoryRow {
     const COLUMNS: &'static str = TRAJECTORY_HEADER;
@@ -162,7 +172,14 @@ pub fn trajectory_csv(rows: &[TrajectoryRow]) -> String {
 
 /// Reads `trajectory.csv`, naming the line of any malformed row.
 pub fn read_trajectory(path: &Path) -> Result<Vec<TrajectoryRow>, String> {
-    Ok(table::read(path)?)
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let origin = path.display().to_string();
+    Ok(table::parse_with(
+        &text,
+        &origin,
+        table::Header::StartsWith(TRAJECTORY_HEADER_V1),
+        table::Columns::AtLeast(8),
+    )?)
 }
 
 /// One simulated landing trial, a row of `landings.csv` (`mavloc indoor landings`).
@@ -379,11 +396,23 @@ mod tests {
             sigma_y: 0.2,
             true_x: f64::NAN,
             true_y: 1.0 / 3.0,
+            fix: false,
         };
+        let text = trajectory_csv(std::slice::from_ref(&row));
         assert_eq!(
-            trajectory_csv(std::slice::from_ref(&row)),
-            format!("{TRAJECTORY_HEADER}\n7,0.5000,1.0000,-2.0000,0.1000,0.2000,NaN,0.3333\n")
+            text,
+            format!("{TRAJECTORY_HEADER}\n7,0.5000,1.0000,-2.0000,0.1000,0.2000,NaN,0.3333,0\n")
         );
+        let dir = std::env::temp_dir().join(format!("mavloc-traj-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("trajectory.csv");
+        std::fs::write(&path, &text).unwrap();
+        let back = read_trajectory(&path).unwrap();
+        assert!(!back[0].fix && back[0].frame == 7 && (back[0].true_y - 0.3333).abs() < 1e-9);
+        // A file from before the `fix` column: every row counts as a fix.
+        std::fs::write(&path, "frame,t,x,y,sigma_x,sigma_y,true_x,true_y\n7,0.5,1,-2,0.1,0.2,0,0\n").unwrap();
+        assert!(read_trajectory(&path).unwrap()[0].fix);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

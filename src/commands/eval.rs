@@ -71,6 +71,10 @@ fn indoor(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode>
         println!("largest after 2 s      {:.3} m", e.max_err_after_2s_m);
         println!("largest error          {:.3} m", e.max_err_m);
         println!(
+            "position fixes         {} of {} frames, the first after {:.2} s: RMS {:.3} m, largest {:.3} m",
+            e.fix_frames, e.frames, e.first_fix_s, e.rmse_fix_m, e.max_err_fix_m
+        );
+        println!(
             "lag                    {} frames (RMS {:.3} m when shifted)",
             e.lag_frames, e.rmse_at_lag_m
         );

@@ -484,12 +484,15 @@ impl LivePipeline for IndoorLive {
             sigma_y: e.spread.1,
             true_x: truth[0],
             true_y: truth[1],
+            fix: e.fix,
         };
         if let Err(err) = self.trajectory.push(&row) {
             let line = format!("indoor: cannot append to trajectory.csv: {err}");
             report.warnings.push(Warning::WriteFailed(line));
         }
-        report.position = Some(PositionEstimate {
+        // No fix, no estimate for the autopilot: the heaviest spot of particles still spread
+        // over the floor is metres off as often as not, and EKF2 would fly on it.
+        report.position = e.fix.then(|| PositionEstimate {
             autopilot_time: t,
             north: e.position.x,
             east: e.position.y,

@@ -31,6 +31,18 @@ pub struct IndoorEval {
     /// positive when the estimate trails the truth.
     pub lag_frames: i64,
     pub rmse_at_lag_m: f64,
+    /// Frames whose estimate is a position fix (`fix` in `trajectory.csv`: the particles
+    /// agree on one place); the estimates a flight can use.
+    #[serde(default)]
+    pub fix_frames: usize,
+    /// Seconds from the first frame to the first fix (NaN: none).
+    #[serde(default)]
+    pub first_fix_s: f64,
+    /// RMS and largest error over the fixes.
+    #[serde(default)]
+    pub rmse_fix_m: f64,
+    #[serde(default)]
+    pub max_err_fix_m: f64,
     pub frames_per_s: f64,
     pub landings_in_zone: usize,
     pub landing_tries: usize,
@@ -79,6 +91,17 @@ pub fn measure(est: &[(f64, f64, f64)], truth: &[(f64, f64)]) -> IndoorEval {
     e
 }
 
+/// Adds the measures over the frames marked as fixes (`fix[i]` for estimate `i`).
+pub fn measure_fixes(e: &mut IndoorEval, est: &[(f64, f64, f64)], truth: &[(f64, f64)], fix: &[bool]) {
+    let n = est.len().min(truth.len()).min(fix.len());
+    let errs: Vec<f64> =
+        (0..n).filter(|&i| fix[i]).map(|i| (est[i].1 - truth[i].0).hypot(est[i].2 - truth[i].1)).collect();
+    e.fix_frames = errs.len();
+    e.first_fix_s = (0..n).find(|&i| fix[i]).map_or(f64::NAN, |i| est[i].0 - est[0].0);
+    e.rmse_fix_m = rms(errs.iter().copied());
+    e.max_err_fix_m = errs.iter().copied().fold(if errs.is_empty() { f64::NAN } else { 0.0 }, f64::max);
+}
+
 /// Evaluates a run folder against its dataset.
 pub fn evaluate(dataset: &Path, result: &Path) -> Result<(IndoorEval, Vec<TrajectoryRow>), String> {
     let ds = Dataset::open(dataset)?;
@@ -95,6 +118,8 @@ pub fn evaluate(dataset: &Path, result: &Path) -> Result<(IndoorEval, Vec<Trajec
         truth.push((rec.truth.position[0], rec.truth.position[1]));
     }
     let mut e = measure(&est, &truth);
+    let fix: Vec<bool> = rows.iter().map(|r| r.fix).collect();
+    measure_fixes(&mut e, &est, &truth, &fix);
     let summary = result.join("summary.json");
     if let Ok(text) = std::fs::read_to_string(&summary) {
         let s: RunSummary =
@@ -217,5 +242,33 @@ mod tests {
         assert!((e.mean_err_y_m - 0.1).abs() < 1e-9);
         let same = measure(&truth.iter().map(|p| (0.0, p.0, p.1)).collect::<Vec<_>>(), &truth);
         assert_eq!((same.lag_frames, same.rmse_m), (0, 0.0));
+    }
+
+    #[test]
+    fn fixes_are_measured_apart_from_the_search() {
+        // Three search frames 3 m off, then fixes 0.1 m off, one 0.4 m off.
+        let truth: Vec<(f64, f64)> = (0..20).map(|i| (i as f64 * 0.1, 0.0)).collect();
+        let est: Vec<(f64, f64, f64)> = (0..20)
+            .map(|i| {
+                let off = if i < 3 {
+                    3.0
+                } else if i == 10 {
+                    0.4
+                } else {
+                    0.1
+                };
+                (i as f64 * 0.5, truth[i].0, off)
+            })
+            .collect();
+        let fix: Vec<bool> = (0..20).map(|i| i >= 3).collect();
+        let mut e = measure(&est, &truth);
+        measure_fixes(&mut e, &est, &truth, &fix);
+        assert_eq!(e.fix_frames, 17);
+        assert!((e.first_fix_s - 1.5).abs() < 1e-12);
+        assert!((e.max_err_fix_m - 0.4).abs() < 1e-12 && (e.max_err_m - 3.0).abs() < 1e-12);
+        let want = ((16.0 * 0.01 + 0.16) / 17.0f64).sqrt();
+        assert!((e.rmse_fix_m - want).abs() < 1e-12);
+        measure_fixes(&mut e, &est, &truth, &[false; 20]);
+        assert!(e.fix_frames == 0 && e.first_fix_s.is_nan() && e.max_err_fix_m.is_nan());
     }
 }

@@ -489,6 +489,7 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
             sigma_y: e.spread.1,
             true_x: r.truth.position[0],
             true_y: r.truth.position[1],
+            fix: e.fix,
         });
         summary.frames = rows.len();
         if rows.len() % CHECKPOINT_FRAMES == 0 {
