@@ -74,6 +74,13 @@ pub struct RunSummary {
     pub refined_median_after_px: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub attitude_correction_median_deg: Option<f64>,
+    /// The static gimbal offset the refinement found beside the per-frame corrections
+    /// (yaw, pitch, roll, degrees, to add to `gimbal.*_offset_deg`) and its SD from the
+    /// sightings.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_gimbal_offset_deg: Option<[f64; 3]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_gimbal_offset_sd_deg: Option<[f64; 3]>,
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
@@ -237,6 +244,7 @@ pub fn run_observed(
     let residuals = observe || opts.trace || ds.records.len() <= RESIDUAL_MAX_FRAMES;
     let mut seen: Vec<(u64, u64, crate::geometry::Pixel)> = Vec::new();
     let mut poses = std::collections::BTreeMap::new();
+    let mut measured = std::collections::BTreeMap::new();
     let mut pipeline = match opts.method {
         AreaMethod::Ukf => Some(AreaPipeline::new(&s.area, k)?.with_trace(residuals)),
         AreaMethod::GroundPlane => None,
@@ -308,6 +316,7 @@ pub fn run_observed(
                 results.extend(report.converged);
                 if residuals {
                     poses.insert(record.frame, pose);
+                    measured.insert(record.frame, record.measured);
                     seen.extend(report.sightings.iter().map(|&(id, px)| (record.frame, id, px)));
                 }
                 if let Some(f) = trace_file.as_mut() {
@@ -374,12 +383,19 @@ pub fn run_observed(
         summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
         output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
         if s.area.attitude_prior_deg > 0.0 && !results.is_empty() {
-            // Attitude refinement (area::refine): landmarks and per-frame attitude
-            // corrections together, from every sighting of the converged landmarks.
-            let r = super::refine::refine(
+            // Attitude refinement (area::refine): landmarks, per-frame attitude
+            // corrections and the gimbal's static offset together, from every sighting of
+            // the converged landmarks.
+            let base = s.gimbal.offsets_deg();
+            let pose = |f: u64, o: &crate::geometry::Vec3| {
+                ds.camera_pose(&measured[&f], [base[0] + o.x, base[1] + o.y, base[2] + o.z])
+            };
+            let frames: Vec<u64> = poses.keys().copied().collect();
+            let r = super::refine::refine_with_offset(
                 &seen,
                 &results,
-                &poses,
+                &frames,
+                &pose,
                 &k,
                 &super::refine::RefineParams {
                     // A sighting is as good as the bearing noise the filters assume.
@@ -390,6 +406,10 @@ pub fn run_observed(
             let scale = downscale as f64;
             summary.refined_median_before_px = Some(r.median_before_px * scale);
             summary.refined_median_after_px = Some(r.median_after_px * scale);
+            if let Some((o, sd)) = r.offset_deg {
+                summary.refined_gimbal_offset_deg = Some(o);
+                summary.refined_gimbal_offset_sd_deg = Some(sd);
+            }
             let mut angles: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
             if !angles.is_empty() {
                 summary.attitude_correction_median_deg = Some(super::residuals::quantile(&mut angles, 0.5));
@@ -405,9 +425,12 @@ pub fn run_observed(
             marks = super::residuals::marks(
                 &seen,
                 &results,
-                &poses
+                &frames
                     .iter()
-                    .map(|(f, p)| (*f, r.corrections.get(f).map_or(*p, |d| super::refine::corrected(p, d))))
+                    .map(|&f| {
+                        let o = r.offset_deg.map_or(crate::geometry::Vec3::zeros(), |(o, _)| o.into());
+                        (f, super::refine::corrected(&pose(f, &o), &r.corrections[&f]))
+                    })
                     .collect(),
                 &k,
                 scale,

@@ -98,6 +98,12 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
     ) {
         println!("attitude refinement: sightings reproject within {b:.1} px -> {a:.1} px (median), frames corrected by {d:.2} deg (median; attitude.csv)");
     }
+    if let (Some(o), Some(sd)) = (summary.refined_gimbal_offset_deg, summary.refined_gimbal_offset_sd_deg) {
+        println!(
+            "static gimbal offset found with it: yaw {:+.3}, pitch {:+.3}, roll {:+.3} deg (SD {:.3}, {:.3}, {:.3} from the sightings; add to gimbal.*_offset_deg, or `mavloc calibrate gimbal`)",
+            o[0], o[1], o[2], sd[0], sd[1], sd[2]
+        );
+    }
     for f in &summary.yaw_off_180_frames {
         println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
     }
