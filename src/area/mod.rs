@@ -7,6 +7,8 @@
 //! (sec. 5.3). [`baseline`] is the seed's previous method (sec. 2.1) for comparison,
 //! [`border`] fits a 3D border line to the results (the seed's future work, ch. 9),
 //! [`eval`] measures results as the seed does (ch. 6), and [`offline`] runs a dataset.
+//! For photo surveys: [`refine`] adjusts attitudes and a static gimbal offset with the
+//! landmarks (sec. 6.10-6.11), [`crosslines`] measures how well two flight lines agree.
 //!
 //! The pipeline is a plain synchronous library: it takes a grey frame, its target mask and
 //! the camera pose the telemetry gives, and returns what changed. It knows nothing of
@@ -14,6 +16,7 @@
 
 pub mod baseline;
 pub mod border;
+pub mod crosslines;
 pub mod eval;
 pub mod features;
 pub mod imageup;

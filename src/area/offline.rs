@@ -81,6 +81,17 @@ pub struct RunSummary {
     pub refined_gimbal_offset_deg: Option<[f64; 3]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refined_gimbal_offset_sd_deg: Option<[f64; 3]>,
+    /// Flight lines (split where the track turns) and, over the converged landmarks seen
+    /// from two of them, the median distance between the points each line's rays give
+    /// alone, with the recorded poses and after refinement (`area::crosslines`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flight_lines: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_landmarks: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_median_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_refined_median_m: Option<f64>,
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
@@ -382,6 +393,22 @@ pub fn run_observed(
         }
         summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
         output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
+        // Cross-line agreement with the recorded poses (and below, refined).
+        let lines = super::crosslines::flight_lines(&poses.iter().map(|(f, p)| (*f, p.position)).collect());
+        let line_count = lines.values().max().map_or(0, |m| m + 1);
+        let sd_rad = s.area.bearing_noise_deg.to_radians();
+        let cross = |poses: &std::collections::BTreeMap<u64, crate::geometry::CameraPose>,
+                     landmarks: &[mavloc_data::results::LandmarkRecord]| {
+            let at = landmarks.iter().map(|l| (l.id, l.position)).collect();
+            let mut d = super::crosslines::disagreement(&seen, poses, &k, &lines, &at, sd_rad);
+            (d.len(), (!d.is_empty()).then(|| super::residuals::quantile(&mut d, 0.5)))
+        };
+        if line_count >= 2 {
+            let (n, median) = cross(&poses, &results);
+            summary.flight_lines = Some(line_count);
+            summary.cross_line_landmarks = Some(n);
+            summary.cross_line_median_m = median;
+        }
         if s.area.attitude_prior_deg > 0.0 && !results.is_empty() {
             // Attitude refinement (area::refine): landmarks, per-frame attitude
             // corrections and the gimbal's static offset together, from every sighting of
@@ -422,19 +449,17 @@ pub fn run_observed(
             }
             output::write_atomic(&opts.out.join("attitude.csv"), csv.as_bytes())?;
             results = r.landmarks;
-            marks = super::residuals::marks(
-                &seen,
-                &results,
-                &frames
-                    .iter()
-                    .map(|&f| {
-                        let o = r.offset_deg.map_or(crate::geometry::Vec3::zeros(), |(o, _)| o.into());
-                        (f, super::refine::corrected(&pose(f, &o), &r.corrections[&f]))
-                    })
-                    .collect(),
-                &k,
-                scale,
-            );
+            let refined: std::collections::BTreeMap<u64, crate::geometry::CameraPose> = frames
+                .iter()
+                .map(|&f| {
+                    let o = r.offset_deg.map_or(crate::geometry::Vec3::zeros(), |(o, _)| o.into());
+                    (f, super::refine::corrected(&pose(f, &o), &r.corrections[&f]))
+                })
+                .collect();
+            if line_count >= 2 {
+                summary.cross_line_refined_median_m = cross(&refined, &results).1;
+            }
+            marks = super::residuals::marks(&seen, &results, &refined, &k, scale);
         }
     }
     summary.complete = true;

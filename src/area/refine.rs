@@ -434,8 +434,8 @@ impl Problem<'_> {
                     *s.get_mut(&(bi, bi)).expect("every block has its prior") += d;
                 }
                 let mut rhs = nalgebra::DVector::<f64>::zeros(3 * nb);
-                for bi in 0..nb {
-                    rhs.fixed_rows_mut::<3>(3 * bi).add_assign(&(-eu[bi]));
+                for (bi, e) in eu.iter().enumerate() {
+                    rhs.fixed_rows_mut::<3>(3 * bi).add_assign(&(-e));
                 }
                 let mut vinv = vec![None; xs.len()];
                 for j in 0..xs.len() {
@@ -606,8 +606,8 @@ mod tests {
             })
             .collect();
         let mut sightings = Vec::new();
-        for i in 0..n {
-            let truth = at(i, angles[i]);
+        for (i, a) in angles.iter().enumerate() {
+            let truth = at(i, *a);
             for (j, x) in points.iter().enumerate() {
                 if let Some(px) = truth.project(&k, x).filter(|px| k.contains(*px)) {
                     sightings.push((i as u64, j as u64, px));

@@ -104,6 +104,14 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
             o[0], o[1], o[2], sd[0], sd[1], sd[2]
         );
     }
+    if let (Some(lines), Some(n)) = (summary.flight_lines, summary.cross_line_landmarks) {
+        let m = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2} m"));
+        println!(
+            "{lines} flight lines; landmarks triangulated from each of two lines alone ({n} pairs) lie {} apart (median){}",
+            m(summary.cross_line_median_m),
+            summary.cross_line_refined_median_m.map_or(String::new(), |v| format!(", {v:.2} m after refinement"))
+        );
+    }
     for f in &summary.yaw_off_180_frames {
         println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
     }
