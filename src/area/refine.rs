@@ -39,13 +39,7 @@ pub struct RefineParams {
     /// Huber's threshold, in SDs.
     pub huber: f64,
     pub rounds: usize,
-    /// Re-weigh the sightings with the SD their residuals show once converged.
-    pub reweigh: bool,
 }
-
-/// The smallest sighting SD a re-weighing takes, pixels (SIFT's keypoints are good to a
-/// few tenths of a pixel at best).
-const MIN_PIXEL_SD: f64 = 0.3;
 
 impl RefineParams {
     pub fn new(prior_deg: f64) -> RefineParams {
@@ -56,7 +50,6 @@ impl RefineParams {
             pixel_sd: 1.0,
             huber: 2.0,
             rounds: 30,
-            reweigh: true,
         }
     }
 }
@@ -75,8 +68,6 @@ pub struct Refined {
     /// Median reprojection error of the sightings before and after, pixels.
     pub median_before_px: f64,
     pub median_after_px: f64,
-    /// The sightings' SD they were weighed with in the end (re-weighed), pixels.
-    pub pixel_sd: f64,
 }
 
 /// A pose with a correction applied.
@@ -178,7 +169,6 @@ fn solve_refined(
         offset_deg,
         median_before_px: r.median_before_px,
         median_after_px: r.median_after_px,
-        pixel_sd: r.pixel_sd,
     }
 }
 
@@ -271,8 +261,6 @@ struct Solution {
     shared_covariance: Option<Matrix3<f64>>,
     median_before_px: f64,
     median_after_px: f64,
-    /// The sightings' SD the solution was weighed with, pixels.
-    pixel_sd: f64,
     sightings: usize,
 }
 
@@ -339,15 +327,12 @@ impl Problem<'_> {
             v.sort_by(f64::total_cmp);
             v[v.len() / 2]
         };
-        let mut pixel_sd = p.pixel_sd;
+        let pixel_sd = p.pixel_sd;
         let (mut cost, errs) = cost_and_errors(&xs, &theta, pixel_sd);
         let median_before_px = median(errs);
         let mut lambda = 1e-3;
         let mut last_s: Option<CscCholesky<f64>> = None;
-        let mut pass = 0;
-        let mut round = 0;
-        while round < p.rounds {
-            round += 1;
+        for _ in 0..p.rounds {
             // Normal equations, blockwise: U (blocks, sparse: frames that share landmarks),
             // V (landmarks), W (block x landmark).
             let mut u: HashMap<(usize, usize), Matrix3<f64>> =
@@ -493,34 +478,7 @@ impl Problem<'_> {
                 lambda *= 10.0;
             }
             if !improved {
-                // Converged. The sightings' SD weighs them against the priors; the one
-                // assumed (the filters' bearing noise) can be several times what the
-                // residuals show once the attitudes are right (7 px assumed, 1.2 px left on
-                // a rendered lap), and then the priors hold the corrections back. Re-weigh
-                // with the SD the residuals give (their median is 1.18 SD for a 2D
-                // Gaussian) and go on, twice at most.
-                // Only with residuals to spare: each unknown a fit takes makes the residuals
-                // smaller than the noise (three photos of 21 landmarks have 126 residuals
-                // for 75 unknowns, and re-weighed they were fitted to 0.4 px); the SD is
-                // scaled up by the degrees of freedom used.
-                let (_, errs) = cost_and_errors(&xs, &theta, pixel_sd);
-                let residuals = 2.0 * errs.len() as f64;
-                let unknowns = 3.0 * (nb + is_fixed.iter().filter(|f| !**f).count()) as f64;
-                let spare = residuals >= 3.0 * unknowns;
-                let seen_sd = (median(errs) / 1.1774 * (residuals / (residuals - unknowns).max(1.0)).sqrt())
-                    .max(MIN_PIXEL_SD);
-                if !p.reweigh
-                    || !spare
-                    || pass >= 2
-                    || !seen_sd.is_finite()
-                    || (seen_sd / pixel_sd - 1.0).abs() < 0.2
-                {
-                    break;
-                }
-                pass += 1;
-                pixel_sd = seen_sd;
-                cost = cost_and_errors(&xs, &theta, pixel_sd).0;
-                lambda = 1e-3;
+                break;
             }
         }
         let (_, errs) = cost_and_errors(&xs, &theta, pixel_sd);
@@ -541,7 +499,6 @@ impl Problem<'_> {
             shared_covariance,
             median_before_px,
             median_after_px: median(errs),
-            pixel_sd,
             sightings,
         }
     }

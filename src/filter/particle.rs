@@ -95,6 +95,10 @@ pub struct ParticleFilter {
     /// Tracking: whether renewed particles may start at measurements near the mean
     /// (sensor resetting), or only around the mean.
     sensor_resetting: bool,
+    /// The weights are the likelihood raised to this power (1: the plain filter). Below 1
+    /// for measurements correlated from frame to frame, each of which is then worth that
+    /// share of an independent one (a tempered likelihood).
+    pub likelihood_exponent: f64,
 }
 
 impl ParticleFilter {
@@ -118,6 +122,7 @@ impl ParticleFilter {
             last_displacement: Vector2::zeros(),
             local_recovery: None,
             sensor_resetting: true,
+            likelihood_exponent: 1.0,
         };
         pf.particles = (0..count.max(1)).map(|_| pf.uniform()).collect();
         pf.weights = vec![1.0 / pf.particles.len() as f64; pf.particles.len()];
@@ -270,7 +275,16 @@ impl ParticleFilter {
         self.w_slow += self.alpha_slow * (log_mean - self.w_slow);
         self.w_fast += self.alpha_fast * (log_mean - self.w_fast);
         let p_random = (1.0 - (self.w_fast - self.w_slow).exp()).clamp(0.0, self.max_random);
-        self.weights = self.last_likelihood.iter().map(|l| l / total).collect();
+        self.weights = if self.likelihood_exponent == 1.0 {
+            self.last_likelihood.iter().map(|l| l / total).collect()
+        } else {
+            // Relative to the largest likelihood, which is positive here (the total is).
+            let max = self.last_likelihood.iter().copied().fold(0.0, f64::max);
+            let tempered: Vec<f64> =
+                self.last_likelihood.iter().map(|l| (l / max).powf(self.likelihood_exponent)).collect();
+            let sum: f64 = tempered.iter().sum();
+            tempered.iter().map(|l| l / sum).collect()
+        };
         let picks = systematic(&self.weights, self.rng.random::<f64>());
         let (old, old_l) = (self.particles.clone(), self.last_likelihood.clone());
         self.particles = picks.iter().map(|&i| old[i]).collect();
@@ -422,6 +436,24 @@ mod tests {
 
     fn g(sd: f64) -> Gaussian2 {
         Gaussian2::new(&(Matrix2::identity() * sd * sd)).unwrap()
+    }
+
+    /// A tempered likelihood (exponent 1/3) counts a measurement as a third of one: the
+    /// posterior of a Gaussian prior (SD 1 m) and measurement (SD 0.316 m) is about
+    /// 1/sqrt(1 + 10) = 0.30 m wide in full, 1/sqrt(1 + 3.3) = 0.48 m tempered.
+    #[test]
+    fn a_tempered_likelihood_narrows_the_particles_less() {
+        let spread_after = |exponent: f64| {
+            let mut pf = ParticleFilter::new(4000, Vector2::new(-5.0, -5.0), Vector2::new(5.0, 5.0), 3);
+            pf.reset_around(Vector2::zeros(), 1.0);
+            pf.set_sensor_resetting(false);
+            pf.likelihood_exponent = exponent;
+            pf.update(&[Vector2::new(0.5, 0.0)], &[g(0.1f64.sqrt())]);
+            pf.spread().0
+        };
+        let (full, tempered) = (spread_after(1.0), spread_after(1.0 / 3.0));
+        assert!((full - 0.30).abs() < 0.04, "full {full:.3}");
+        assert!((tempered - 0.48).abs() < 0.05, "tempered {tempered:.3}");
     }
 
     #[test]
