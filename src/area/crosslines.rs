@@ -87,7 +87,7 @@ pub fn disagreement(
         let points: Vec<Vec3> = by_line
             .values()
             .filter(|r| r.len() >= 2)
-            .filter_map(|r| triangulate(r, &start, sd_rad))
+            .filter_map(|r| triangulate(r, &start, sd_rad, &[0.0; 3]))
             .filter(|t| t.sigma_max <= MAX_SIGMA_M)
             .map(|t| t.position)
             .collect();

@@ -396,6 +396,9 @@ pub fn run_observed(
         // Cross-line agreement with the recorded poses (and below, refined).
         let lines = super::crosslines::flight_lines(&poses.iter().map(|(f, p)| (*f, p.position)).collect());
         let line_count = lines.values().max().map_or(0, |m| m + 1);
+        // Only a survey flown in lines: a video lap's course jitters with the position
+        // noise from frame to frame and falls apart into hundreds of "lines" of 1-5 frames.
+        let surveyed_in_lines = line_count >= 2 && poses.len() >= 3 * line_count;
         let sd_rad = s.area.bearing_noise_deg.to_radians();
         let cross = |poses: &std::collections::BTreeMap<u64, crate::geometry::CameraPose>,
                      landmarks: &[mavloc_data::results::LandmarkRecord]| {
@@ -403,7 +406,7 @@ pub fn run_observed(
             let mut d = super::crosslines::disagreement(&seen, poses, &k, &lines, &at, sd_rad);
             (d.len(), (!d.is_empty()).then(|| super::residuals::quantile(&mut d, 0.5)))
         };
-        if line_count >= 2 {
+        if surveyed_in_lines {
             let (n, median) = cross(&poses, &results);
             summary.flight_lines = Some(line_count);
             summary.cross_line_landmarks = Some(n);
@@ -456,7 +459,7 @@ pub fn run_observed(
                     (f, super::refine::corrected(&pose(f, &o), &r.corrections[&f]))
                 })
                 .collect();
-            if line_count >= 2 {
+            if surveyed_in_lines {
                 summary.cross_line_refined_median_m = cross(&refined, &results).1;
             }
             marks = super::residuals::marks(&seen, &results, &refined, &k, scale);

@@ -299,16 +299,27 @@ impl Localizer {
 
     /// The same from a ready histogram.
     pub fn step_histogram(&mut self, t: f64, histogram: &[f32], velocity: Option<Vector2<f64>>) -> Estimate {
-        let dt = match self.last_t {
-            Some(last) if t > last && t - last <= MAX_GAP_S => t - last,
-            Some(_) => {
+        let (dt, gap) = match self.last_t {
+            Some(last) if t > last && t - last <= MAX_GAP_S => (t - last, 0.0),
+            Some(last) => {
                 self.history.clear();
-                0.0
+                (0.0, (t - last).max(0.0))
             }
-            None => 0.0,
+            None => (0.0, 0.0),
         };
         self.last_t = Some(t);
-        let (displacement, process, measured) = self.motion(dt, velocity);
+        // Across a gap in the frames the vehicle went on moving: with its velocity measured
+        // the particles follow it over the whole gap (noise growing with it). Left where
+        // they were, a live demo flight's 2 s gap at 0.4 m/s put a tracking filter 0.97 m
+        // behind with an SD of 0.08 m, and it took 1.8 s to come back.
+        let measured_velocity = velocity.filter(|v| v.iter().all(|c| c.is_finite()));
+        let step = if gap > 0.0 && self.params.motion == MotionModel::Velocity && measured_velocity.is_some()
+        {
+            gap
+        } else {
+            dt
+        };
+        let (displacement, process, measured) = self.motion(step, velocity);
         self.velocity_measured = measured;
         let process_g = Gaussian2::new(&process).unwrap_or_else(|| {
             Gaussian2::new(&(Matrix2::identity() * 1e-4)).expect("a positive diagonal is positive definite")
@@ -348,7 +359,7 @@ impl Localizer {
             position,
             spread,
             neighbours,
-            velocity: if dt > 0.0 { displacement / dt } else { Vector2::zeros() },
+            velocity: if step > 0.0 { displacement / step } else { Vector2::zeros() },
             fix,
         }
     }
@@ -553,6 +564,31 @@ mod tests {
             }
         }
         assert!(fixes >= 30, "agreeing particles give fixes: {fixes} of 44");
+    }
+
+    /// Frames stop for 2 s while the vehicle flies on at a measured velocity: the particles
+    /// follow it over the gap, so the first frame after it is near the truth.
+    #[test]
+    fn a_gap_in_the_frames_is_flown_through_at_the_measured_velocity() {
+        let mut loc = Localizer::new(
+            &grid_model(),
+            LocalizerParams { particles: 500, ..params(MotionModel::Velocity) },
+        )
+        .unwrap();
+        let v = Vector2::new(0.3, 0.1);
+        let mut truth = Vector2::new(-3.0, -1.0);
+        let dt = 1.0 / 15.0;
+        let mut t = 0.0;
+        for _ in 0..45 {
+            t += dt;
+            truth += v * dt;
+            loc.step_histogram(t, &seen_at(truth), Some(v));
+        }
+        assert!(loc.tracking());
+        t += 2.0;
+        truth += v * 2.0;
+        let e = loc.step_histogram(t, &seen_at(truth), Some(v));
+        assert!((e.position - truth).norm() < 0.4, "{:?} vs truth {truth:?}", e.position);
     }
 
     /// From a given start (a GPS-denied pad) the filter never searches the floor again,

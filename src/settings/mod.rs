@@ -445,6 +445,7 @@ fn merge_layers(
             .list_separator(",")
             .with_list_parse_key("camera.distortion")
             .with_list_parse_key("area.hsv_low")
+            .with_list_parse_key("area.position_noise_m")
             .with_list_parse_key("area.hsv_high")
             .source(Some(env_map)),
     );
@@ -668,6 +669,15 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     v.range("area.ground_down_m", a.ground_down_m, -10_000.0, 10_000.0);
     v.range_int("area.max_descriptors", a.max_descriptors.into(), 1, 1000);
     v.range("area.attitude_prior_deg", a.attitude_prior_deg, 0.0, 30.0);
+    if !(a.position_noise_m.len() == 3
+        && a.position_noise_m.iter().all(|c| c.is_finite() && (0.0..=100.0).contains(c)))
+    {
+        v.problem(
+            "area.position_noise_m",
+            format!("{:?}", a.position_noise_m),
+            "three values, north, east, down, each 0..=100 m",
+        );
+    }
     for (key, hsv) in [("area.hsv_low", &a.hsv_low), ("area.hsv_high", &a.hsv_high)] {
         let ok = hsv.len() == 3
             && hsv.iter().all(|c| c.is_finite() && *c >= 0.0)

@@ -251,6 +251,9 @@ pub struct Area {
     pub convergence_m: f64,
     pub min_observations: u32,
     pub bearing_noise_deg: f64,
+    /// SD of the vehicle's reported position per frame, north, east, down (m): the
+    /// convergence check's rays count it beside the bearing noise.
+    pub position_noise_m: Vec<f64>,
     pub ukf_alpha: f64,
     pub ukf_beta: f64,
     pub ukf_kappa: f64,
@@ -292,6 +295,7 @@ impl Default for Area {
             convergence_m: 0.5,
             min_observations: 3,
             bearing_noise_deg: 0.5,
+            position_noise_m: vec![0.5, 0.5, 2.0],
             ukf_alpha: 0.7,
             ukf_beta: 2.0,
             ukf_kappa: 0.0,
