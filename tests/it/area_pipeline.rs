@@ -117,6 +117,8 @@ fn attitude_refinement_recovers_photo_like_attitude_errors() {
         let out = dir.path().join(name);
         let mut s = Settings::default();
         s.area.attitude_prior_deg = prior;
+        // The flight's own position noise (the ray check counts it).
+        s.area.position_noise_m = vec![0.3, 0.3, 0.5];
         let o = RunOptions {
             dataset: ds.clone(),
             out: out.clone(),
