@@ -17,6 +17,10 @@ def run(cmd, quiet=True):
         sys.exit(f"failed ({r.returncode}): {' '.join(cmd)}\n{r.stderr if quiet else ''}")
     return r.stdout
 
+def num(v):
+    """A figure of `mavloc eval indoor --json`; null (no position fix at all) reads as NaN."""
+    return float("nan") if v is None else v
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bin", default="target/release/mavloc")
@@ -57,12 +61,12 @@ def main():
         row = {"seed": seed, "eval": e, "run_s": run_s}
         rows.append(row)
         print(f"{seed:>4} {e['frames']:>6} {e['rmse_m']:>7.3f} {e['max_err_m']:>7.3f} "
-              f"{e['max_err_after_2s_m']:>14.3f} {e['fix_frames']:>6} {(e['first_fix_s'] if e['first_fix_s'] is not None else float('nan')):>11.2f} "
-              f"{e['rmse_fix_m']:>9.3f} {e['max_err_fix_m']:>9.3f}  {run_s:.1f}", flush=True)
+              f"{e['max_err_after_2s_m']:>14.3f} {e['fix_frames']:>6} {num(e['first_fix_s']):>11.2f} "
+              f"{num(e['rmse_fix_m']):>9.3f} {num(e['max_err_fix_m']):>9.3f}  {run_s:.1f}", flush=True)
     json.dump(rows, open(os.path.join(a.out, "seeds.json"), "w"), indent=1)
     ok = sum(1 for r in rows if r["eval"]["rmse_m"] <= 0.15 and r["eval"]["max_err_m"] <= 0.5)
     ok2 = sum(1 for r in rows if r["eval"]["rmse_m"] <= 0.15 and r["eval"]["max_err_after_2s_m"] <= 0.5)
-    okf = sum(1 for r in rows if r["eval"]["rmse_fix_m"] <= 0.15 and r["eval"]["max_err_fix_m"] <= 0.5)
+    okf = sum(1 for r in rows if num(r["eval"]["rmse_fix_m"]) <= 0.15 and num(r["eval"]["max_err_fix_m"]) <= 0.5)
     print(f"{ok} of {len(rows)} seeds within RMS 0.15 m and max 0.5 m over every frame, "
           f"{ok2} with the max taken after the first 2 s of global localisation, "
           f"{okf} over the position fixes")

@@ -158,10 +158,7 @@ fn solve_refined(
         landmarks.iter().zip(&r.xs).map(|(l, x)| LandmarkRecord { position: *x, ..l.clone() }).collect();
     let offset_deg = shared.then(|| {
         let o = r.blocks[frames.len()];
-        let sd = r
-            .shared_covariance
-            .map_or([f64::NAN; 3], |c| [c[(0, 0)].sqrt(), c[(1, 1)].sqrt(), c[(2, 2)].sqrt()]);
-        ([o.x, o.y, o.z], sd)
+        ([o.x, o.y, o.z], r.shared_sd())
     });
     Refined {
         landmarks,
@@ -223,8 +220,7 @@ pub fn calibrate(
     };
     let r = problem.solve();
     let o = r.blocks[0];
-    let sd =
-        r.shared_covariance.map_or([f64::NAN; 3], |c| [c[(0, 0)].sqrt(), c[(1, 1)].sqrt(), c[(2, 2)].sqrt()]);
+    let sd = r.shared_sd();
     Calibration {
         offsets_deg: [o.x, o.y, o.z],
         sd_deg: sd,
@@ -262,6 +258,14 @@ struct Solution {
     median_before_px: f64,
     median_after_px: f64,
     sightings: usize,
+}
+
+impl Solution {
+    /// SDs of the shared block's parameters (NaN when not solved).
+    fn shared_sd(&self) -> [f64; 3] {
+        self.shared_covariance
+            .map_or([f64::NAN; 3], |c| [c[(0, 0)].sqrt(), c[(1, 1)].sqrt(), c[(2, 2)].sqrt()])
+    }
 }
 
 /// One sighting's blocks: its frame's own (if any) and the shared one (if any).
@@ -302,7 +306,7 @@ impl Problem<'_> {
             let sh = shared_ix.map_or(&zero, |b| &theta[b]);
             (self.pose)(s.frame, own, sh)
         };
-        let cost_and_errors = |xs: &[Vec3], theta: &[Vec3], pixel_sd: f64| -> (f64, Vec<f64>) {
+        let cost_and_errors = |xs: &[Vec3], theta: &[Vec3]| -> (f64, Vec<f64>) {
             let mut cost =
                 theta.iter().enumerate().map(|(b, d)| 0.5 * (d.norm() / prior(b)).powi(2)).sum::<f64>();
             let mut errs = Vec::new();
@@ -312,7 +316,7 @@ impl Problem<'_> {
                         Some(r) => {
                             let e = r[0].hypot(r[1]);
                             errs.push(e);
-                            cost += huber_loss(e / pixel_sd, p.huber);
+                            cost += huber_loss(e / p.pixel_sd, p.huber);
                         }
                         None => cost += 1e6, // behind a camera
                     }
@@ -327,8 +331,7 @@ impl Problem<'_> {
             v.sort_by(f64::total_cmp);
             v[v.len() / 2]
         };
-        let pixel_sd = p.pixel_sd;
-        let (mut cost, errs) = cost_and_errors(&xs, &theta, pixel_sd);
+        let (mut cost, errs) = cost_and_errors(&xs, &theta);
         let median_before_px = median(errs);
         let mut lambda = 1e-3;
         let mut last_s: Option<CscCholesky<f64>> = None;
@@ -346,19 +349,21 @@ impl Problem<'_> {
                 for s in obs {
                     let pose = pose_of(&theta, s);
                     let Some(r0) = residual(&pose, k, &xs[j], s.px) else { continue };
-                    let n = r0[0].hypot(r0[1]) / pixel_sd;
-                    let wt = huber_weight(n, p.huber) / pixel_sd.powi(2);
+                    let n = r0[0].hypot(r0[1]) / p.pixel_sd;
+                    let wt = huber_weight(n, p.huber) / p.pixel_sd.powi(2);
                     // Numeric Jacobians, central differences: 2x3 for each block's
                     // parameters and for the landmark.
-                    let blocks: Vec<usize> = s.own.into_iter().chain(shared_ix).collect();
-                    let mut a: Vec<nalgebra::Matrix2x3<f64>> =
-                        vec![nalgebra::Matrix2x3::zeros(); blocks.len()];
+                    // Its own block and the shared one, where present (no allocation: this
+                    // runs for every sighting of every round).
+                    let slots = [s.own, shared_ix];
+                    let blocks = || slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b)));
+                    let mut a = [nalgebra::Matrix2x3::<f64>::zeros(); 2];
                     let mut bj = nalgebra::Matrix2x3::<f64>::zeros();
                     let mut ok = true;
                     let own = s.own.map_or(zero, |b| theta[b]);
                     let sh = shared_ix.map_or(zero, |b| theta[b]);
                     for c in 0..3 {
-                        for (ai, &b) in blocks.iter().enumerate() {
+                        for (ai, b) in blocks() {
                             let ht = 1e-6 * prior(b).max(1e-3);
                             let mut d = Vec3::zeros();
                             d[c] = ht;
@@ -395,10 +400,11 @@ impl Problem<'_> {
                         continue;
                     }
                     let r = nalgebra::Vector2::new(r0[0], r0[1]);
-                    for (a1, &b1) in a.iter().zip(&blocks) {
+                    for (i1, b1) in blocks() {
+                        let a1 = &a[i1];
                         eu[b1] += a1.transpose() * r * wt;
-                        for (a2, &b2) in a.iter().zip(&blocks) {
-                            *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += a1.transpose() * a2 * wt;
+                        for (i2, b2) in blocks() {
+                            *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += a1.transpose() * a[i2] * wt;
                         }
                         if !is_fixed[j] {
                             *w[j].entry(b1).or_insert_with(Matrix3::zeros) += a1.transpose() * bj * wt;
@@ -465,7 +471,7 @@ impl Problem<'_> {
                         None => xs[j],
                     })
                     .collect();
-                let (new_cost, _) = cost_and_errors(&new_xs, &new_theta, pixel_sd);
+                let (new_cost, _) = cost_and_errors(&new_xs, &new_theta);
                 if new_cost < cost {
                     improved = (cost - new_cost) > 1e-9 * cost;
                     cost = new_cost;
@@ -481,7 +487,7 @@ impl Problem<'_> {
                 break;
             }
         }
-        let (_, errs) = cost_and_errors(&xs, &theta, pixel_sd);
+        let (_, errs) = cost_and_errors(&xs, &theta);
         // The reduced normal matrix's inverse is the blocks' covariance (in units of the
         // pixel SD, which whitens the residuals), the landmarks marginalised: the shared
         // block's three columns of it.

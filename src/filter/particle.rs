@@ -280,10 +280,11 @@ impl ParticleFilter {
         } else {
             // Relative to the largest likelihood, which is positive here (the total is).
             let max = self.last_likelihood.iter().copied().fold(0.0, f64::max);
-            let tempered: Vec<f64> =
+            let mut tempered: Vec<f64> =
                 self.last_likelihood.iter().map(|l| (l / max).powf(self.likelihood_exponent)).collect();
             let sum: f64 = tempered.iter().sum();
-            tempered.iter().map(|l| l / sum).collect()
+            tempered.iter_mut().for_each(|w| *w /= sum);
+            tempered
         };
         let picks = systematic(&self.weights, self.rng.random::<f64>());
         let (old, old_l) = (self.particles.clone(), self.last_likelihood.clone());
