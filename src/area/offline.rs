@@ -81,13 +81,14 @@ pub struct RunSummary {
     pub refined_gimbal_offset_deg: Option<[f64; 3]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refined_gimbal_offset_sd_deg: Option<[f64; 3]>,
-    /// Flight lines (split where the track turns) and, over the converged landmarks seen
-    /// from two of them, the median distance between the points each line's rays give
-    /// alone, with the recorded poses and after refinement (`area::crosslines`).
+    /// Flight lines (split where the track turns); the pairs of points a converged
+    /// landmark gets from two lines' rays alone (one per landmark and pair of lines); the
+    /// median distance between them, with the recorded poses and after refinement
+    /// (`area::crosslines`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub flight_lines: Option<usize>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub cross_line_landmarks: Option<usize>,
+    pub cross_line_pairs: Option<usize>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_line_median_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -396,9 +397,7 @@ pub fn run_observed(
         // Cross-line agreement with the recorded poses (and below, refined).
         let lines = super::crosslines::flight_lines(&poses.iter().map(|(f, p)| (*f, p.position)).collect());
         let line_count = lines.values().max().map_or(0, |m| m + 1);
-        // Only a survey flown in lines: a video lap's course jitters with the position
-        // noise from frame to frame and falls apart into hundreds of "lines" of 1-5 frames.
-        let surveyed_in_lines = line_count >= 2 && poses.len() >= 3 * line_count;
+        let surveyed_in_lines = line_count >= 2;
         let sd_rad = s.area.bearing_noise_deg.to_radians();
         let cross = |poses: &std::collections::BTreeMap<u64, crate::geometry::CameraPose>,
                      landmarks: &[mavloc_data::results::LandmarkRecord]| {
@@ -409,7 +408,7 @@ pub fn run_observed(
         if surveyed_in_lines {
             let (n, median) = cross(&poses, &results);
             summary.flight_lines = Some(line_count);
-            summary.cross_line_landmarks = Some(n);
+            summary.cross_line_pairs = Some(n);
             summary.cross_line_median_m = median;
         }
         if s.area.attitude_prior_deg > 0.0 && !results.is_empty() {

@@ -104,7 +104,7 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
             o[0], o[1], o[2], sd[0], sd[1], sd[2]
         );
     }
-    if let (Some(lines), Some(n)) = (summary.flight_lines, summary.cross_line_landmarks) {
+    if let (Some(lines), Some(n)) = (summary.flight_lines, summary.cross_line_pairs) {
         let m = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2} m"));
         println!(
             "{lines} flight lines; landmarks triangulated from each of two lines alone ({n} pairs) lie {} apart (median){}",
