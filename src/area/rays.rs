@@ -79,6 +79,13 @@ impl Triangulation {
     }
 }
 
+/// The camera's position variance across a ray of unit direction `dir` (north, east,
+/// down variances `position_var`, m^2), averaged over the two directions across it:
+/// trace(P S) / 2 with P the projection across the ray and S diagonal.
+pub fn across_variance(dir: &Vec3, position_var: &[f64; 3]) -> f64 {
+    (0..3).map(|i| (1.0 - dir[i] * dir[i]) * position_var[i]).sum::<f64>() / 2.0
+}
+
 /// Weighted least-squares point closest to the rays, each ray's perpendicular offset
 /// divided by its SD: the bearing SD (`sd_rad`) times its range, and the camera's position
 /// noise across the ray (`position_var`, north, east, down variances, m^2, averaged over
@@ -108,9 +115,7 @@ pub fn triangulate(
                 return None;
             }
             let across = Matrix3::identity() - r.dir * r.dir.transpose();
-            // trace(P S) / 2 for a diagonal S: the position variance across the ray.
-            let pos = (0..3).map(|i| across[(i, i)] * position_var[i]).sum::<f64>() / 2.0;
-            let w = 1.0 / ((range * sd_rad).powi(2) + pos);
+            let w = 1.0 / ((range * sd_rad).powi(2) + across_variance(&r.dir, position_var));
             let perp = across * w;
             a += perp;
             b += perp * r.origin;
