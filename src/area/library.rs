@@ -155,9 +155,7 @@ impl LibraryParams {
             border_step_px: (a.band_px as f32 / a.downscale.max(1) as f32 / 10.0).max(1.0),
         }
     }
-}
 
-impl LibraryParams {
     /// Noise of one sighting's bearings about its ray (unit `dir`, the landmark `range`
     /// metres away): the bearing noise plus the camera's position noise across the ray,
     /// as an angle. The seed's 2 m of vertical noise per frame is 1.9 deg at 60 m, four

@@ -252,8 +252,8 @@ pub struct Area {
     pub convergence_m: f64,
     pub min_observations: u32,
     pub bearing_noise_deg: f64,
-    /// SD of the vehicle's reported position per frame, north, east, down (m): the
-    /// convergence check's rays count it beside the bearing noise.
+    /// SD of the vehicle's reported position per frame, north, east, down (m): each
+    /// sighting's noise and the convergence check's rays count it beside the bearing noise.
     pub position_noise_m: Vec<f64>,
     pub ukf_alpha: f64,
     pub ukf_beta: f64,
