@@ -379,6 +379,7 @@ def run_scenario(a, name, out):
     os.makedirs(out)
     indoor = name == "indoor"
     params = read_params(os.path.join(ROOT, "config", "px4", "indoor.params" if indoor else "coastline.params"))
+    params.update(a.px4_param)
     state = os.path.join(out, "state")
     args = ["--set", f"daemon.state_dir={state}"]
     events_json = os.path.join(a.px4, "events", "all_events.json")
@@ -403,7 +404,7 @@ def run_scenario(a, name, out):
     px4, px4_started = start_px4(a.px4, params, out)
     mlog = open(os.path.join(out, "mavloc.log"), "w")
     mavloc = subprocess.Popen([a.mavloc, "--config", config, "run"] + args, stdout=mlog, stderr=subprocess.STDOUT,
-                              env=dict(os.environ, RUST_LOG="mavloc=info"))
+                              env=dict(os.environ, RUST_LOG=os.environ.get("MAVLOC_SITL_RUST_LOG", "mavloc=info")))
     try:
         # The pilot is a ground station on PX4's GCS link (PX4 sends to 14550).
         m = mavutil.mavlink_connection("udpin:127.0.0.1:14550", source_system=255, source_component=190)
@@ -525,7 +526,13 @@ def main():
     ap.add_argument("--aim", choices=["mission", "border"], help="(old spelling) coastline-<aim>")
     ap.add_argument("--repeat", type=int, default=1, help="cold starts per scenario (run-1 .. run-N)")
     ap.add_argument("--model", help="indoor floor model (default: trained once into OUT/.cache)")
+    ap.add_argument("--px4-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="set a PX4 parameter from boot on top of config/px4/<scenario>.params (repeatable)")
     a = ap.parse_args()
+    try:
+        a.px4_param = dict(kv.split("=", 1) for kv in a.px4_param)
+    except ValueError:
+        ap.error("--px4-param takes NAME=VALUE")
     reexec_in_netns()
     os.environ["MAVLINK20"] = "1"
     scenarios = a.scenario or ([f"coastline-{a.aim}"] if a.aim else ["indoor", "coastline-border"])

@@ -511,6 +511,21 @@ impl Vehicle {
         );
     }
 
+    /// A vision position (VISION_POSITION_ESTIMATE or ODOMETRY) through EKF2's innovation
+    /// gate: EKF2_EVP_GATE (5) SD of the reported variance, floored at EKF2_EVP_NOISE (0.1
+    /// m) as PX4 v1.16 does (ev_pos_control.cpp), which also stands in for a variance not
+    /// given.
+    fn vision_position(&mut self, t: f64, x: f32, y: f32, covariance: [f32; 2]) {
+        let var = covariance.map(|c| if c.is_finite() { (c as f64).max(0.01) } else { 0.01 });
+        let (dx, dy) = (x as f64 - self.state.position.x, y as f64 - self.state.position.y);
+        if dx * dx / var[0] + dy * dy / var[1] > 25.0 {
+            self.vision_rejected += 1;
+        } else {
+            self.vision_accepted += 1;
+            self.last_vision = Some(t);
+        }
+    }
+
     /// Handles one message at vehicle time `t`.
     pub fn handle(&mut self, from: (u8, u8), m: &MavMessage, t: f64) {
         match m {
@@ -642,23 +657,12 @@ impl Vehicle {
                 self.landing_target = Some((t, l.x as f64, l.y as f64));
             }
             MavMessage::VISION_POSITION_ESTIMATE(v) if !self.gps => {
-                // EKF2's innovation gate: EKF2_EVP_GATE (5) SD of the reported variance,
-                // floored at EKF2_EVP_NOISE (0.1 m) as PX4 v1.16 does
-                // (ev_pos_control.cpp), which also stands in for a variance not given.
-                let var = [v.covariance[0], v.covariance[6]].map(|c| {
-                    if c.is_finite() {
-                        (c as f64).max(0.01)
-                    } else {
-                        0.01
-                    }
-                });
-                let (dx, dy) = (v.x as f64 - self.state.position.x, v.y as f64 - self.state.position.y);
-                if dx * dx / var[0] + dy * dy / var[1] > 25.0 {
-                    self.vision_rejected += 1;
-                } else {
-                    self.vision_accepted += 1;
-                    self.last_vision = Some(t);
-                }
+                self.vision_position(t, v.x, v.y, [v.covariance[0], v.covariance[6]]);
+            }
+            // PX4 takes a position from ODOMETRY when x, y and z are numbers (and reads a
+            // NaN one as "velocity only").
+            MavMessage::ODOMETRY(o) if !self.gps && o.x.is_finite() && o.y.is_finite() && o.z.is_finite() => {
+                self.vision_position(t, o.x, o.y, [o.pose_covariance[0], o.pose_covariance[6]]);
             }
             #[allow(deprecated)]
             MavMessage::SET_GPS_GLOBAL_ORIGIN(o) if !self.gps && o.target_system == self.system_id => {

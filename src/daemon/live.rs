@@ -31,12 +31,13 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector2;
 
 use super::core::Warning;
-use super::worker::{LiveFrame, LivePipeline, PositionEstimate, Report};
+use super::worker::{LiveFrame, LivePipeline, PositionEstimate, Report, VelocityEstimate};
 use crate::area::features::prepare;
 use crate::area::offline::{write_results, RunSummary};
 use crate::area::{AreaPipeline, FrameInput};
 use crate::geometry::{Geodetic, Intrinsics, LocalFrame};
 use crate::indoor::derotate::Preprocessor;
+use crate::indoor::flow::{self, FlowFrame};
 use crate::indoor::landing::{Hold, LandingTrigger, LandingZone};
 use crate::indoor::localizer::{Localizer, LocalizerParams};
 use crate::indoor::model::Model;
@@ -388,7 +389,16 @@ pub struct IndoorLive {
     dir: PathBuf,
     frames: u64,
     last_hold: Option<Hold>,
+    /// The last frame, for the velocity from the next ([`flow`]).
+    last_flow: Option<FlowFrame>,
+    /// Frames with a velocity, and why the others had none (summary.json).
+    flow_ok: u64,
+    flow_failed: std::collections::BTreeMap<&'static str, u64>,
 }
+
+/// Variance of the camera's vertical velocity, (m/s)^2: the change of a height that is
+/// itself the autopilot's, a rough figure next to the horizontal one.
+const VERTICAL_VAR: f64 = 0.3 * 0.3;
 
 /// Where the particles start around the pad in a GPS-denied take-off (m).
 const PAD_START_SD_M: f64 = 0.3;
@@ -441,7 +451,55 @@ impl IndoorLive {
             dir,
             frames: 0,
             last_hold: None,
+            last_flow: None,
+            flow_ok: 0,
+            flow_failed: Default::default(),
         })
+    }
+}
+
+impl IndoorLive {
+    /// The camera's motion since the last frame, if it can be measured.
+    fn flow(&mut self, frame: &LiveFrame, t: f64, attitude: crate::geometry::Rot3, height: f64) -> Option<flow::Motion> {
+        let cur = match FlowFrame::new(t, &frame.image, attitude, height) {
+            Ok(f) => f,
+            Err(e) => {
+                tracing::debug!("indoor: no velocity from frame {}: {e}", frame.index);
+                *self.flow_failed.entry("opencv").or_default() += 1;
+                return None;
+            }
+        };
+        let m = self.last_flow.as_ref().map(|prev| flow::motion(prev, &cur, &self.pre.camera));
+        self.last_flow = Some(cur);
+        match m? {
+            Ok(m) => {
+                self.flow_ok += 1;
+                tracing::debug!(
+                    target: "mavloc::flow",
+                    "t {t:.4} v {:.4} {:.4} peak {:.2} height {height:.3}",
+                    m.velocity.x,
+                    m.velocity.y,
+                    m.response
+                );
+                Some(m)
+            }
+            Err(e) => {
+                if self.flow_failed.values().sum::<u64>() < 5 {
+                    tracing::info!("indoor: no velocity from frame {} (height {height:.2} m): {e}", frame.index);
+                }
+                let kind = match e {
+                    flow::NoMotion::Time(_) => "frame gap",
+                    flow::NoMotion::Height(_) => "no height",
+                    flow::NoMotion::OutOfView(_) => "tilted",
+                    flow::NoMotion::Blank(_) => "blank floor",
+                    flow::NoMotion::Weak(_) => "no match",
+                    flow::NoMotion::TooFar(_) => "too fast",
+                    flow::NoMotion::Cv(_) => "opencv",
+                };
+                *self.flow_failed.entry(kind).or_default() += 1;
+                None
+            }
+        }
     }
 }
 
@@ -453,10 +511,32 @@ impl LivePipeline for IndoorLive {
         let height = -frame.pose.camera.position.z;
         let v = frame.pose.vehicle.velocity;
         let t = frame.pose.autopilot_time;
+        let seen = self.flow(frame, t, attitude, height);
         // With no GPS the autopilot's velocity is made of these very estimates (and its
         // IMU): fed back as the motion model it turns an error into a drift that feeds
-        // itself (measured against PX4 SITL). The localiser fits its own velocity then.
-        let velocity = (!self.settings.indoor.gps_denied).then(|| Vector2::new(v.x, v.y));
+        // itself (measured against PX4 SITL). The camera's own velocity serves then, and
+        // without one the localiser fits its own.
+        let velocity = if self.settings.indoor.gps_denied {
+            seen.map(|m| m.velocity)
+        } else {
+            Some(Vector2::new(v.x, v.y))
+        };
+        report.velocity = match seen {
+            Some(m) => {
+                // Into body axes with the same attitude that turned it north-up: the
+                // heading cancels (see VelocityEstimate).
+                let local = crate::geometry::Vec3::new(m.velocity.x, m.velocity.y, m.vertical_velocity);
+                let body = frame.pose.vehicle.attitude.inverse() * local;
+                let h = m.sd_m_s * m.sd_m_s;
+                Some(VelocityEstimate { body: [body.x, body.y, body.z], var: [h, h, VERTICAL_VAR] })
+            }
+            // Once the camera has measured the velocity, a frame without keeps the stream going.
+            None if self.flow_ok > 0 => Some(VelocityEstimate::UNMEASURED),
+            None => None,
+        };
+        if frame.motion_only {
+            return report;
+        }
         let e = match self.localizer.step_frame(
             t,
             &self.pre,
@@ -539,6 +619,8 @@ impl LivePipeline for IndoorLive {
             "frames": self.frames,
             "landing_fired": self.trigger.fired(),
             "last_hold": self.last_hold.map(|h| format!("{h:?}")),
+            "velocity_frames": self.flow_ok,
+            "velocity_failed": self.flow_failed,
         });
         let path = self.dir.join("summary.json");
         crate::output::write_atomic(&path, serde_json::to_string_pretty(&summary)?.as_bytes())?;

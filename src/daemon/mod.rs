@@ -626,10 +626,10 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
     let now = now.secs();
     while let Some(c) = live.pending.pop_front() {
         let running = matches!(core.pipeline(), PipelineState::Running(_)) && live.worker.is_some();
-        // Live frames are not processed while the vehicle is on the ground, nor by the
-        // indoor pipeline while the camera is too low to see the floor as trained
-        // (replayed ones carry their own pose and are).
-        if !running || (c.pose.is_none() && (core.on_ground() || core.too_low())) {
+        // Live frames are not processed while the vehicle is on the ground; while the
+        // camera is too low to see the floor as trained, the indoor pipeline only measures
+        // the motion from them (replayed ones carry their own pose and are processed).
+        if !running || (c.pose.is_none() && core.on_ground()) {
             live.give_credit();
             continue;
         }
@@ -675,6 +675,7 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
             mask: c.mask,
             origin: core.origin(),
             truth: c.truth,
+            motion_only: c.pose.is_none() && core.too_low(),
         };
         if let Some((_, w)) = &live.worker {
             w.offer(frame);

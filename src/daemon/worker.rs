@@ -29,9 +29,12 @@ pub struct LiveFrame {
     pub origin: Option<crate::geometry::Geodetic>,
     /// True camera position (simulation only), for evaluation files.
     pub truth: Option<[f64; 3]>,
+    /// The camera is too low for the pipeline's position (indoor, below
+    /// `indoor.min_height_m`): only the vehicle's motion is measured.
+    pub motion_only: bool,
 }
 
-pub use super::core::{PipelineEvent, PositionEstimate, Report};
+pub use super::core::{PipelineEvent, PositionEstimate, Report, VelocityEstimate};
 
 /// A live pipeline: plain synchronous code, no tokio, no MAVLink.
 pub trait LivePipeline: Send {
@@ -281,6 +284,7 @@ mod tests {
             mask: None,
             origin: None,
             truth: None,
+            motion_only: false,
         }
     }
 

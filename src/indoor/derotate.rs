@@ -81,6 +81,17 @@ fn virtual_camera() -> Matrix3<f64> {
     )
 }
 
+/// The homography from pixels of a camera with intrinsics `k` and rotation "local <-
+/// camera (OpenCV axes)" to a virtual camera at the same place looking straight down,
+/// image up north, with focal length `focal` and its principal point at (`centre`,
+/// `centre`): the nadir. Exact for points on a level floor.
+pub fn nadir_homography(k: &Intrinsics, local_from_camera: &Rot3, focal: f64, centre: f64) -> Matrix3<f64> {
+    let kc = Matrix3::new(k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0);
+    let kv = Matrix3::new(focal, 0.0, centre, 0.0, focal, centre, 0.0, 0.0, 1.0);
+    let kc_inv = kc.try_inverse().expect("intrinsics with non-zero focal lengths are invertible");
+    kv * virtual_camera().transpose() * local_from_camera.matrix() * kc_inv
+}
+
 impl Preprocessor {
     /// `work_width`: frames are downscaled to this width (never upscaled).
     pub fn new(camera: Intrinsics, work_width: u32, derotate: bool, patch: (usize, usize)) -> Preprocessor {
@@ -109,14 +120,9 @@ impl Preprocessor {
     /// rotation "local <- camera (OpenCV axes)", its virtual focal length `scale` times the
     /// real one ([`Preprocessor::scale`]).
     pub fn homography(&self, local_from_camera: &Rot3, scale: f64) -> Matrix3<f64> {
-        let k = &self.work;
-        let kw = Matrix3::new(k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0);
         let c = (self.side() as f64 - 1.0) / 2.0;
         // At scale 1 one canvas pixel is one working pixel at the nadir.
-        let f = k.fx * scale;
-        let kv = Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0);
-        let kw_inv = kw.try_inverse().expect("intrinsics with non-zero focal lengths are invertible");
-        kv * virtual_camera().transpose() * local_from_camera.matrix() * kw_inv
+        nadir_homography(&self.work, local_from_camera, self.work.fx * scale, c)
     }
 
     /// Ground offset (north, east) per metre of height of a canvas pixel from the nadir.

@@ -3,6 +3,8 @@
 //!
 //! - [`textons`]: texton dictionary and histograms (sec. 3.3.1-3.3.2).
 //! - [`derotate`]: downscaling and, beyond the seed, derotation by the camera attitude.
+//! - [`flow`]: beyond the seed, the vehicle's velocity from consecutive frames (visual
+//!   odometry), for the particles' motion and the autopilot.
 //! - [`knn`]: the k nearest training histograms (sec. 3.3.3).
 //! - [`model`]: the trained model file.
 //! - [`localizer`]: the per-frame loop around the particle filter
@@ -16,6 +18,7 @@
 
 pub mod derotate;
 pub mod eval;
+pub mod flow;
 pub mod knn;
 pub mod labelling;
 pub mod landing;

@@ -11,6 +11,7 @@ seen; exit status 0 unless a process failed to start. Every wait is bounded."""
 
 import ctypes
 import json
+import math
 import os
 import select
 import signal
@@ -78,11 +79,12 @@ parse_v.robust_parsing = parse_d.robust_parsing = True
 vehicle_addr = None
 seen = {
     "daemon_messages": {}, "vehicle_messages": {}, "statustext": [], "lmk": 0,
-    "vpe": [], "lpn": [], "land_commands": 0, "land_acks": [], "on_ground": False,
+    "vpe": [], "lpn": [], "velocity": [], "land_commands": 0, "land_acks": [], "on_ground": False,
     "named": {}, "daemon_heartbeat_states": [], "commands": {}, "acks": {},
 }
 start = time.time()
 last_lpn = None
+last_lpn_v = None
 while time.time() - start < SECONDS:
     if vehicle.poll() is not None and MODE == "indoor" and seen["on_ground"]:
         break
@@ -98,6 +100,7 @@ while time.time() - start < SECONDS:
                 seen["vehicle_messages"][t] = seen["vehicle_messages"].get(t, 0) + 1
                 if t == "LOCAL_POSITION_NED":
                     last_lpn = (m.x, m.y)
+                    last_lpn_v = (m.vx, m.vy)
                 elif t == "COMMAND_ACK":
                     key = f"{m.command}:{m.result}"
                     seen["acks"][key] = seen["acks"].get(key, 0) + 1
@@ -118,10 +121,13 @@ while time.time() - start < SECONDS:
                     seen["lmk"] += 1
                 elif t == "LANDING_TARGET":
                     seen["landing_targets"] = seen.get("landing_targets", 0) + 1
-                elif t == "VISION_POSITION_ESTIMATE":
-                    seen["vpe"].append([now, m.x, m.y, m.covariance[0], m.covariance[6]])
+                elif t == "VISION_POSITION_ESTIMATE" or (t == "ODOMETRY" and math.isfinite(m.x)):
+                    cov = m.covariance if t == "VISION_POSITION_ESTIMATE" else m.pose_covariance
+                    seen["vpe"].append([now, m.x, m.y, cov[0], cov[6]])
                     if last_lpn is not None:
                         seen["lpn"].append(list(last_lpn))
+                    if t == "ODOMETRY" and math.isfinite(m.vx) and last_lpn_v is not None:
+                        seen["velocity"].append([now, m.vx, m.vy, m.velocity_covariance[0], *last_lpn_v])
                 elif t == "NAMED_VALUE_FLOAT":
                     seen["named"][m.name] = m.value
                 elif t == "COMMAND_LONG":

@@ -170,6 +170,17 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     );
     assert!(median.is_finite(), "trajectory.csv has truth columns");
     assert!(vpe.iter().all(|v| v[3].as_f64().unwrap() > 0.0), "covariance set");
+    // The camera's velocity (ODOMETRY) on most estimates, near the vehicle's own (its
+    // LOCAL_POSITION_NED, which leads the frame by the processing latency).
+    let vel = seen["velocity"].as_array().unwrap();
+    assert!(vel.len() * 2 > vpe.len(), "{} velocities for {} estimates", vel.len(), vpe.len());
+    let f = |v: &serde_json::Value, i: usize| v[i].as_f64().unwrap();
+    let mut verr: Vec<f64> = vel.iter().map(|v| (f(v, 1) - f(v, 4)).hypot(f(v, 2) - f(v, 5))).collect();
+    verr.sort_by(f64::total_cmp);
+    let vmedian = verr[verr.len() / 2];
+    println!("indoor live: {} velocities, median {vmedian:.3} m/s from the vehicle's", vel.len());
+    assert!(vmedian < 0.15, "camera velocity median {vmedian:.3} m/s off the vehicle's");
+    assert!(vel.iter().all(|v| f(v, 3) > 0.0 && f(v, 3) < 0.01), "variance set, a few cm/s");
 
     // The landing: commanded, acknowledged, and down inside the zone.
     assert!(seen["land_commands"].as_u64().unwrap() >= 1, "{text}");

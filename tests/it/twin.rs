@@ -147,6 +147,7 @@ pub fn fly_vehicle(
             mask: masks.then_some(mask),
             origin: core.origin(),
             truth: Some(seen_from.position.into()),
+            motion_only: false,
         };
         let report = live.process(&frame);
         let (roll, pitch, yaw) = pose.vehicle.attitude.euler_angles();

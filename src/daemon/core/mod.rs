@@ -87,6 +87,8 @@ pub struct Report {
     pub new_landmarks: Vec<[f64; 3]>,
     /// The indoor estimate: x, y (local NED north, east), their covariance, time.
     pub position: Option<PositionEstimate>,
+    /// The vehicle's velocity from the camera (indoor, [`crate::indoor::flow`]).
+    pub velocity: Option<VelocityEstimate>,
     /// Human-readable events (STATUSTEXT, INFO).
     pub events: Vec<String>,
     /// What the ground should not miss (STATUSTEXT, WARNING; WARN in the log).
@@ -118,6 +120,25 @@ pub struct PositionEstimate {
     pub down: f64,
     /// Covariance of (north, east), m^2.
     pub cov: [[f64; 2]; 2],
+}
+
+/// A velocity measured by the camera, in the body's front-right-down axes (m/s), and
+/// the variance of each component. In body axes the autopilot's heading does not enter
+/// the measurement (the camera sees the floor move past the body), so the autopilot can
+/// correct its heading with it; in the local frame it would carry that heading's error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VelocityEstimate {
+    pub body: [f64; 3],
+    pub var: [f64; 3],
+}
+
+impl VelocityEstimate {
+    /// Not measured on this frame: zero with a variance the autopilot weighs at nothing,
+    /// sent rather than nothing so that its velocity fusion does not stop and restart.
+    pub const UNMEASURED: VelocityEstimate =
+        VelocityEstimate { body: [0.0; 3], var: [UNMEASURED_VARIANCE as f64; 3] };
+    /// Standing on the floor: still, to a few centimetres a second.
+    pub const STANDING: VelocityEstimate = VelocityEstimate { body: [0.0; 3], var: [0.05 * 0.05; 3] };
 }
 
 /// What happened on the pipeline worker.
@@ -614,7 +635,7 @@ impl Core {
             .or_else(|| {
                 let present = self.autopilot.present();
                 let m = self.gps.poll_transmit(now, present, target);
-                if m.as_ref().is_some_and(|m| matches!(m, MavMessage::VISION_POSITION_ESTIMATE(_))) {
+                if m.as_ref().is_some_and(|m| matches!(m, MavMessage::ODOMETRY(_))) {
                     self.counters.standing_estimates_sent += 1;
                 }
                 self.say_gps_notices();
@@ -1353,10 +1374,10 @@ impl Core {
     /// (seconds on mavloc's monotonic clock, the clock its TIMESYNC replies carry, so PX4
     /// can map the stamps onto its own).
     ///
-    /// The indoor estimate goes out as VISION_POSITION_ESTIMATE rather than ODOMETRY:
-    /// the pipeline measures horizontal position only, and PX4's EKF2 fuses exactly that
-    /// from VISION_POSITION_ESTIMATE (`EKF2_EV_CTRL` bit 0) with the covariance taken from
-    /// the message; ODOMETRY would need a velocity and frame ids mavloc cannot vouch for.
+    /// The indoor estimate goes out as ODOMETRY when the camera measured the velocity too
+    /// (position and velocity in the local NED frame; PX4's EKF2 fuses the velocity with
+    /// `EKF2_EV_CTRL` bit 2), else as VISION_POSITION_ESTIMATE (horizontal position,
+    /// `EKF2_EV_CTRL` bit 0), each with its covariance.
     /// Area landmarks go out as DEBUG_VECT named `LMK` (north, east, down in metres,
     /// local NED of the autopilot), which QGroundControl's MAVLink inspector shows.
     fn publish(&mut self, now: Mono, report: &Report, capture: f64, attitude: (f64, f64, f64)) {
@@ -1385,8 +1406,20 @@ impl Core {
                 Some((down, var)) => (PositionEstimate { down, ..*e }, Some(var)),
                 None => (*e, None),
             };
-            self.result(vision_position_estimate(&e, usec, attitude, down_var));
+            self.result(match &report.velocity {
+                Some(v) => odometry(Some(&e), v, usec, attitude, down_var),
+                None => vision_position_estimate(&e, usec, attitude, down_var),
+            });
             self.gps.on_pipeline_estimate(now, &e);
+        } else if let Some(v) = &report.velocity {
+            if self.gps.enabled() && self.gps.phase() != gpsdenied::Phase::Seeing {
+                // Too low to localise: the velocity goes out with the estimates for a
+                // vehicle off the floor ([`GpsDenied`]), one stream, not two.
+                self.gps.on_velocity(now, v);
+            } else {
+                // No fix yet (or lost): the velocity alone still keeps EKF2's track honest.
+                self.result(odometry(None, v, usec, attitude, None));
+            }
         }
         let ms = (capture.max(0.0) * 1e3) as u32;
         for &(name, value) in &report.counters {
@@ -1471,16 +1504,56 @@ const LIFT_OFF_M: f64 = 0.05;
 /// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.
 const UNMEASURED_VARIANCE: f32 = 1.0e4;
 
-/// VISION_POSITION_ESTIMATE for an indoor estimate. The covariance is the upper triangle
-/// of the 6x6 (x, y, z, roll, pitch, yaw) matrix, row-major, as MAVLink defines it.
-/// `down_var`: z is measured (the camera's distance to the floor) with this variance;
-/// None: z is not measured.
-pub fn vision_position_estimate(
-    e: &PositionEstimate,
+/// ODOMETRY for an indoor estimate with the camera's velocity (body axes); `e` None: the
+/// velocity alone (position NaN, which PX4 reads as "no position"). Position, z and the
+/// echoed attitude as in [`vision_position_estimate`].
+pub fn odometry(
+    e: Option<&PositionEstimate>,
+    v: &VelocityEstimate,
     usec: u64,
     attitude: (f64, f64, f64),
     down_var: Option<f64>,
 ) -> MavMessage {
+    let (x, y, z, pose_covariance) = match e {
+        Some(e) => (e.north as f32, e.east as f32, e.down as f32, pose_covariance(e, down_var)),
+        None => (f32::NAN, f32::NAN, f32::NAN, [f32::NAN; 21]),
+    };
+    let q = nalgebra::UnitQuaternion::from_euler_angles(attitude.0, attitude.1, attitude.2);
+    // Upper triangle of the 6x6 (vx, vy, vz, roll, pitch, yaw rates) covariance; the
+    // rates are not measured (NaN, as MAVLink says for unknown).
+    let mut velocity_covariance = [0f32; 21];
+    velocity_covariance[0] = v.var[0] as f32;
+    velocity_covariance[6] = v.var[1] as f32;
+    velocity_covariance[11] = v.var[2] as f32;
+    for i in [15, 18, 20] {
+        velocity_covariance[i] = f32::NAN;
+    }
+    MavMessage::ODOMETRY(ODOMETRY_DATA {
+        time_usec: usec,
+        x,
+        y,
+        z,
+        q: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
+        vx: v.body[0] as f32,
+        vy: v.body[1] as f32,
+        vz: v.body[2] as f32,
+        rollspeed: f32::NAN,
+        pitchspeed: f32::NAN,
+        yawspeed: f32::NAN,
+        pose_covariance,
+        velocity_covariance,
+        frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
+        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+        reset_counter: 0,
+        estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_VISION,
+        quality: 0,
+    })
+}
+
+/// The upper triangle of the 6x6 (x, y, z, roll, pitch, yaw) covariance, row-major, as
+/// MAVLink defines it, for an indoor estimate. `down_var`: z is measured (the camera's
+/// distance to the floor) with this variance; None: z is not measured.
+fn pose_covariance(e: &PositionEstimate, down_var: Option<f64>) -> [f32; 21] {
     let mut covariance = [0f32; 21];
     covariance[0] = e.cov[0][0] as f32;
     covariance[1] = e.cov[0][1] as f32;
@@ -1497,6 +1570,17 @@ pub fn vision_position_estimate(
             covariance[i] = v as f32;
         }
     }
+    covariance
+}
+
+/// VISION_POSITION_ESTIMATE for an indoor estimate, its covariance from [`pose_covariance`].
+pub fn vision_position_estimate(
+    e: &PositionEstimate,
+    usec: u64,
+    attitude: (f64, f64, f64),
+    down_var: Option<f64>,
+) -> MavMessage {
+    let covariance = pose_covariance(e, down_var);
     MavMessage::VISION_POSITION_ESTIMATE(VISION_POSITION_ESTIMATE_DATA {
         usec,
         x: e.north as f32,

@@ -130,6 +130,19 @@ impl FakeAutopilot {
         (MavResult::MAV_RESULT_TEMPORARILY_REJECTED, Some(event))
     }
 
+    /// A vision position through EKF2_EVP_GATE: 5 SD of the reported variance (or
+    /// EKF2_EVP_NOISE 0.1 m).
+    fn vision_position(&mut self, now: Mono, x: f32, y: f32, var: f32) {
+        self.vision += 1;
+        let var = if var.is_finite() { var.max(0.01) } else { 0.01 };
+        let d = ((x - self.truth.0).powi(2) + (y - self.truth.1).powi(2)).sqrt();
+        if d > 5.0 * var.sqrt() {
+            self.vision_rejected += 1;
+        } else {
+            self.last_vision = Some((now, x, y));
+        }
+    }
+
     fn boot_ms(&self, now: Mono) -> u32 {
         ((now.0 - self.booted.0) / 1000) as u32
     }
@@ -240,15 +253,12 @@ impl FakeAutopilot {
                 vec![]
             }
             MavMessage::VISION_POSITION_ESTIMATE(v) => {
-                self.vision += 1;
-                // EKF2_EVP_GATE: 5 SD of the reported variance (or EKF2_EVP_NOISE 0.1 m).
-                let var = if v.covariance[0].is_finite() { v.covariance[0].max(0.01) } else { 0.01 };
-                let d = ((v.x - self.truth.0).powi(2) + (v.y - self.truth.1).powi(2)).sqrt();
-                if d > 5.0 * var.sqrt() {
-                    self.vision_rejected += 1;
-                } else {
-                    self.last_vision = Some((now, v.x, v.y));
-                }
+                self.vision_position(now, v.x, v.y, v.covariance[0]);
+                vec![]
+            }
+            // A position when x, y and z are numbers (PX4 reads NaN as "velocity only").
+            MavMessage::ODOMETRY(o) if o.x.is_finite() && o.y.is_finite() && o.z.is_finite() => {
+                self.vision_position(now, o.x, o.y, o.pose_covariance[0]);
                 vec![]
             }
             #[allow(deprecated)]

@@ -728,10 +728,33 @@ fn px4_without_gps(sim: &mut Sim) {
     sim.ap.truth = (-2.5, -2.5);
 }
 
+/// The vision positions sent (VISION_POSITION_ESTIMATE, or ODOMETRY with a position).
 fn vision(sim: &Sim, from: Mono, to: Mono) -> Vec<VISION_POSITION_ESTIMATE_DATA> {
     sim.sent_between(from, to)
         .filter_map(|m| match m {
             MavMessage::VISION_POSITION_ESTIMATE(v) => Some(v.clone()),
+            MavMessage::ODOMETRY(o) if o.x.is_finite() => Some(VISION_POSITION_ESTIMATE_DATA {
+                usec: o.time_usec,
+                x: o.x,
+                y: o.y,
+                z: o.z,
+                covariance: o.pose_covariance,
+                ..Default::default()
+            }),
+            _ => None,
+        })
+        .collect()
+}
+
+/// The body-frame velocities sent with them (ODOMETRY): velocity and its variances.
+fn velocities(sim: &Sim, from: Mono, to: Mono) -> Vec<([f32; 3], [f32; 3])> {
+    sim.sent_between(from, to)
+        .filter_map(|m| match m {
+            MavMessage::ODOMETRY(o) if o.vx.is_finite() => {
+                assert_eq!(o.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD);
+                let c = &o.velocity_covariance;
+                Some(([o.vx, o.vy, o.vz], [c[0], c[6], c[11]]))
+            }
             _ => None,
         })
         .collect()
@@ -759,6 +782,11 @@ fn without_gps_the_pad_goes_out_from_power_on_then_the_origin_and_px4_lets_the_v
         v.iter().all(|v| v.x == -2.5 && v.y == -2.5 && v.covariance[0] > 0.0),
         "the pad, with its variance"
     );
+    // Standing: still, and said so (EKF2's velocity would otherwise wander as the motors
+    // spin up).
+    let still = velocities(&sim, secs(1), secs(2));
+    assert_eq!(still.len(), v.len());
+    assert!(still.iter().all(|(v, var)| *v == [0.0; 3] && var.iter().all(|s| *s > 0.0 && *s <= 0.0026)));
     assert!(origins_sent(&sim).is_empty(), "no origin before 5 s of vision");
     assert_eq!(sim.ap.arm(sim.now).0, MavResult::MAV_RESULT_TEMPORARILY_REJECTED, "PX4 cannot arm yet");
 
@@ -769,8 +797,7 @@ fn without_gps_the_pad_goes_out_from_power_on_then_the_origin_and_px4_lets_the_v
     #[allow(deprecated)]
     let (lat, lon) = (o.latitude, o.longitude);
     assert_eq!((lat, lon), (520_000_000, 43_700_000));
-    let first_vision =
-        sim.sent.iter().find(|(_, m)| matches!(m, MavMessage::VISION_POSITION_ESTIMATE(_))).unwrap().0;
+    let first_vision = sim.sent.iter().find(|(_, m)| matches!(m, MavMessage::ODOMETRY(_))).unwrap().0;
     let after = at.saturating_sub(first_vision).as_secs_f64();
     assert!((5.0..5.2).contains(&after), "origin {after} s after the first estimate");
     assert_eq!(sim.core.gps_denied().origin_state(), gpsdenied::OriginState::Confirmed);
@@ -946,6 +973,28 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
         );
         assert!((v.x, v.y) == (standing[0].x, standing[0].y), "the same place, loosely");
     }
+    // No velocity from the camera yet (the fake pipeline measures none): not claimed.
+    let loose = velocities(&sim, secs(14) + Duration::from_millis(200), secs(15));
+    assert!(loose.iter().all(|(_, var)| var.iter().all(|s| *s >= 1.0e4)), "{loose:?}");
+    // The camera's velocity, fresh, goes out with them instead.
+    let climb = VelocityEstimate { body: [0.1, -0.2, -0.4], var: [0.0004, 0.0004, 0.09] };
+    sim.core.handle(Input::Pipeline {
+        now: sim.now,
+        event: PipelineEvent::Report {
+            capture: sim.now.secs(),
+            attitude: (0.0, 0.0, 0.0),
+            report: Report { velocity: Some(climb), ..Report::default() },
+        },
+    });
+    let t = sim.now;
+    sim.run_until(t + Duration::from_millis(100));
+    let measured = velocities(&sim, t, t + Duration::from_millis(100));
+    assert!(measured.len() >= 2 && measured.iter().all(|(v, _)| *v == [0.1, -0.2, -0.4]), "{measured:?}");
+    assert!(vision(&sim, t, t + Duration::from_millis(100)).iter().all(|v| v.covariance[0] >= 99.0), "loose still");
+    // Stale after 0.2 s: not claimed any more.
+    sim.run_until(t + Duration::from_millis(400));
+    let stale = velocities(&sim, t + Duration::from_millis(250), t + Duration::from_millis(400));
+    assert!(!stale.is_empty() && stale.iter().all(|(_, var)| var[0] >= 1.0e4), "{stale:?}");
     for i in 0..20 {
         sim.run_until(secs(15) + Duration::from_millis(100 * i));
         sim.deliver(range(100));
