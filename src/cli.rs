@@ -349,6 +349,11 @@ pub struct IndoorRunArgs {
     /// Ignore the telemetry's velocity (the velocity model then fits one to its estimates).
     #[arg(long)]
     pub no_velocity: bool,
+    /// Move the particles with the velocity the camera measures from consecutive frames
+    /// (as the daemon does without GPS) instead of the telemetry's; summary.json gives its
+    /// error against the dataset's true velocity.
+    #[arg(long, conflicts_with = "no_velocity")]
+    pub camera_velocity: bool,
     /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,

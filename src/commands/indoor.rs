@@ -57,6 +57,7 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 out: a.out,
                 max_frames: a.frames,
                 no_velocity: a.no_velocity,
+                camera_velocity: a.camera_velocity,
                 seed: a.seed,
             };
             let bar = Progress::new("indoor", "frames");
@@ -84,6 +85,12 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 s.motion_model,
                 if s.derotate { "on" } else { "off" }
             );
+            if let (Some(n), rms) = (s.camera_velocity_frames, s.camera_velocity_rms_m_s) {
+                println!(
+                    "camera velocity on {n} frame pairs, {} per axis against the true velocity",
+                    rms.map_or("no pair".into(), |r| format!("{r:.3} m/s RMS"))
+                );
+            }
             Ok(ExitCode::SUCCESS)
         }
         IndoorCommand::Landings(a) => {

@@ -460,7 +460,13 @@ impl IndoorLive {
 
 impl IndoorLive {
     /// The camera's motion since the last frame, if it can be measured.
-    fn flow(&mut self, frame: &LiveFrame, t: f64, attitude: crate::geometry::Rot3, height: f64) -> Option<flow::Motion> {
+    fn flow(
+        &mut self,
+        frame: &LiveFrame,
+        t: f64,
+        attitude: crate::geometry::Rot3,
+        height: f64,
+    ) -> Option<flow::Motion> {
         let cur = match FlowFrame::new(t, &frame.image, attitude, height) {
             Ok(f) => f,
             Err(e) => {
@@ -485,7 +491,10 @@ impl IndoorLive {
             }
             Err(e) => {
                 if self.flow_failed.values().sum::<u64>() < 5 {
-                    tracing::info!("indoor: no velocity from frame {} (height {height:.2} m): {e}", frame.index);
+                    tracing::info!(
+                        "indoor: no velocity from frame {} (height {height:.2} m): {e}",
+                        frame.index
+                    );
                 }
                 let kind = match e {
                     flow::NoMotion::Time(_) => "frame gap",

@@ -156,7 +156,7 @@ pub fn motion(prev: &FlowFrame, cur: &FlowFrame, k: &Intrinsics) -> Result<Motio
         let (mut mean, mut sd) = (Mat::default(), Mat::default());
         opencv::core::mean_std_dev(c, &mut mean, &mut sd, &opencv::core::no_array())?;
         let sd = *sd.at::<f64>(0)?;
-        if !(sd >= MIN_CONTRAST) {
+        if sd.is_nan() || sd < MIN_CONTRAST {
             return Err(NoMotion::Blank(sd));
         }
     }
@@ -165,7 +165,7 @@ pub fn motion(prev: &FlowFrame, cur: &FlowFrame, k: &Intrinsics) -> Result<Motio
     let mut response = 0.0;
     // The floor's content moves by `shift` canvas pixels from a to b.
     let shift = imgproc::phase_correlate(&a, &b, &window, Some(&mut response))?;
-    if !(response >= MIN_RESPONSE) {
+    if response.is_nan() || response < MIN_RESPONSE {
         return Err(NoMotion::Weak(response));
     }
     let px = shift.x.hypot(shift.y);
@@ -359,7 +359,8 @@ mod tests {
             let a_rot = camera(rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1), yaw);
             let b_rot = camera(rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1), yaw + 0.02);
             let a = FlowFrame::new(0.0, &render(&tex, &k, &a_rot, 0.0, 0.0, 1.0), a_rot, 1.0).unwrap();
-            let b = FlowFrame::new(dt, &render(&tex, &k, &b_rot, v.x * dt, v.y * dt, 1.0), b_rot, 1.0).unwrap();
+            let b =
+                FlowFrame::new(dt, &render(&tex, &k, &b_rot, v.x * dt, v.y * dt, 1.0), b_rot, 1.0).unwrap();
             let m = motion(&a, &b, &k).unwrap();
             sq += (m.velocity - v).norm_squared() / 2.0;
             claimed += m.sd_m_s.powi(2);

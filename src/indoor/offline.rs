@@ -387,6 +387,9 @@ pub struct RunOptions {
     pub max_frames: Option<usize>,
     /// Ignore the telemetry's velocity (the velocity model then fits it from estimates).
     pub no_velocity: bool,
+    /// Move the particles with the camera's own velocity ([`super::flow`]), as the daemon
+    /// does without GPS, instead of the telemetry's.
+    pub camera_velocity: bool,
     pub seed: u64,
 }
 
@@ -410,6 +413,12 @@ pub struct RunSummary {
     /// Frames per second of the localiser alone.
     #[serde(default)]
     pub localize_frames_per_s: f64,
+    /// `--camera-velocity`: frames with a velocity from the camera, and its RMS error per
+    /// axis against the dataset's true velocity, m/s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_velocity_frames: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_velocity_rms_m_s: Option<f64>,
     pub complete: bool,
 }
 
@@ -460,6 +469,9 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     };
     let (mut read_s, mut prepare_s, mut localize_s) = (0.0, 0.0, 0.0);
     let mut rows = Vec::with_capacity(total);
+    let k = ds.camera.intrinsics();
+    let mut last_flow: Option<super::flow::FlowFrame> = None;
+    let (mut flow_n, mut flow_sq) = (0usize, 0.0);
     for (i, r) in ds.records.iter().take(total).enumerate() {
         let t0 = Instant::now();
         let Some(img) = read(&ds, r) else {
@@ -475,7 +487,21 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
             continue;
         }
         let t2 = Instant::now();
-        let v = (!opts.no_velocity).then(|| Vector2::new(r.measured.velocity[0], r.measured.velocity[1]));
+        let v = if opts.camera_velocity {
+            let cur = super::flow::FlowFrame::new(r.t, &img, pose_rotation(r, &ds), frame_height(r))
+                .map_err(|e| format!("frame {}: {e}", r.frame))?;
+            let m = last_flow.as_ref().and_then(|prev| super::flow::motion(prev, &cur, &k).ok());
+            last_flow = Some(cur);
+            m.map(|m| {
+                flow_n += 1;
+                flow_sq += ((m.velocity.x - r.truth.velocity[0]).powi(2)
+                    + (m.velocity.y - r.truth.velocity[1]).powi(2))
+                    / 2.0;
+                m.velocity
+            })
+        } else {
+            (!opts.no_velocity).then(|| Vector2::new(r.measured.velocity[0], r.measured.velocity[1]))
+        };
         let e = loc.step_sampled(r.t, v);
         read_s += (t1 - t0).as_secs_f64();
         prepare_s += (t2 - t1).as_secs_f64();
@@ -504,6 +530,10 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     let whole = read_s + prepare_s + localize_s;
     summary.frames_per_s = if whole > 0.0 { rows.len() as f64 / whole } else { 0.0 };
     summary.localize_frames_per_s = if localize_s > 0.0 { rows.len() as f64 / localize_s } else { 0.0 };
+    if opts.camera_velocity {
+        summary.camera_velocity_frames = Some(flow_n);
+        summary.camera_velocity_rms_m_s = (flow_n > 0).then(|| (flow_sq / flow_n as f64).sqrt());
+    }
     summary.complete = true;
     write_trajectory(&opts.out, &rows, &summary)?;
     Ok(summary)

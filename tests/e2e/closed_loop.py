@@ -85,6 +85,7 @@ seen = {
 start = time.time()
 last_lpn = None
 last_lpn_v = None
+last_yaw = 0.0
 while time.time() - start < SECONDS:
     if vehicle.poll() is not None and MODE == "indoor" and seen["on_ground"]:
         break
@@ -101,6 +102,8 @@ while time.time() - start < SECONDS:
                 if t == "LOCAL_POSITION_NED":
                     last_lpn = (m.x, m.y)
                     last_lpn_v = (m.vx, m.vy)
+                elif t == "ATTITUDE":
+                    last_yaw = m.yaw
                 elif t == "COMMAND_ACK":
                     key = f"{m.command}:{m.result}"
                     seen["acks"][key] = seen["acks"].get(key, 0) + 1
@@ -127,7 +130,7 @@ while time.time() - start < SECONDS:
                     if last_lpn is not None:
                         seen["lpn"].append(list(last_lpn))
                     if t == "ODOMETRY" and math.isfinite(m.vx) and last_lpn_v is not None:
-                        seen["velocity"].append([now, m.vx, m.vy, m.velocity_covariance[0], *last_lpn_v])
+                        seen["velocity"].append([now, m.vx, m.vy, m.velocity_covariance[0], *last_lpn_v, last_yaw])
                 elif t == "NAMED_VALUE_FLOAT":
                     seen["named"][m.name] = m.value
                 elif t == "COMMAND_LONG":

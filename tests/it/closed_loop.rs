@@ -170,17 +170,30 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     );
     assert!(median.is_finite(), "trajectory.csv has truth columns");
     assert!(vpe.iter().all(|v| v[3].as_f64().unwrap() > 0.0), "covariance set");
-    // The camera's velocity (ODOMETRY) on most estimates, near the vehicle's own (its
-    // LOCAL_POSITION_NED, which leads the frame by the processing latency).
-    let vel = seen["velocity"].as_array().unwrap();
-    assert!(vel.len() * 2 > vpe.len(), "{} velocities for {} estimates", vel.len(), vpe.len());
+    // The camera's velocity (ODOMETRY, body axes) on most estimates, near the vehicle's
+    // own (its LOCAL_POSITION_NED turned by its ATTITUDE's heading, which lead the frame
+    // by the processing latency). A frame without one says "unmeasured" by its variance.
     let f = |v: &serde_json::Value, i: usize| v[i].as_f64().unwrap();
-    let mut verr: Vec<f64> = vel.iter().map(|v| (f(v, 1) - f(v, 4)).hypot(f(v, 2) - f(v, 5))).collect();
+    let all = seen["velocity"].as_array().unwrap();
+    let vel: Vec<&serde_json::Value> = all.iter().filter(|v| f(v, 3) < 1.0e4).collect();
+    assert!(vel.len() * 2 > vpe.len(), "{} velocities for {} estimates", vel.len(), vpe.len());
+    let mut verr: Vec<f64> = vel
+        .iter()
+        .map(|v| {
+            let (s, c) = f(v, 6).sin_cos();
+            let (n, e) = (c * f(v, 1) - s * f(v, 2), s * f(v, 1) + c * f(v, 2));
+            (n - f(v, 4)).hypot(e - f(v, 5))
+        })
+        .collect();
     verr.sort_by(f64::total_cmp);
     let vmedian = verr[verr.len() / 2];
     println!("indoor live: {} velocities, median {vmedian:.3} m/s from the vehicle's", vel.len());
     assert!(vmedian < 0.15, "camera velocity median {vmedian:.3} m/s off the vehicle's");
-    assert!(vel.iter().all(|v| f(v, 3) > 0.0 && f(v, 3) < 0.01), "variance set, a few cm/s");
+    let mut var: Vec<f64> = vel.iter().map(|v| f(v, 3)).collect();
+    var.sort_by(f64::total_cmp);
+    // SD 0.065 m/s at 1 m and 15 frames/s (the attitude's part); frames closer together
+    // claim more.
+    assert!(var[0] > 0.0 && var[var.len() / 2] < 0.01, "variances {:?}", (var[0], var[var.len() / 2], var[var.len() - 1]));
 
     // The landing: commanded, acknowledged, and down inside the zone.
     assert!(seen["land_commands"].as_u64().unwrap() >= 1, "{text}");

@@ -50,16 +50,26 @@ fn trains_on_views_and_tracks_a_flight() {
     let h = model.frame.height_ref_m.expect("a reference height by default");
     assert!((0.9..1.1).contains(&h), "reference height {h} m");
 
-    let errors = |out: &std::path::Path, s: &Indoor, no_velocity: bool| {
+    let errors_with = |out: &std::path::Path, s: &Indoor, no_velocity: bool, camera_velocity: bool| {
         let opts = RunOptions {
             dataset: flight.clone(),
             model: model_path.clone(),
             out: out.into(),
             max_frames: None,
             no_velocity,
+            camera_velocity,
             seed: 3,
         };
         let summary = run(&opts, s, |_, _| {}).unwrap();
+        if camera_velocity {
+            // The camera's velocity on every pair of this flight (blur 3 px, brightness and
+            // contrast changed), a few cm/s from the truth.
+            assert_eq!(summary.camera_velocity_frames, Some(299), "{summary:?}");
+            let rms = summary.camera_velocity_rms_m_s.unwrap();
+            assert!(rms < 0.04, "camera velocity {rms:.3} m/s RMS per axis");
+        } else {
+            assert_eq!(summary.camera_velocity_frames, None);
+        }
         assert!(summary.complete && summary.frames == 300);
         // Frames per second count whole frames: reading, preparing and localising.
         let whole_ms = summary.read_ms + summary.prepare_ms + summary.localize_ms;
@@ -76,6 +86,8 @@ fn trains_on_views_and_tracks_a_flight() {
             rows.iter().filter(|r| r.t >= 2.0).map(|r| (r.x - r.true_x).hypot(r.y - r.true_y)).collect();
         (e, median(late.clone()), late.iter().filter(|d| **d < 0.5).count() as f64 / late.len() as f64)
     };
+    let errors =
+        |out: &std::path::Path, s: &Indoor, no_velocity: bool| errors_with(out, s, no_velocity, false);
     let (e, med, within) = errors(&dir.path().join("run"), &settings, false);
     // Measured: median 0.13 m, mean |error| 0.28 m / 0.17 m; 80 % of frames within 0.5 m.
     assert!(med < 0.3, "median error {med} m; {e:?}");
@@ -86,6 +98,10 @@ fn trains_on_views_and_tracks_a_flight() {
     // Without telemetry velocity the velocity model fits one; still tracking.
     let (_, med_fit, _) = errors(&dir.path().join("fit"), &settings, true);
     assert!(med_fit < 0.4, "median error {med_fit} m with fitted velocity");
+    // With the camera's own velocity, as the daemon flies without GPS: as good as with
+    // the telemetry's.
+    let (_, med_cam, _) = errors_with(&dir.path().join("camera"), &settings, false, true);
+    assert!(med_cam < 0.3, "median error {med_cam} m with the camera's velocity");
 
     // The seed's noise-only motion model also runs (it lags more; not asserted here).
     let noise = Indoor { motion_model: MotionModel::Noise, ..settings.clone() };
@@ -121,6 +137,7 @@ fn a_model_rescaled_to_a_reference_height_tracks_a_flight_below_its_views() {
             out: out.clone(),
             max_frames: None,
             no_velocity: false,
+            camera_velocity: false,
             seed: 3,
         };
         // The run takes the rescaling from the model, not from its own settings.

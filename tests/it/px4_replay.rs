@@ -148,7 +148,11 @@ fn against_a_real_px4_mavloc_stands_the_vehicle_on_its_pad_only_while_it_stands(
     let vpe: Vec<f64> = r
         .sent
         .iter()
-        .filter(|(_, m)| matches!(m, MavMessage::VISION_POSITION_ESTIMATE(_)))
+        .filter(|(_, m)| match m {
+            MavMessage::VISION_POSITION_ESTIMATE(_) => true,
+            MavMessage::ODOMETRY(o) => o.x.is_finite(),
+            _ => false,
+        })
         .map(|(t, _)| *t)
         .collect();
     assert!(!vpe.is_empty());

@@ -990,7 +990,10 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     sim.run_until(t + Duration::from_millis(100));
     let measured = velocities(&sim, t, t + Duration::from_millis(100));
     assert!(measured.len() >= 2 && measured.iter().all(|(v, _)| *v == [0.1, -0.2, -0.4]), "{measured:?}");
-    assert!(vision(&sim, t, t + Duration::from_millis(100)).iter().all(|v| v.covariance[0] >= 99.0), "loose still");
+    assert!(
+        vision(&sim, t, t + Duration::from_millis(100)).iter().all(|v| v.covariance[0] >= 99.0),
+        "loose still"
+    );
     // Stale after 0.2 s: not claimed any more.
     sim.run_until(t + Duration::from_millis(400));
     let stale = velocities(&sim, t + Duration::from_millis(250), t + Duration::from_millis(400));
