@@ -544,6 +544,9 @@ impl LivePipeline for IndoorLive {
             None => None,
         };
         if frame.motion_only {
+            if let Some(v) = velocity {
+                self.localizer.coast(t, v);
+            }
             return report;
         }
         let e = match self.localizer.step_frame(

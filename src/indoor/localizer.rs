@@ -317,10 +317,7 @@ impl Localizer {
         let step = dt + gap;
         let (displacement, process, measured) = self.motion(step, velocity);
         self.velocity_measured = measured;
-        let process_g = Gaussian2::new(&process).unwrap_or_else(|| {
-            Gaussian2::new(&(Matrix2::identity() * 1e-4)).expect("a positive diagonal is positive definite")
-        });
-        self.pf.predict(displacement, &process_g);
+        self.predict(displacement, &process);
         self.knn.nearest(histogram, self.params.k, None, &mut self.scratch, &mut self.found);
         let neighbours: Vec<Vector2<f64>> = self.found.iter().map(|n| self.positions[n.index]).collect();
         // An empty histogram (nothing valid in view) carries no measurement.
@@ -358,6 +355,30 @@ impl Localizer {
             velocity: if step > 0.0 { displacement / step } else { Vector2::zeros() },
             fix,
         }
+    }
+
+    /// A frame that measures nothing but the vehicle's velocity (the camera too low to see
+    /// the floor as trained, climbing or descending): the particles move with the vehicle
+    /// and spread, and the estimate is left alone. Without this the first frame high enough
+    /// finds the particles where the vehicle left the floor.
+    pub fn coast(&mut self, t: f64, velocity: Vector2<f64>) {
+        let dt = match self.last_t {
+            Some(last) if t > last && t - last <= MAX_GAP_S => t - last,
+            _ => {
+                self.last_t = Some(t);
+                return;
+            }
+        };
+        self.last_t = Some(t);
+        let (displacement, process, _) = self.motion(dt, Some(velocity));
+        self.predict(displacement, &process);
+    }
+
+    fn predict(&mut self, displacement: Vector2<f64>, process: &Matrix2<f64>) {
+        let process_g = Gaussian2::new(process).unwrap_or_else(|| {
+            Gaussian2::new(&(Matrix2::identity() * 1e-4)).expect("a positive diagonal is positive definite")
+        });
+        self.pf.predict(displacement, &process_g);
     }
 
     /// Searching -> tracking when the particles have agreed for `TRACK_AFTER_S`; tracking
@@ -575,6 +596,30 @@ mod tests {
         truth += v * 2.0;
         let e = loc.step_histogram(t, &seen_at(truth), Some(v));
         assert!((e.position - truth).norm() < 0.4, "{:?} vs truth {truth:?}", e.position);
+    }
+
+    /// Too low to see the floor, the particles still follow the vehicle on its measured
+    /// velocity: the first frame high enough finds them where it is, not at the pad.
+    #[test]
+    fn frames_that_measure_only_the_velocity_carry_the_particles_along() {
+        let mut loc = Localizer::new(
+            &grid_model(),
+            LocalizerParams { particles: 300, ..params(MotionModel::Velocity) },
+        )
+        .unwrap();
+        let pad = Vector2::new(-2.0, -2.0);
+        loc.start_at(pad, 0.05);
+        let v = Vector2::new(0.3, -0.2);
+        // 3 s of blind climb at 15 frames/s.
+        for i in 0..=45 {
+            loc.coast(i as f64 / 15.0, v);
+        }
+        let moved = pad + v * 3.0;
+        let mean = loc.particles().iter().sum::<Vector2<f64>>() / loc.particles().len() as f64;
+        assert!((mean - moved).norm() < 0.05, "particles at {mean:?}, the vehicle at {moved:?}");
+        // The first real frame: the estimate is where the vehicle is.
+        let e = loc.step_histogram(3.0 + 1.0 / 15.0, &seen_at(moved), Some(v));
+        assert!((e.position - moved).norm() < 0.2, "{:?} vs {moved:?}", e.position);
     }
 
     /// From a given start (a GPS-denied pad) the filter never searches the floor again,

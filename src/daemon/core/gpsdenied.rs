@@ -38,7 +38,7 @@ const PAD_SD_M: f64 = 0.05;
 /// after the camera saw again; measured against PX4 v1.16 SIH, the vehicle was lost.
 /// Over a 3 s climb at 30 Hz this still weighs as one measurement of about 1 m SD.
 pub const BLIND_SD_M: f64 = 10.0;
-/// The camera's velocity goes out with the estimates off the floor while it is at most
+/// The camera's velocity goes out with the next estimate off the floor if it is at most
 /// this old (the camera runs at 15 Hz or so; older, the vehicle may be doing otherwise).
 const VELOCITY_FRESH: Duration = Duration::from_millis(200);
 
@@ -256,7 +256,9 @@ impl GpsDenied {
             // fresh, keeps EKF2 from drifting on its IMU alone until the camera is high
             // enough to localise (measured against PX4 v1.16 SIH: a 0.5 m drift in a 4 s
             // blind climb, and its heading pulled 30 degrees off by the correction after).
-            let v = match (self.phase, self.velocity) {
+            // Each of the camera's velocities goes out once: sent again, the autopilot would
+            // count one measurement twice.
+            let v = match (self.phase, self.velocity.take()) {
                 (Phase::Standing, _) => VelocityEstimate::STANDING,
                 (_, Some((t, v))) if now.saturating_sub(t) <= VELOCITY_FRESH => v,
                 _ => VelocityEstimate::UNMEASURED,
