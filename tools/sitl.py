@@ -256,11 +256,25 @@ def fly_indoor(m, zone, max_s, events, t0, status_path):
         m.mav.set_position_target_local_ned_send(0, 1, 1, mavutil.mavlink.MAV_FRAME_LOCAL_NED, mask,
                                                  x, y, z, 0, 0, 0, 0, 0, 0, 0, 0)
 
-    for _ in range(20):  # PX4 wants the offboard signal before the switch
-        setpoint(x, y)
-        time.sleep(0.05)
-    if command(m, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 1, PX4_OFFBOARD, 0) != 0:
-        raise RuntimeError("OFFBOARD refused")
+    # PX4 wants the offboard signal before the switch and while it decides; the setpoints
+    # keep coming while the command waits for its ACK. One cold start of 25 had the switch
+    # refused once ("No offboard signal"); it is tried again, up to 5 times.
+    for attempt in range(5):
+        for _ in range(20):
+            setpoint(x, y)
+            time.sleep(0.05)
+        m.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_DO_SET_MODE, 0, 1, PX4_OFFBOARD, 0, 0, 0, 0, 0)
+        result, deadline = None, time.time() + 3
+        while result is None and time.time() < deadline:
+            setpoint(x, y)
+            a = m.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.05)
+            if a is not None and a.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
+                result = a.result
+        if result == 0:
+            break
+        events.append(f"OFFBOARD refused (result {result}), attempt {attempt + 1}")
+    else:
+        raise RuntimeError("OFFBOARD refused 5 times")
     events.append("offboard: flying to the zone at 0.5 m/s")
     dx, dy = zone[0] - x, zone[1] - y
     dist = (dx * dx + dy * dy) ** 0.5

@@ -86,6 +86,8 @@ struct Live {
     fed_pose_local: f64,
     /// The sim camera's scenario origin, read once (the truth is placed in its world).
     sim_origin: std::cell::OnceCell<Option<Geodetic>>,
+    /// The simulator's true position between its quantised reports.
+    truth_track: camera::sim::TruthTrack,
     next_drop_log: Mono,
     dropped_logged: u64,
 }
@@ -112,6 +114,7 @@ impl Live {
             dropped_before: 0,
             last_align_error: None,
             fed_pose_local: f64::NEG_INFINITY,
+            truth_track: Default::default(),
             sim_origin: std::cell::OnceCell::new(),
             next_drop_log: Mono::ZERO + Duration::from_secs(10),
             dropped_logged: 0,
@@ -611,8 +614,10 @@ fn feed_truth(core: &Core, live: &mut Live, now: Mono) {
     // Camera relative to the body, as the telemetry has it; put on the true body.
     let body_to_camera = est.vehicle.attitude.to_rotation_matrix().inverse() * est.camera.attitude;
     let geo = Geodetic::new(h.lat as f64 * 1e-7, h.lon as f64 * 1e-7, h.alt as f64 * 1e-3);
+    let quantised = crate::geometry::LocalFrame::new(origin).to_ned(&geo);
+    let velocity = crate::geometry::Vec3::new(h.vx as f64, h.vy as f64, h.vz as f64) * 0.01;
     let pose = crate::geometry::CameraPose {
-        position: crate::geometry::LocalFrame::new(origin).to_ned(&geo),
+        position: live.truth_track.update(local, quantised, velocity),
         attitude: body.to_rotation_matrix() * body_to_camera,
     };
     live.fed_pose_local = local;

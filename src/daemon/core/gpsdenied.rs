@@ -215,8 +215,15 @@ impl GpsDenied {
         (!self.notices.is_empty()).then(|| self.notices.remove(0))
     }
 
-    /// The next message, if due; `present`: the autopilot is there to hear it.
-    pub fn poll_transmit(&mut self, now: Mono, present: bool, target: u8) -> Option<MavMessage> {
+    /// The next message, if due; `present`: the autopilot is there to hear it;
+    /// `attitude`: its latest (roll, pitch, yaw), echoed as the pipeline's estimates echo it.
+    pub fn poll_transmit(
+        &mut self,
+        now: Mono,
+        present: bool,
+        target: u8,
+        attitude: Option<(f64, f64, f64)>,
+    ) -> Option<MavMessage> {
         let origin = self.origin?;
         if !present {
             return None;
@@ -263,7 +270,10 @@ impl GpsDenied {
                 (_, Some((t, v))) if now.saturating_sub(t) <= VELOCITY_FRESH => v,
                 _ => VelocityEstimate::UNMEASURED,
             };
-            return Some(odometry(Some(&e), &v, now.0, (0.0, 0.0, 0.0), self.floor.map(|f| f.1)));
+            // The attitude is echoed, not measured: EKF2 turns the vision frame by how far the
+            // attitude sent is from its own (ev_control.cpp), so a level one would tilt it.
+            let attitude = attitude.unwrap_or((0.0, 0.0, 0.0));
+            return Some(odometry(Some(&e), &v, now.0, attitude, self.floor.map(|f| f.1)));
         }
         None
     }

@@ -636,7 +636,8 @@ impl Core {
             .or_else(|| self.results.pop_front())
             .or_else(|| {
                 let present = self.autopilot.present();
-                let m = self.gps.poll_transmit(now, present, target);
+                let attitude = self.telemetry.attitude();
+                let m = self.gps.poll_transmit(now, present, target, attitude);
                 if m.as_ref().is_some_and(|m| matches!(m, MavMessage::ODOMETRY(_))) {
                     self.counters.standing_estimates_sent += 1;
                 }

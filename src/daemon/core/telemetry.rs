@@ -77,6 +77,11 @@ struct Candidate {
 pub struct Rebooted;
 
 impl Telemetry {
+    /// The autopilot's latest attitude: roll, pitch, yaw (rad).
+    pub fn attitude(&self) -> Option<(f64, f64, f64)> {
+        self.latest_attitude.map(|(_, q)| q.euler_angles())
+    }
+
     pub fn new(s: &Settings) -> Telemetry {
         let (ap, mount, offsets) = align_params(s);
         Telemetry {
