@@ -326,7 +326,10 @@ mod tests {
             }
             previous = Some((p, quantised, tracked));
         }
-        assert!(worst_step < 0.001, "a step {worst_step:.4} m off the vehicle's (quantised {worst_raw_step:.4})");
+        assert!(
+            worst_step < 0.001,
+            "a step {worst_step:.4} m off the vehicle's (quantised {worst_raw_step:.4})"
+        );
         assert!(worst_raw_step > 0.008);
         assert!(worst < 0.0066, "tracked {worst:.4} m off the truth");
         // A jump (a reset of the simulator) is taken as it is.

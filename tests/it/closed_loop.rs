@@ -193,7 +193,11 @@ fn indoor_flight_streams_vision_positions_and_lands_in_the_zone() {
     var.sort_by(f64::total_cmp);
     // SD 0.065 m/s at 1 m and 15 frames/s (the attitude's part); frames closer together
     // claim more.
-    assert!(var[0] > 0.0 && var[var.len() / 2] < 0.01, "variances {:?}", (var[0], var[var.len() / 2], var[var.len() - 1]));
+    assert!(
+        var[0] > 0.0 && var[var.len() / 2] < 0.01,
+        "variances {:?}",
+        (var[0], var[var.len() / 2], var[var.len() - 1])
+    );
 
     // The landing: commanded, acknowledged, and down inside the zone.
     assert!(seen["land_commands"].as_u64().unwrap() >= 1, "{text}");
