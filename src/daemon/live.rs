@@ -546,6 +546,16 @@ impl LivePipeline for IndoorLive {
         if frame.motion_only {
             if let Some(v) = velocity {
                 self.localizer.coast(t, v);
+                if self.localizer.tracking() {
+                    let (p, spread) = self.localizer.coasted();
+                    report.coasted = Some(PositionEstimate {
+                        autopilot_time: t,
+                        north: p.x,
+                        east: p.y,
+                        down: frame.pose.vehicle.position.z,
+                        cov: [[spread.0 * spread.0, 0.0], [0.0, spread.1 * spread.1]],
+                    });
+                }
             }
             return report;
         }

@@ -374,6 +374,12 @@ impl Localizer {
         self.predict(displacement, &process);
     }
 
+    /// Where the particles put the vehicle now, and their spread, with no new measurement
+    /// (after [`Localizer::coast`]).
+    pub fn coasted(&self) -> (Vector2<f64>, (f64, f64)) {
+        (self.pf.mode_estimate(MODE_RADIUS_M), self.pf.spread())
+    }
+
     fn predict(&mut self, displacement: Vector2<f64>, process: &Matrix2<f64>) {
         let process_g = Gaussian2::new(process).unwrap_or_else(|| {
             Gaussian2::new(&(Matrix2::identity() * 1e-4)).expect("a positive diagonal is positive definite")
@@ -617,6 +623,8 @@ mod tests {
         let moved = pad + v * 3.0;
         let mean = loc.particles().iter().sum::<Vector2<f64>>() / loc.particles().len() as f64;
         assert!((mean - moved).norm() < 0.05, "particles at {mean:?}, the vehicle at {moved:?}");
+        let (coasted, spread) = loc.coasted();
+        assert!((coasted - moved).norm() < 0.1 && spread.0 < 0.3, "{coasted:?} {spread:?}");
         // The first real frame: the estimate is where the vehicle is.
         let e = loc.step_histogram(3.0 + 1.0 / 15.0, &seen_at(moved), Some(v));
         assert!((e.position - moved).norm() < 0.2, "{:?} vs {moved:?}", e.position);

@@ -89,6 +89,9 @@ pub struct Report {
     pub position: Option<PositionEstimate>,
     /// The vehicle's velocity from the camera (indoor, [`crate::indoor::flow`]).
     pub velocity: Option<VelocityEstimate>,
+    /// Too low to localise: where the particles, carried on the camera's velocity, put the
+    /// vehicle. Not sent as a measurement; it is where the vehicle stands if it lands now.
+    pub coasted: Option<PositionEstimate>,
     /// Human-readable events (STATUSTEXT, INFO).
     pub events: Vec<String>,
     /// What the ground should not miss (STATUSTEXT, WARNING; WARN in the log).
@@ -1415,6 +1418,9 @@ impl Core {
             });
             self.gps.on_pipeline_estimate(now, &e);
         } else if let Some(v) = &report.velocity {
+            if let Some(c) = &report.coasted {
+                self.gps.on_coasted(c);
+            }
             if self.gps.enabled() && self.gps.phase() != gpsdenied::Phase::Seeing {
                 // Too low to localise: the velocity goes out with the estimates for a
                 // vehicle off the floor ([`GpsDenied`]), one stream, not two.

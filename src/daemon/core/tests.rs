@@ -1001,6 +1001,27 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     sim.run_until(t + Duration::from_millis(400));
     let stale = velocities(&sim, t + Duration::from_millis(250), t + Duration::from_millis(400));
     assert!(!stale.is_empty() && stale.iter().all(|(_, var)| var[0] >= 1.0e4), "{stale:?}");
+    // Where the particles, carried on that velocity, put the vehicle: not a measurement
+    // (still loose), but where it stands if it touches down.
+    let coasted = PositionEstimate {
+        autopilot_time: 0.0,
+        north: -2.2,
+        east: -2.6,
+        down: -0.3,
+        cov: [[0.01, 0.0], [0.0, 0.01]],
+    };
+    sim.core.handle(Input::Pipeline {
+        now: sim.now,
+        event: PipelineEvent::Report {
+            capture: sim.now.secs(),
+            attitude: (0.0, 0.0, 0.0),
+            report: Report { velocity: Some(climb), coasted: Some(coasted), ..Report::default() },
+        },
+    });
+    let t = sim.now;
+    sim.run_until(t + Duration::from_millis(100));
+    let loose = vision(&sim, t, t + Duration::from_millis(100));
+    assert!(!loose.is_empty() && loose.iter().all(|v| (v.x, v.y) == (-2.2, -2.6) && v.covariance[0] >= 99.0));
     for i in 0..20 {
         sim.run_until(secs(15) + Duration::from_millis(100 * i));
         sim.deliver(range(100));
@@ -1017,4 +1038,13 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     }
     assert_eq!(sim.core.height_above_floor(), Some(0.0));
     assert!(sim.core.too_low() && sim.core.vision_paused());
+    // Standing again where the particles last put it (no fix came after), tight.
+    let t = sim.now;
+    sim.run_until(t + Duration::from_millis(200));
+    let down = vision(&sim, t, t + Duration::from_millis(200));
+    assert!(
+        !down.is_empty() && down.iter().all(|v| (v.x, v.y) == (-2.2, -2.6) && v.covariance[0] <= 0.0101),
+        "{:?}",
+        down.first()
+    );
 }
