@@ -6,12 +6,12 @@
 //!
 //! Standing on the ground the downward camera sees a hand's width of floor the texton
 //! model was never trained on, so while the vehicle is on the floor mavloc sends where
-//! it stands: the pad (`indoor.pad_x_m/y_m`) until its first estimate in the air, then
-//! the last estimate before touchdown. Off the floor but below `indoor.min_height_m`
-//! (climbing, touching down) it does not know where the vehicle is: the same x and y go
-//! out with an SD of `BLIND_SD_M`, which EKF2 weighs at next to nothing, so it keeps its
-//! own inertial track, while z (the rangefinder's) stays tight. High enough, the
-//! pipeline's estimates go out and these stop.
+//! it stands, and that it is still: the pad (`indoor.pad_x_m/y_m`) until its first
+//! estimate in the air, then where the particles last put it before touchdown. Off the
+//! floor but below `indoor.min_height_m` (climbing, touching down) it cannot localise:
+//! x and y go out with an SD of `BLIND_SD_M`, which EKF2 weighs at next to nothing, with
+//! the camera's velocity when it has one, while z (the rangefinder's) stays tight. High
+//! enough, the pipeline's estimates go out and these stop.
 
 use std::time::Duration;
 
