@@ -13,7 +13,7 @@ use std::num::NonZero;
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use mavloc::filter::particle::{resampling_wheel, systematic, Gaussian2, ParticleFilter};
 use mavloc::indoor::derotate::{Canvas, Preprocessor};
-use mavloc::indoor::flow::{self, FlowFrame};
+use mavloc::indoor::flow::{Flow, FlowFrame};
 use mavloc::indoor::knn::Knn;
 use mavloc::indoor::localizer::{Localizer, LocalizerParams};
 use mavloc::indoor::model::{FrameParams, Model, TrainingInfo, MODEL_FORMAT, MODEL_VERSION};
@@ -120,20 +120,21 @@ fn stages(c: &mut Criterion) {
     // The camera's velocity (indoor::flow): a frame's grey copy and the two warps and the
     // DFT correlation against the frame before (the same frame twice here: the same work).
     let mut g = c.benchmark_group("indoor_flow");
+    let flow = Flow::new().unwrap();
     // A view level enough for the whole path (a steep one returns early).
     let (f0, r0) = frames
         .iter()
         .find(|(f, r)| {
             let a = FlowFrame::new(0.0, f, *r, 1.0).unwrap();
             let b = FlowFrame::new(1.0 / 15.0, f, *r, 1.0).unwrap();
-            flow::motion(&a, &b, &k).is_ok()
+            flow.motion(&a, &b, &k).is_ok()
         })
         .expect("a level view among the rendered ones");
     let prev = FlowFrame::new(0.0, f0, *r0, 1.0).unwrap();
     g.bench_function("velocity from a 640x480 frame and the one before", |b| {
         b.iter(|| {
             let cur = FlowFrame::new(1.0 / 15.0, black_box(f0), *r0, 1.0).unwrap();
-            black_box(flow::motion(&prev, &cur, &k))
+            black_box(flow.motion(&prev, &cur, &k))
         })
     });
     g.finish();

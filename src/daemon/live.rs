@@ -37,7 +37,7 @@ use crate::area::offline::{write_results, RunSummary};
 use crate::area::{AreaPipeline, FrameInput};
 use crate::geometry::{Geodetic, Intrinsics, LocalFrame};
 use crate::indoor::derotate::Preprocessor;
-use crate::indoor::flow::{self, FlowFrame};
+use crate::indoor::flow::{self, Flow, FlowFrame};
 use crate::indoor::landing::{Hold, LandingTrigger, LandingZone};
 use crate::indoor::localizer::{Localizer, LocalizerParams};
 use crate::indoor::model::Model;
@@ -391,6 +391,7 @@ pub struct IndoorLive {
     last_hold: Option<Hold>,
     /// The last frame, for the velocity from the next ([`flow`]).
     last_flow: Option<FlowFrame>,
+    flow: Flow,
     /// Frames with a velocity, and why the others had none (summary.json).
     flow_ok: u64,
     flow_failed: std::collections::BTreeMap<&'static str, u64>,
@@ -452,6 +453,7 @@ impl IndoorLive {
             frames: 0,
             last_hold: None,
             last_flow: None,
+            flow: Flow::new().map_err(|e| format!("indoor: cannot set up the camera's velocity: {e}"))?,
             flow_ok: 0,
             flow_failed: Default::default(),
         })
@@ -475,7 +477,7 @@ impl IndoorLive {
                 return None;
             }
         };
-        let m = self.last_flow.as_ref().map(|prev| flow::motion(prev, &cur, &self.pre.camera));
+        let m = self.last_flow.as_ref().map(|prev| self.flow.motion(prev, &cur, &self.pre.camera));
         self.last_flow = Some(cur);
         match m? {
             Ok(m) => {

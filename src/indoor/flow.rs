@@ -59,7 +59,7 @@ const ATTITUDE_CHANGE_SD_RAD: f64 = 0.25 * std::f64::consts::PI / 180.0;
 pub struct FlowFrame {
     /// Autopilot time of capture, s.
     pub t: f64,
-    /// Grey, 32-bit float, at the camera's resolution.
+    /// Grey, 8-bit, at the camera's resolution (only the canvas is made float).
     pub gray: Mat,
     /// "local <- camera (OpenCV axes)".
     pub local_from_camera: Rot3,
@@ -69,10 +69,8 @@ pub struct FlowFrame {
 
 impl FlowFrame {
     pub fn new(t: f64, bgr: &Mat, local_from_camera: Rot3, height: f64) -> opencv::Result<FlowFrame> {
-        let mut gray8 = Mat::default();
-        imgproc::cvt_color_def(bgr, &mut gray8, imgproc::COLOR_BGR2GRAY)?;
         let mut gray = Mat::default();
-        gray8.convert_to(&mut gray, CV_32F, 1.0, 0.0)?;
+        imgproc::cvt_color_def(bgr, &mut gray, imgproc::COLOR_BGR2GRAY)?;
         Ok(FlowFrame { t, gray, local_from_camera, height })
     }
 }
@@ -137,8 +135,26 @@ impl From<opencv::Error> for NoMotion {
     }
 }
 
-/// The camera's motion from `prev` to `cur`; `k`: the intrinsics of their images.
-pub fn motion(prev: &FlowFrame, cur: &FlowFrame, k: &Intrinsics) -> Result<Motion, NoMotion> {
+/// Measures the motion between frames; keeps what every pair uses (the correlation's
+/// window), so a frame costs only its two warps and the correlation.
+pub struct Flow {
+    window: Mat,
+}
+
+impl Flow {
+    pub fn new() -> opencv::Result<Flow> {
+        let mut window = Mat::default();
+        imgproc::create_hanning_window(&mut window, Size::new(SIDE, SIDE), CV_32F)?;
+        Ok(Flow { window })
+    }
+
+    /// The camera's motion from `prev` to `cur`; `k`: the intrinsics of their images.
+    pub fn motion(&self, prev: &FlowFrame, cur: &FlowFrame, k: &Intrinsics) -> Result<Motion, NoMotion> {
+        motion(prev, cur, k, &self.window)
+    }
+}
+
+fn motion(prev: &FlowFrame, cur: &FlowFrame, k: &Intrinsics, window: &Mat) -> Result<Motion, NoMotion> {
     let dt = cur.t - prev.t;
     if !(dt > 0.0 && dt <= MAX_DT_S) {
         return Err(NoMotion::Time(dt));
@@ -160,11 +176,9 @@ pub fn motion(prev: &FlowFrame, cur: &FlowFrame, k: &Intrinsics) -> Result<Motio
             return Err(NoMotion::Blank(sd));
         }
     }
-    let mut window = Mat::default();
-    imgproc::create_hanning_window(&mut window, Size::new(SIDE, SIDE), CV_32F)?;
     let mut response = 0.0;
     // The floor's content moves by `shift` canvas pixels from a to b.
-    let shift = imgproc::phase_correlate(&a, &b, &window, Some(&mut response))?;
+    let shift = imgproc::phase_correlate(&a, &b, window, Some(&mut response))?;
     if response.is_nan() || response < MIN_RESPONSE {
         return Err(NoMotion::Weak(response));
     }
@@ -211,7 +225,10 @@ fn canvas(f: &FlowFrame, k: &Intrinsics, pixel_m: f64) -> Result<Mat, NoMotion> 
         BORDER_CONSTANT,
         Default::default(),
     )?;
-    Ok(out)
+    // Float for the correlation: the canvas only, not the whole frame.
+    let mut float = Mat::default();
+    out.convert_to(&mut float, CV_32F, 1.0, 0.0)?;
+    Ok(float)
 }
 
 fn to_mat(h: &Matrix3<f64>) -> opencv::Result<Mat> {
@@ -276,6 +293,10 @@ mod tests {
         )
         .unwrap();
         out
+    }
+
+    fn motion(a: &FlowFrame, b: &FlowFrame, k: &Intrinsics) -> Result<Motion, NoMotion> {
+        Flow::new().unwrap().motion(a, b, k)
     }
 
     fn k() -> Intrinsics {

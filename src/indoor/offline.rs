@@ -471,6 +471,7 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     let mut rows = Vec::with_capacity(total);
     let k = ds.camera.intrinsics();
     let mut last_flow: Option<super::flow::FlowFrame> = None;
+    let flow = super::flow::Flow::new().map_err(|e| e.to_string())?;
     let (mut flow_n, mut flow_sq) = (0usize, 0.0);
     for (i, r) in ds.records.iter().take(total).enumerate() {
         let t0 = Instant::now();
@@ -490,7 +491,7 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         let v = if opts.camera_velocity {
             let cur = super::flow::FlowFrame::new(r.t, &img, pose_rotation(r, &ds), frame_height(r))
                 .map_err(|e| format!("frame {}: {e}", r.frame))?;
-            let m = last_flow.as_ref().and_then(|prev| super::flow::motion(prev, &cur, &k).ok());
+            let m = last_flow.as_ref().and_then(|prev| flow.motion(prev, &cur, &k).ok());
             last_flow = Some(cur);
             m.map(|m| {
                 flow_n += 1;
