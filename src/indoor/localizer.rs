@@ -518,6 +518,18 @@ mod tests {
 
     /// The grid flight: a 500-particle localiser with the velocity model over the grid,
     /// the vehicle's velocity, its start and the frame interval (15 frames/s).
+    /// A velocity-model filter on the grid floor, started (GPS-denied) at a pad with this SD.
+    fn started_on_the_pad(sd_m: f64) -> (Localizer, Vector2<f64>) {
+        let mut loc = Localizer::new(
+            &grid_model(),
+            LocalizerParams { particles: 300, ..params(MotionModel::Velocity) },
+        )
+        .unwrap();
+        let pad = Vector2::new(-2.0, -2.0);
+        loc.start_at(pad, sd_m);
+        (loc, pad)
+    }
+
     fn grid_flight() -> (Localizer, Vector2<f64>, Vector2<f64>, f64) {
         let loc = Localizer::new(
             &grid_model(),
@@ -608,13 +620,7 @@ mod tests {
     /// velocity: the first frame high enough finds them where it is, not at the pad.
     #[test]
     fn frames_that_measure_only_the_velocity_carry_the_particles_along() {
-        let mut loc = Localizer::new(
-            &grid_model(),
-            LocalizerParams { particles: 300, ..params(MotionModel::Velocity) },
-        )
-        .unwrap();
-        let pad = Vector2::new(-2.0, -2.0);
-        loc.start_at(pad, 0.05);
+        let (mut loc, pad) = started_on_the_pad(0.05);
         let v = Vector2::new(0.3, -0.2);
         // 3 s of blind climb at 15 frames/s.
         for i in 0..=45 {
@@ -634,13 +640,7 @@ mod tests {
     /// however long the frames point elsewhere.
     #[test]
     fn a_track_from_a_given_start_is_never_given_up() {
-        let mut loc = Localizer::new(
-            &grid_model(),
-            LocalizerParams { particles: 300, ..params(MotionModel::Velocity) },
-        )
-        .unwrap();
-        let pad = Vector2::new(-2.0, -2.0);
-        loc.start_at(pad, 0.1);
+        let (mut loc, pad) = started_on_the_pad(0.1);
         let far = seen_at(Vector2::new(3.0, 3.0));
         let mut e = None;
         for i in 0..(15.0 * (LOST_AFTER_S + 3.0)) as usize {
