@@ -1381,9 +1381,10 @@ impl Core {
     /// can map the stamps onto its own).
     ///
     /// The indoor estimate goes out as ODOMETRY when the camera measured the velocity too
-    /// (position and velocity in the local NED frame; PX4's EKF2 fuses the velocity with
-    /// `EKF2_EV_CTRL` bit 2), else as VISION_POSITION_ESTIMATE (horizontal position,
-    /// `EKF2_EV_CTRL` bit 0), each with its covariance.
+    /// (position in the local NED frame, velocity in body axes; PX4's EKF2 fuses the
+    /// velocity with `EKF2_EV_CTRL` bit 2), else as VISION_POSITION_ESTIMATE (horizontal
+    /// position, `EKF2_EV_CTRL` bit 0), each with its covariance. Too low to localise
+    /// without GPS, the velocity goes out with the estimates for a vehicle off the floor.
     /// Area landmarks go out as DEBUG_VECT named `LMK` (north, east, down in metres,
     /// local NED of the autopilot), which QGroundControl's MAVLink inspector shows.
     fn publish(&mut self, now: Mono, report: &Report, capture: f64, attitude: (f64, f64, f64)) {
