@@ -33,12 +33,17 @@ pub struct PhotoFeatures {
 
 /// SIFT on a downscaled grey copy; pixels in full-resolution coordinates.
 pub fn features(bgr: &Mat) -> opencv::Result<PhotoFeatures> {
+    features_sized(bgr, FEATURES, WORK_WIDTH)
+}
+
+/// [`features`] with `count` keypoints on a copy `width` pixels wide (never enlarged).
+pub fn features_sized(bgr: &Mat, count: i32, width: f64) -> opencv::Result<PhotoFeatures> {
     let mut grey = Mat::default();
     imgproc::cvt_color(bgr, &mut grey, imgproc::COLOR_BGR2GRAY, 0)?;
-    let scale = (WORK_WIDTH / grey.cols() as f64).min(1.0);
+    let scale = (width / grey.cols() as f64).min(1.0);
     let mut small = Mat::default();
     imgproc::resize(&grey, &mut small, core::Size::new(0, 0), scale, scale, imgproc::INTER_AREA)?;
-    let mut sift = SIFT::create(FEATURES, 3, 0.04, 10.0, 1.6)?;
+    let mut sift = SIFT::create(count, 3, 0.04, 10.0, 1.6)?;
     let mut keypoints = Vector::new();
     let mut descriptors = Mat::default();
     sift.detect_and_compute(&small, &core::no_array(), &mut keypoints, &mut descriptors, false)?;
@@ -49,8 +54,26 @@ pub fn features(bgr: &Mat) -> opencv::Result<PhotoFeatures> {
     Ok(PhotoFeatures { pixels, descriptors })
 }
 
+impl PhotoFeatures {
+    /// The keypoints, full-resolution pixels.
+    pub fn pixels(&self) -> &[Pixel] {
+        &self.pixels
+    }
+
+    /// Keypoints without descriptors (tests that give the matches themselves).
+    #[cfg(test)]
+    pub fn from_pixels(pixels: Vec<Pixel>) -> PhotoFeatures {
+        PhotoFeatures { pixels, descriptors: Mat::default() }
+    }
+}
+
 /// Pixel pairs (a, b) of ratio-test matches.
 fn matches(a: &PhotoFeatures, b: &PhotoFeatures) -> opencv::Result<Vec<(Pixel, Pixel)>> {
+    Ok(matched(a, b)?.into_iter().map(|(i, j)| (a.pixels[i], b.pixels[j])).collect())
+}
+
+/// Keypoint index pairs (in a, in b) of ratio-test matches (Lowe's 0.75).
+pub fn matched(a: &PhotoFeatures, b: &PhotoFeatures) -> opencv::Result<Vec<(usize, usize)>> {
     if a.pixels.len() < 2 || b.pixels.len() < 2 {
         return Ok(Vec::new());
     }
@@ -62,7 +85,7 @@ fn matches(a: &PhotoFeatures, b: &PhotoFeatures) -> opencv::Result<Vec<(Pixel, P
         if pair.len() == 2 {
             let (m1, m2) = (pair.get(0)?, pair.get(1)?);
             if m1.distance < 0.75 * m2.distance {
-                out.push((a.pixels[m1.query_idx as usize], b.pixels[m1.train_idx as usize]));
+                out.push((m1.query_idx as usize, m1.train_idx as usize));
             }
         }
     }
@@ -70,7 +93,7 @@ fn matches(a: &PhotoFeatures, b: &PhotoFeatures) -> opencv::Result<Vec<(Pixel, P
 }
 
 /// Where a pixel's ray meets the horizontal plane `down`, if it does (north, east).
-fn on_ground(pose: &CameraPose, k: &Intrinsics, px: Pixel, down: f64) -> Option<[f64; 2]> {
+pub fn on_ground(pose: &CameraPose, k: &Intrinsics, px: Pixel, down: f64) -> Option<[f64; 2]> {
     let d = pose.direction(k, px);
     let t = (down - pose.position.z) / d.z;
     (d.z > 1e-3 && t > 0.0).then(|| [pose.position.x + t * d.x, pose.position.y + t * d.y])

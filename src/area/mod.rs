@@ -14,6 +14,7 @@
 //! the camera pose the telemetry gives, and returns what changed. It knows nothing of
 //! files, MAVLink or tokio.
 
+pub mod align;
 pub mod baseline;
 pub mod border;
 pub mod crosslines;

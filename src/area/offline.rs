@@ -74,6 +74,9 @@ pub struct RunSummary {
     pub refined_median_after_px: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub attitude_correction_median_deg: Option<f64>,
+    /// Sightings the refinement left out as false matches (`area::refine`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_left_out: Option<usize>,
     /// The static gimbal offset the refinement found beside the per-frame corrections
     /// (yaw, pitch, roll, degrees, to add to `gimbal.*_offset_deg`) and its SD from the
     /// sightings.
@@ -93,6 +96,33 @@ pub struct RunSummary {
     pub cross_line_median_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_line_refined_median_m: Option<f64>,
+    /// Photo alignment by tie points before the filters (`area.align_prior_deg`,
+    /// `area::align`): photos aligned, tie points kept, overlapping pairs matched and
+    /// linked, the tie points' median reprojection error (full-resolution pixels) with
+    /// the tags and aligned, the median correction, and how far apart the tie points seen
+    /// from two lines are, triangulated from each line with the tags and aligned.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub aligned_photos: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tie_points: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tie_pairs_matched: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tie_pairs_linked: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tie_pairs_dropped: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub align_median_before_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub align_median_after_px: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub align_correction_median_deg: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_tie_pairs: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_tie_median_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_tie_aligned_median_m: Option<f64>,
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
@@ -218,6 +248,113 @@ impl From<&super::library::TraceEntry> for TraceRow {
     }
 }
 
+/// Photo surveys are aligned up to this many photos (every overlapping pair is matched).
+pub const ALIGN_MAX_FRAMES: usize = 500;
+
+/// Aligns the dataset's photos by their tie points (`area::align`), fills the summary's
+/// alignment fields and writes `alignment.csv`; returns each frame's rotation correction.
+/// Empty when no two photos share a tie point.
+fn align_photos(
+    ds: &Dataset,
+    s: &Settings,
+    records: &[mavloc_data::dataset::TelemetryRecord],
+    out: &Path,
+    summary: &mut RunSummary,
+) -> anyhow::Result<std::collections::BTreeMap<u64, super::align::Correction>> {
+    use super::align;
+    use std::collections::BTreeMap;
+    let k = ds.camera.intrinsics();
+    let mut photos = Vec::new();
+    for r in records {
+        // A frame that cannot be read is reported by the run itself.
+        let Ok(img) = crate::imaging::read_image(&ds.frame_path(r), imgcodecs::IMREAD_COLOR) else {
+            continue;
+        };
+        if (img.cols(), img.rows()) != (k.width as i32, k.height as i32) {
+            continue;
+        }
+        let features = super::imageup::features_sized(&img, align::FEATURES, align::WORK_WIDTH)?;
+        let pose = ds.camera_pose(&r.measured, s.gimbal.offsets_deg());
+        photos.push(align::Photo { frame: r.frame, features, pose });
+    }
+    let (pairs, tried) = align::match_pairs(&photos, &k, s.area.ground_down_m)?;
+    summary.tie_pairs_matched = Some(tried);
+    let tagged: BTreeMap<u64, crate::geometry::CameraPose> =
+        photos.iter().map(|p| (p.frame, p.pose)).collect();
+    let Some(a) =
+        align::align(&photos, pairs, &k, s.area.ground_down_m, s.area.align_prior_deg, s.area.align_shift_m)
+    else {
+        tracing::warn!("photo alignment: no two photos share a tie point; the tags are used as they are");
+        summary.tie_points = Some(0);
+        return Ok(BTreeMap::new());
+    };
+    let mut per_frame: BTreeMap<u64, usize> = BTreeMap::new();
+    for s in &a.ties.sightings {
+        *per_frame.entry(s.0).or_default() += 1;
+    }
+    summary.aligned_photos = Some(per_frame.len());
+    summary.tie_pairs_linked = Some(a.ties.pairs_linked);
+    summary.tie_pairs_dropped = Some(a.dropped_pairs);
+    summary.tie_points = Some(a.ties.points.len());
+    summary.align_median_before_px = Some(a.median_before_px);
+    summary.align_median_after_px = Some(a.median_after_px);
+    let mut angles: Vec<f64> = a
+        .corrections
+        .iter()
+        .filter(|(f, _)| per_frame.contains_key(f))
+        .map(|(_, c)| c.rotation.norm().to_degrees())
+        .collect();
+    if !angles.is_empty() {
+        summary.align_correction_median_deg = Some(super::residuals::quantile(&mut angles, 0.5));
+    }
+    // Do the lines agree on the tie points, as tagged and aligned?
+    let lines = super::crosslines::flight_lines(&tagged.iter().map(|(f, p)| (*f, p.position)).collect());
+    if lines.values().max().is_some_and(|&m| m >= 1) {
+        let at: BTreeMap<u64, crate::geometry::Vec3> =
+            a.ties.points.iter().map(|l| (l.id, l.position)).collect();
+        let aligned: BTreeMap<u64, crate::geometry::CameraPose> =
+            tagged.iter().map(|(f, p)| (*f, a.corrections[f].apply(p))).collect();
+        let sd = s.area.bearing_noise_deg.to_radians();
+        let median = |poses: &BTreeMap<u64, crate::geometry::CameraPose>| {
+            let mut d = super::crosslines::disagreement(&a.ties.sightings, poses, &k, &lines, &at, sd);
+            (d.len(), (!d.is_empty()).then(|| super::residuals::quantile(&mut d, 0.5)))
+        };
+        let (n, before) = median(&tagged);
+        summary.cross_line_tie_pairs = Some(n);
+        summary.cross_line_tie_median_m = before;
+        summary.cross_line_tie_aligned_median_m = median(&aligned).1;
+    }
+    let mut csv = String::from(
+        "frame,tie_sightings,correction_deg,about_north_deg,about_east_deg,about_down_deg,shift_north_m,shift_east_m,shift_down_m\n",
+    );
+    for (f, c) in &a.corrections {
+        let g = c.rotation.map(f64::to_degrees);
+        let t = c.shift;
+        let n = per_frame.get(f).copied().unwrap_or(0);
+        csv.push_str(&format!(
+            "{f},{n},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.3}\n",
+            g.norm(),
+            g.x,
+            g.y,
+            g.z,
+            t.x,
+            t.y,
+            t.z
+        ));
+    }
+    output::write_atomic(&out.join("alignment.csv"), csv.as_bytes())?;
+    tracing::info!(
+        photos = per_frame.len(),
+        tie_points = a.ties.points.len(),
+        before_px = a.median_before_px,
+        after_px = a.median_after_px,
+        dropped = a.dropped,
+        dropped_pairs = a.dropped_pairs,
+        "photos aligned by their tie points"
+    );
+    Ok(a.corrections)
+}
+
 /// Runs the configured method over a dataset. `progress(done, total)` after each frame.
 pub fn run(opts: &RunOptions, s: &Settings, progress: impl FnMut(u64, u64)) -> anyhow::Result<RunSummary> {
     Ok(run_observed(opts, s, progress, false)?.0)
@@ -274,6 +411,19 @@ pub fn run_observed(
     // Every frame on the contact sheets, as tiles.
     let mut sheet = Vec::new();
     let start = Instant::now();
+    let aligning = s.area.align_prior_deg > 0.0 && pipeline.is_some();
+    let alignment = if aligning && (total as usize) <= ALIGN_MAX_FRAMES {
+        align_photos(&ds, s, &ds.records[..total as usize], &opts.out, &mut summary)?
+    } else {
+        if aligning {
+            tracing::warn!("photo alignment is for surveys of up to {ALIGN_MAX_FRAMES} photos; not aligned");
+        }
+        std::collections::BTreeMap::new()
+    };
+    let aligned = |f: u64, pose: crate::geometry::CameraPose| match alignment.get(&f) {
+        Some(c) => c.apply(&pose),
+        None => pose,
+    };
     let mut preparing = std::time::Duration::ZERO;
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
         let t_read = Instant::now();
@@ -316,7 +466,7 @@ pub fn run_observed(
         }
         let (grey, small_mask) = prepare(&img, &mask, downscale)?;
         preparing += t_read.elapsed();
-        let pose = ds.camera_pose(&record.measured, s.gimbal.offsets_deg());
+        let pose = aligned(record.frame, ds.camera_pose(&record.measured, s.gimbal.offsets_deg()));
         match pipeline.as_mut() {
             Some(p) => {
                 let t = Instant::now();
@@ -417,24 +567,26 @@ pub fn run_observed(
             // the converged landmarks.
             let base = s.gimbal.offsets_deg();
             let pose = |f: u64, o: &crate::geometry::Vec3| {
-                ds.camera_pose(&measured[&f], [base[0] + o.x, base[1] + o.y, base[2] + o.z])
+                aligned(f, ds.camera_pose(&measured[&f], [base[0] + o.x, base[1] + o.y, base[2] + o.z]))
             };
             let frames: Vec<u64> = poses.keys().copied().collect();
-            let r = super::refine::refine_with_offset(
-                &seen,
-                &results,
-                &frames,
-                &pose,
-                &k,
-                &super::refine::RefineParams {
-                    // A sighting is as good as the bearing noise the filters assume.
-                    pixel_sd: (s.area.bearing_noise_deg.to_radians() * k.fx).max(0.5),
-                    ..super::refine::RefineParams::new(s.area.attitude_prior_deg)
-                },
-            );
+            let params = super::refine::RefineParams {
+                // A sighting is as good as the bearing noise the filters assume.
+                pixel_sd: (s.area.bearing_noise_deg.to_radians() * k.fx).max(0.5),
+                ..super::refine::RefineParams::new(s.area.attitude_prior_deg)
+            };
+            // Photos aligned by their tie points have each had their own rotation found
+            // already, a shared offset with it: no static offset is left to tell apart
+            // (and for a nadir camera its yaw and roll are one rotation).
+            let r = if alignment.is_empty() {
+                super::refine::refine_with_offset(&seen, &results, &frames, &pose, &k, &params)
+            } else {
+                super::refine::refine(&seen, &results, &poses, &k, &params)
+            };
             let scale = downscale as f64;
             summary.refined_median_before_px = Some(r.median_before_px * scale);
             summary.refined_median_after_px = Some(r.median_after_px * scale);
+            summary.refined_left_out = Some(r.left_out);
             if let Some((o, sd)) = r.offset_deg {
                 summary.refined_gimbal_offset_deg = Some(o);
                 summary.refined_gimbal_offset_sd_deg = Some(sd);

@@ -88,6 +88,25 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
             summary.band_ms, summary.sift_ms, summary.match_estimate_ms, summary.purge_add_ms
         );
     }
+    if let (Some(n), Some(t)) = (summary.aligned_photos, summary.tie_points) {
+        println!(
+            "photo alignment: {n} photos by {t} tie points over {} linked pairs of {} overlapping ({} dropped as false links); tie points reproject within {:.1} px as tagged -> {:.1} px aligned (median), photos corrected by {:.2} deg (median; alignment.csv)",
+            summary.tie_pairs_linked.unwrap_or(0),
+            summary.tie_pairs_matched.unwrap_or(0),
+            summary.tie_pairs_dropped.unwrap_or(0),
+            summary.align_median_before_px.unwrap_or(f64::NAN),
+            summary.align_median_after_px.unwrap_or(f64::NAN),
+            summary.align_correction_median_deg.unwrap_or(f64::NAN),
+        );
+    }
+    if let Some(n) = summary.cross_line_tie_pairs {
+        let m = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2} m"));
+        println!(
+            "tie points triangulated from each of two lines alone ({n} pairs) lie {} apart as tagged, {} aligned (median)",
+            m(summary.cross_line_tie_median_m),
+            m(summary.cross_line_tie_aligned_median_m)
+        );
+    }
     if let (Some(m), Some(p90)) = (summary.residual_median_px, summary.residual_p90_px) {
         println!("reprojection residuals of converged landmarks: median {m:.1} px, 90th percentile {p90:.1} px (per frame: residuals.csv)");
     }
@@ -96,7 +115,8 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         summary.refined_median_after_px,
         summary.attitude_correction_median_deg,
     ) {
-        println!("attitude refinement: sightings reproject within {b:.1} px -> {a:.1} px (median), frames corrected by {d:.2} deg (median; attitude.csv)");
+        let out = summary.refined_left_out.unwrap_or(0);
+        println!("attitude refinement: sightings reproject within {b:.1} px -> {a:.1} px (median), frames corrected by {d:.2} deg (median; attitude.csv); {out} sightings left out as false matches");
     }
     if let (Some(o), Some(sd)) = (summary.refined_gimbal_offset_deg, summary.refined_gimbal_offset_sd_deg) {
         println!(

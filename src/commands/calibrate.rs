@@ -52,6 +52,8 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
     crate::logging::init(&settings.daemon.log);
     // The filters' landmarks, not ones already bent by per-frame attitude corrections.
     settings.area.attitude_prior_deg = 0.0;
+    // and on the recorded poses: aligning each photo first would absorb the offset.
+    settings.area.align_prior_deg = 0.0;
     // Without --out the run's files go to a temporary folder, removed however this ends.
     let temp = match &a.out {
         Some(_) => None,

@@ -265,6 +265,12 @@ pub struct Area {
     /// SD of the recorded attitude, degrees: the prior of the attitude refinement run
     /// after the landmark filters offline (`area::refine`); 0 = no refinement.
     pub attitude_prior_deg: f64,
+    /// SD of the recorded attitude, degrees, for aligning the photos to each other by
+    /// their tie points before the landmark filters run (`area::align`); 0 = off.
+    pub align_prior_deg: f64,
+    /// SD of the recorded positions for the same alignment, metres (each photo's
+    /// position shift is estimated with it); 0 = positions held as recorded.
+    pub align_shift_m: f64,
     pub segmenter: Segmenter,
     pub hsv_low: Vec<f64>,
     pub hsv_high: Vec<f64>,
@@ -305,6 +311,8 @@ impl Default for Area {
             ground_down_m: 0.0,
             max_descriptors: 8,
             attitude_prior_deg: 0.0,
+            align_prior_deg: 0.0,
+            align_shift_m: 5.0,
             segmenter: Segmenter::Masks,
             hsv_low: vec![90.0, 60.0, 30.0],
             hsv_high: vec![130.0, 255.0, 255.0],
