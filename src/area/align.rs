@@ -109,7 +109,7 @@ fn footprint(pose: &CameraPose, k: &Intrinsics, down: f64) -> Option<([f64; 2], 
 
 /// Verified matches of two photos: ratio-test matches that fit one fundamental matrix.
 fn verified(a: &PhotoFeatures, b: &PhotoFeatures, threshold_px: f64) -> opencv::Result<Vec<(usize, usize)>> {
-    let m = imageup::matched(a, b)?;
+    let m = imageup::matched_fast(a, b)?;
     if m.len() < MIN_INLIERS {
         return Ok(Vec::new());
     }
@@ -175,13 +175,8 @@ pub fn match_pairs(photos: &[Photo], k: &Intrinsics, down: f64) -> opencv::Resul
 }
 
 /// Chains the pairs' matches into tracks; each starts where its rays meet the plane
-/// `down`, averaged. Also returns each (photo, keypoint)'s track id.
-pub fn tracks(
-    photos: &[Photo],
-    pairs: &[PairMatches],
-    k: &Intrinsics,
-    down: f64,
-) -> (TiePoints, HashMap<(usize, usize), u64>) {
+/// `down`, averaged.
+pub fn tracks(photos: &[Photo], pairs: &[PairMatches], k: &Intrinsics, down: f64) -> TiePoints {
     // Keypoint j of photo i is node offset[i] + j.
     let mut offset = Vec::with_capacity(photos.len());
     let mut nodes = 0;
@@ -203,7 +198,6 @@ pub fn tracks(
         }
     }
     let mut out = TiePoints { pairs_linked: pairs.len(), ..TiePoints::default() };
-    let mut ids = HashMap::new();
     for members in groups.values() {
         let mut seen_in: Vec<usize> = members.iter().map(|m| m.0).collect();
         seen_in.sort_unstable();
@@ -237,10 +231,9 @@ pub fn tracks(
         });
         for &(i, j) in members {
             out.sightings.push((photos[i].frame, id, photos[i].features.pixels()[j]));
-            ids.insert((i, j), id);
         }
     }
-    (out, ids)
+    out
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -338,7 +331,7 @@ pub fn align(
     let mut dropped: Vec<PairMatches> = Vec::new();
     let (mut ties, mut result, mut before) = (TiePoints::default(), None, f64::NAN);
     for round in 0..PAIR_ROUNDS {
-        let (t, ids) = tracks(photos, &pairs, k, down);
+        let t = tracks(photos, &pairs, k, down);
         if t.points.is_empty() {
             return None;
         }
@@ -349,26 +342,8 @@ pub fn align(
             );
         }
         let r = refine::refine(&t.sightings, &t.points, &poses, k, &params);
-        let (points, aligned) = solved(&r);
-        // Each pair's median error over its matches (the worse of its two sightings).
-        let pair_error = |p: &PairMatches| -> f64 {
-            let off = |i: usize, kp: usize, id: u64| -> Option<f64> {
-                let seen = photos[i].features.pixels()[kp];
-                let pr = aligned[&photos[i].frame].project(k, &points[&id])?;
-                Some((pr.u - seen.u).hypot(pr.v - seen.v))
-            };
-            let e: Vec<f64> = p
-                .matches
-                .iter()
-                .filter_map(|&(x, y)| {
-                    // A track dropped for meeting a photo twice has no id.
-                    let id = *ids.get(&(p.a, x))?;
-                    Some(off(p.a, x, id)?.max(off(p.b, y, id)?))
-                })
-                .collect();
-            median(e)
-        };
-        let errs: Vec<f64> = pairs.iter().map(pair_error).collect();
+        let (_, aligned) = solved(&r);
+        let errs: Vec<f64> = pairs.iter().map(|p| pair_fit(photos, p, &aligned, k, down)).collect();
         ties = t;
         result = Some(r);
         let limit = PAIR_REJECT_SDS * pixel_sd;
@@ -398,7 +373,7 @@ pub fn align(
             dropped.into_iter().partition(|p| pair_fit(photos, p, &aligned, k, down) <= limit);
         if !back.is_empty() {
             pairs.extend(back);
-            let (t, _) = tracks(photos, &pairs, k, down);
+            let t = tracks(photos, &pairs, k, down);
             result = Some(refine::refine(&t.sightings, &t.points, &poses, k, &params));
             ties = t;
         }

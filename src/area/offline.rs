@@ -264,6 +264,7 @@ fn align_photos(
     use super::align;
     use std::collections::BTreeMap;
     let k = ds.camera.intrinsics();
+    let t0 = Instant::now();
     let mut photos = Vec::new();
     for r in records {
         // A frame that cannot be read is reported by the run itself.
@@ -277,7 +278,9 @@ fn align_photos(
         let pose = ds.camera_pose(&r.measured, s.gimbal.offsets_deg());
         photos.push(align::Photo { frame: r.frame, features, pose });
     }
+    let t_features = t0.elapsed().as_secs_f64();
     let (pairs, tried) = align::match_pairs(&photos, &k, s.area.ground_down_m)?;
+    let t_matching = t0.elapsed().as_secs_f64() - t_features;
     summary.tie_pairs_matched = Some(tried);
     let tagged: BTreeMap<u64, crate::geometry::CameraPose> =
         photos.iter().map(|p| (p.frame, p.pose)).collect();
@@ -350,6 +353,9 @@ fn align_photos(
         after_px = a.median_after_px,
         dropped = a.dropped,
         dropped_pairs = a.dropped_pairs,
+        features_s = t_features,
+        matching_s = t_matching,
+        adjusting_s = t0.elapsed().as_secs_f64() - t_features - t_matching,
         "photos aligned by their tie points"
     );
     Ok(a.corrections)

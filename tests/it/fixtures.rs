@@ -101,3 +101,26 @@ pub fn python() -> std::path::PathBuf {
         "python3".into()
     }
 }
+
+/// The coastline flown as a photo survey: a photo every 3.3 s (10 m apart) instead of
+/// video at 6 Hz, `frames` photos at 960x540, each photo's gimbal yaw and pitch 3 deg off
+/// on its own and GNSS-grade positions (0.3/0.3/0.5 m).
+pub fn coastline_photo_survey(frames: usize) -> PathBuf {
+    cached(&format!("coastline-photos-{frames}-960x540-3deg"), |out| {
+        let mut scenario = Scenario::load("coastline").unwrap();
+        scenario.mission.frame_rate_hz = 0.3;
+        let noise = mavloc_sim::scenario::NoiseSpec {
+            gimbal_yaw_sd_deg: 3.0,
+            gimbal_pitch_sd_deg: 3.0,
+            position_sd_m: [0.3, 0.3, 0.5],
+            ..Default::default()
+        };
+        let opts = RenderOptions {
+            frames: Some(frames),
+            size: Some((960, 540)),
+            noise: Some(noise),
+            ..Default::default()
+        };
+        render_dataset(&scenario, &opts, out, |_, _| {}).unwrap();
+    })
+}

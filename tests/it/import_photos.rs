@@ -402,3 +402,59 @@ fn sensefly_photos_import_with_a_body_fixed_camera() {
     let r = import_photos(&photos, &dir.path().join("turned"), &mount).unwrap();
     assert_eq!(r.turned.len(), 3, "{r:?}");
 }
+
+/// The public Seneca survey's photos (27, in `../shared/data/seneca`, CC0; or
+/// `MAVLOC_SENECA_DIR`), when present.
+fn seneca_survey() -> Option<PathBuf> {
+    let dir = std::env::var_os("MAVLOC_SENECA_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/seneca/images"));
+    dir.join("IMG_0558.jpg").exists().then_some(dir)
+}
+
+/// Two overlapping lines of the Seneca survey, the return leg (IMG_0558-0561) and the
+/// next line out (IMG_0569-0572), imported with defaults: the senseFly tags put the same
+/// ground tens of metres apart from the two lines (headings 10-20 deg off the track), and
+/// aligning the photos by their tie points (`area::align`) brings the two lines' own
+/// triangulations of the shared tie points within centimetres of each other.
+#[test]
+fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
+    let Some(images) = seneca_survey() else {
+        eprintln!("seneca: skipped: ../shared/data/seneca/images (or MAVLOC_SENECA_DIR) is absent");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    for n in ["0558", "0559", "0560", "0561", "0569", "0570", "0571", "0572"] {
+        let name = format!("IMG_{n}.jpg");
+        std::fs::copy(images.join(&name), photos.join(&name)).unwrap();
+    }
+    let ds = dir.path().join("ds");
+    let r = import_photos(&photos, &ds, &ImportOptions::default()).unwrap();
+    assert_eq!(r.imported.len(), 8);
+    let result = dir.path().join("r");
+    let out = Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .env_remove("MAVLOC_CONFIG")
+        .args(["area", "--dataset"])
+        .arg(&ds)
+        .arg("--out")
+        .arg(&result)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    println!("{}", String::from_utf8_lossy(&out.stdout));
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
+    let f = |k: &str| s[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}"));
+    assert_eq!(s["flight_lines"], 2, "{s}");
+    assert!(f("aligned_photos") >= 7.0 && f("tie_points") >= 500.0, "{s}");
+    assert!(f("align_median_before_px") > 50.0 && f("align_median_after_px") < 1.5, "{s}");
+    assert!(f("cross_line_tie_pairs") >= 20.0, "{s}");
+    let (tagged, aligned) = (f("cross_line_tie_median_m"), f("cross_line_tie_aligned_median_m"));
+    assert!(tagged > 10.0 && aligned < 0.3, "lines {tagged:.2} m apart as tagged, {aligned:.2} m aligned");
+    // Each photo's correction is in alignment.csv, with the tie points it rests on.
+    let csv = std::fs::read_to_string(result.join("alignment.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 9, "{csv}");
+    assert!(csv.starts_with("frame,tie_sightings,correction_deg,"), "{csv}");
+}
