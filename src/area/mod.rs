@@ -7,8 +7,10 @@
 //! (sec. 5.3). [`baseline`] is the seed's previous method (sec. 2.1) for comparison,
 //! [`border`] fits a 3D border line to the results (the seed's future work, ch. 9),
 //! [`eval`] measures results as the seed does (ch. 6), and [`offline`] runs a dataset.
-//! For photo surveys: [`refine`] adjusts attitudes and a static gimbal offset with the
-//! landmarks (sec. 6.10-6.11), [`crosslines`] measures how well two flight lines agree.
+//! For photo surveys: [`imageup`] finds photos tagged half a turn off, [`align`] aligns
+//! the photos to each other by tie points before the filters run (ours), [`refine`]
+//! adjusts attitudes and a static gimbal offset with the landmarks (sec. 6.10-6.11),
+//! [`crosslines`] measures how well two flight lines agree.
 //!
 //! The pipeline is a plain synchronous library: it takes a grey frame, its target mask and
 //! the camera pose the telemetry gives, and returns what changed. It knows nothing of
