@@ -551,7 +551,10 @@ pub fn run_observed(
         summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
         output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
         // Cross-line agreement with the recorded poses (and below, refined).
-        let lines = super::crosslines::flight_lines(&poses.iter().map(|(f, p)| (*f, p.position)).collect());
+        // Lines from the recorded positions: the aligned ones move by metres, enough to
+        // split a line where the recorded track runs straight.
+        let recorded = |f: &u64| ds.camera_pose(&measured[f], s.gimbal.offsets_deg()).position;
+        let lines = super::crosslines::flight_lines(&poses.keys().map(|f| (*f, recorded(f))).collect());
         let line_count = lines.values().max().map_or(0, |m| m + 1);
         let surveyed_in_lines = line_count >= 2;
         let sd_rad = s.area.bearing_noise_deg.to_radians();
