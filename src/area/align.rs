@@ -254,12 +254,12 @@ pub fn tracks(photos: &[Photo], pairs: &[PairMatches], k: &Intrinsics, down: f64
     out
 }
 
+/// The median, NaN of nothing (a pair with no match left is then over any limit).
 fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {
         return f64::NAN;
     }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    super::residuals::quantile(&mut v, 0.5)
 }
 
 /// Reprojection error of each sighting (NaN where the point falls behind the camera).

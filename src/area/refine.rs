@@ -631,6 +631,36 @@ mod tests {
         LandmarkRecord { id, position, sigma_max_m: 0.5, observations: 3, first_frame: 0, last_frame: 0 }
     }
 
+    /// `n` points over the photos' ground, heights (down) in `down`.
+    fn ground_points(rng: &mut impl rand::Rng, n: usize, down: std::ops::Range<f64>) -> Vec<Vec3> {
+        (0..n)
+            .map(|_| {
+                Vec3::new(
+                    rng.random_range(0.0..60.0),
+                    rng.random_range(-25.0..25.0),
+                    rng.random_range(down.clone()),
+                )
+            })
+            .collect()
+    }
+
+    /// Every point each pose sees, where it sees it: (frame, point index, pixel).
+    fn exact_sightings(
+        poses: &BTreeMap<u64, CameraPose>,
+        points: &[Vec3],
+        k: &Intrinsics,
+    ) -> Vec<(u64, u64, Pixel)> {
+        let mut out = Vec::new();
+        for (&f, p) in poses {
+            for (j, x) in points.iter().enumerate() {
+                if let Some(px) = p.project(k, x).filter(|px| k.contains(*px)) {
+                    out.push((f, j as u64, px));
+                }
+            }
+        }
+        out
+    }
+
     /// Per-frame attitude noise plus a static gimbal offset: the offset refined beside the
     /// per-frame corrections is the offset plus the frames' mean noise (all the sightings
     /// can tell), and the landmarks come back to the truth.
@@ -713,33 +743,13 @@ mod tests {
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
         let k = k();
         let poses: BTreeMap<u64, CameraPose> = (0..6).map(|i| (i as u64, pose(i))).collect();
-        let points: Vec<Vec3> = (0..150)
-            .map(|_| {
-                Vec3::new(
-                    rng.random_range(0.0..60.0),
-                    rng.random_range(-25.0..25.0),
-                    rng.random_range(-3.0..3.0),
-                )
-            })
-            .collect();
-        let mut sightings = Vec::new();
+        let points = ground_points(&mut rng, 150, -3.0..3.0);
+        let mut sightings = exact_sightings(&poses, &points, &k);
+        // Every 50th a false match, 300-500 px away.
         let mut false_ones = 0;
-        for (&f, p) in &poses {
-            for (j, x) in points.iter().enumerate() {
-                if let Some(px) = p.project(&k, x).filter(|px| k.contains(*px)) {
-                    // Every 50th a false match, 300-500 px away.
-                    let px = if sightings.len() % 50 == 7 {
-                        false_ones += 1;
-                        Pixel::new(
-                            px.u + rng.random_range(300.0..500.0),
-                            px.v - rng.random_range(300.0..500.0),
-                        )
-                    } else {
-                        px
-                    };
-                    sightings.push((f, j as u64, px));
-                }
-            }
+        for s in sightings.iter_mut().skip(7).step_by(50) {
+            s.2 = Pixel::new(s.2.u + rng.random_range(300.0..500.0), s.2.v - rng.random_range(300.0..500.0));
+            false_ones += 1;
         }
         let start: Vec<LandmarkRecord> =
             points.iter().enumerate().map(|(j, x)| record(j as u64, *x)).collect();
@@ -771,30 +781,15 @@ mod tests {
     /// share it out): with a position prior the shift comes back.
     #[test]
     fn a_frames_position_error_is_found_as_a_shift() {
-        use rand::{Rng, SeedableRng};
+        use rand::SeedableRng;
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
         let k = k();
         let truth: BTreeMap<u64, CameraPose> = (0..6).map(|i| (i as u64, pose(i))).collect();
         let off = Vec3::new(3.0, -2.0, 1.0);
         let mut recorded = truth.clone();
         recorded.get_mut(&2).unwrap().position += off;
-        let points: Vec<Vec3> = (0..150)
-            .map(|_| {
-                Vec3::new(
-                    rng.random_range(0.0..60.0),
-                    rng.random_range(-25.0..25.0),
-                    rng.random_range(-20.0..5.0),
-                )
-            })
-            .collect();
-        let mut sightings = Vec::new();
-        for (&f, p) in &truth {
-            for (j, x) in points.iter().enumerate() {
-                if let Some(px) = p.project(&k, x).filter(|px| k.contains(*px)) {
-                    sightings.push((f, j as u64, px));
-                }
-            }
-        }
+        let points = ground_points(&mut rng, 150, -20.0..5.0);
+        let sightings = exact_sightings(&truth, &points, &k);
         let start: Vec<LandmarkRecord> =
             points.iter().enumerate().map(|(j, x)| record(j as u64, *x)).collect();
         let p = RefineParams { shift_prior_m: 5.0, ..RefineParams::new(2.0) };
@@ -842,17 +837,8 @@ mod tests {
                 .iter()
                 .map(|(&f, p)| (f, corrected(p, &errors[&f])))
                 .collect();
-            let points: Vec<Vec3> = (0..80)
-                .map(|_| Vec3::new(rng.random_range(0.0..60.0), rng.random_range(-25.0..25.0), rng.random_range(-3.0..3.0)))
-                .collect();
-            let mut sightings = Vec::new();
-            for (&f, p) in &truth {
-                for (j, x) in points.iter().enumerate() {
-                    if let Some(px) = p.project(&k, x).filter(|px| k.contains(*px)) {
-                        sightings.push((f, j as u64, px));
-                    }
-                }
-            }
+            let points = ground_points(&mut rng, 80, -3.0..3.0);
+            let sightings = exact_sightings(&truth, &points, &k);
             // Landmarks as the filters would have them: triangulated with the wrong poses
             // (start from the truth shifted by metres, as a few degrees at 60 m shift them).
             let start: Vec<LandmarkRecord> = points

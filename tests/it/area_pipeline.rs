@@ -96,6 +96,28 @@ fn trace_records_every_update() {
     assert!(rows.iter().all(|r| r.split(',').count() == 19));
 }
 
+/// The UKF pipeline over `ds` into `out` with `s`: its landmarks against the ground
+/// truth (no border, no speed), and the run's summary.
+fn ukf_against_truth(
+    ds: &std::path::Path,
+    out: &std::path::Path,
+    s: &Settings,
+) -> (AreaEvaluation, mavloc::area::offline::RunSummary) {
+    let o = RunOptions {
+        dataset: ds.into(),
+        out: out.into(),
+        method: AreaMethod::Ukf,
+        trace: false,
+        max_frames: None,
+        debug_masks: false,
+    };
+    let summary = run(&o, s, |_, _| {}).unwrap();
+    let landmarks =
+        parse_landmarks_csv(&std::fs::read_to_string(out.join("landmarks.csv")).unwrap(), "").unwrap();
+    let truth = Dataset::open(ds).unwrap().ground_truth;
+    (evaluate(&landmarks, &truth, &[], 1.0), summary)
+}
+
 /// Photo-like poses: every frame's attitude 3 deg off on its own, GNSS-grade positions
 /// (0.3/0.3/0.5 m). The landmark filters alone leave metres of error; refining each
 /// frame's attitude with the landmarks (`area.attitude_prior_deg`) brings the mean under
@@ -123,19 +145,7 @@ fn attitude_refinement_recovers_photo_like_attitude_errors() {
         // filters pass a looser one with landmarks whose error 100 frames of refinement
         // cannot take out (0.75 m: 57 landmarks, 3.02 -> 2.11 m; 0.5 m: 31, 2.64 -> 1.17 m).
         s.area.convergence_m = 0.5;
-        let o = RunOptions {
-            dataset: ds.clone(),
-            out: out.clone(),
-            method: AreaMethod::Ukf,
-            trace: false,
-            max_frames: None,
-            debug_masks: false,
-        };
-        let summary = run(&o, &s, |_, _| {}).unwrap();
-        let landmarks =
-            parse_landmarks_csv(&std::fs::read_to_string(out.join("landmarks.csv")).unwrap(), "").unwrap();
-        let truth = Dataset::open(&ds).unwrap().ground_truth;
-        (evaluate(&landmarks, &truth, &[], 1.0), summary)
+        ukf_against_truth(&ds, &out, &s)
     };
     let (plain, _) = eval(0.0, "plain");
     let (refined, summary) = eval(2.0, "refined");
@@ -183,19 +193,7 @@ fn aligning_photos_by_their_tie_points_doubles_the_landmarks_and_halves_their_er
         };
         let s = mavloc::settings::load(&layers).unwrap().settings;
         let out = dir.path().join(name);
-        let o = RunOptions {
-            dataset: ds.clone(),
-            out: out.clone(),
-            method: AreaMethod::Ukf,
-            trace: false,
-            max_frames: None,
-            debug_masks: false,
-        };
-        let summary = run(&o, &s, |_, _| {}).unwrap();
-        let landmarks =
-            parse_landmarks_csv(&std::fs::read_to_string(out.join("landmarks.csv")).unwrap(), "").unwrap();
-        let truth = Dataset::open(&ds).unwrap().ground_truth;
-        (evaluate(&landmarks, &truth, &[], 1.0), summary)
+        ukf_against_truth(&ds, &out, &s)
     };
     let (plain, _) = eval(0.0, "tagged");
     let (aligned, summary) = eval(5.0, "aligned");

@@ -11,6 +11,23 @@ fn with_calibration(cal: &Path) -> ImportOptions {
     ImportOptions { calibration: Some(cal.to_path_buf()), ..Default::default() }
 }
 
+/// `mavloc area` on dataset `ds` into `result` with `extra` arguments, the configuration
+/// file left out; its standard output (the run must succeed).
+fn area(ds: &Path, result: &Path, extra: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .env_remove("MAVLOC_CONFIG")
+        .arg("area")
+        .args(extra)
+        .arg("--dataset")
+        .arg(ds)
+        .arg("--out")
+        .arg(result)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
 fn sample() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/dji-sample")
 }
@@ -164,16 +181,7 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     let own = std::fs::read_to_string(ds.join("mavloc.toml")).unwrap();
     assert_eq!(own, mavloc::import::PHOTO_SURVEY_SETTINGS);
     let result = dir.path().join("r");
-    let out = Command::new(bin)
-        .env_remove("MAVLOC_CONFIG")
-        .args(["area", "--debug-masks", "--dataset"])
-        .arg(&ds)
-        .arg("--out")
-        .arg(&result)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = area(&ds, &result, &["--debug-masks"]);
     println!("{stdout}");
     assert!(stdout.contains("settings from the dataset's") && stdout.contains("area.segmenter"), "{stdout}");
     assert!(result.join("masks.png").exists(), "contact sheet");
@@ -268,15 +276,7 @@ fn the_residual_report_names_a_frame_whose_yaw_is_half_a_turn_off() {
         .collect();
     std::fs::write(&path, text.join("\n") + "\n").unwrap();
     let result = dir.path().join("r");
-    let out = Command::new(bin)
-        .args(["area", "--set", "area.downscale=1", "--set", "area.band_px=13", "--dataset"])
-        .arg(&ds)
-        .arg("--out")
-        .arg(&result)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = area(&ds, &result, &["--set", "area.downscale=1", "--set", "area.band_px=13"]);
     assert!(stdout.contains("frame 30: residuals say its recorded yaw is off by about 180 deg"), "{stdout}");
     let csv = std::fs::read_to_string(result.join("residuals.csv")).unwrap();
     let flagged: Vec<&str> = csv.lines().skip(1).filter(|l| l.ends_with(",1")).collect();
@@ -434,16 +434,7 @@ fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
     let r = import_photos(&photos, &ds, &ImportOptions::default()).unwrap();
     assert_eq!(r.imported.len(), 8);
     let result = dir.path().join("r");
-    let out = Command::new(env!("CARGO_BIN_EXE_mavloc"))
-        .env_remove("MAVLOC_CONFIG")
-        .args(["area", "--dataset"])
-        .arg(&ds)
-        .arg("--out")
-        .arg(&result)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    println!("{}", String::from_utf8_lossy(&out.stdout));
+    println!("{}", area(&ds, &result, &[]));
     let s: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
     let f = |k: &str| s[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}"));
