@@ -229,7 +229,7 @@ pub struct RenderArgs {
     #[arg(long, requires = "width")]
     pub height: Option<u32>,
     /// Record the true pose as the measured one (no noise, offsets, lag or drops).
-    #[arg(long, conflicts_with_all = ["gimbal_sd_deg", "position_sd_m", "gimbal_offset_deg", "gimbal_lag_s", "drop_rate"])]
+    #[arg(long, conflicts_with_all = ["gimbal_sd_deg", "position_sd_m", "gimbal_offset_deg", "gimbal_lag_s", "drop_rate", "gimbal_drift_deg"])]
     pub no_noise: bool,
     /// Gimbal yaw and pitch noise SD, degrees (seed table 6.2: 0.5).
     #[arg(long)]
@@ -243,6 +243,13 @@ pub struct RenderArgs {
     /// Gimbal telemetry lags the frames by this many seconds (seed sec. 5.6.1).
     #[arg(long)]
     pub gimbal_lag_s: Option<f64>,
+    /// SD of a slowly varying gimbal error yaw,pitch,roll in degrees (an autopilot's
+    /// attitude estimate wanders; PX4 SIH's heading: 3 SD).
+    #[arg(long, value_parser = parse_triple, value_name = "YAW,PITCH,ROLL")]
+    pub gimbal_drift_deg: Option<[f64; 3]>,
+    /// Correlation time of that error, seconds (default 20).
+    #[arg(long, requires = "gimbal_drift_deg")]
+    pub gimbal_drift_tau_s: Option<f64>,
     /// Fraction of frames dropped, 0..1.
     #[arg(long)]
     pub drop_rate: Option<f64>,

@@ -140,7 +140,11 @@ pub fn render_dataset(
     let mut records = Vec::new();
     let mut dropped = 0;
     let mut written = 0;
+    let mut drift = Drift::default();
     for (i, (truth, appearance)) in shots.iter().enumerate() {
+        // Drawn for every shot, dropped or not, so the drift's time course does not
+        // depend on the drops.
+        let wander = drift.step(noise, truth.t, opts.views.is_none(), &mut rng, &unit);
         if noise.drop_rate > 0.0 && rand::Rng::random::<f64>(&mut rng) < noise.drop_rate {
             dropped += 1;
             progress(i + 1, total);
@@ -154,7 +158,10 @@ pub fn render_dataset(
         let name = format!("{i:06}.png");
         write_png(&out.join("frames").join(&name), frame.width, frame.height, &frame.rgb, true)?;
         write_png(&out.join("masks").join(&name), frame.width, frame.height, &frame.mask, false)?;
-        let measured = measure(&mission, truth, noise, opts.views.is_none(), &mut rng, &unit);
+        let mut measured = measure(&mission, truth, noise, opts.views.is_none(), &mut rng, &unit);
+        for (g, w) in measured.gimbal_deg.iter_mut().zip(wander) {
+            *g += w;
+        }
         let record =
             TelemetryRecord { frame: i as u64, t: truth.t, truth: pose_record(truth), measured, appearance };
         records.push(record);
@@ -164,6 +171,40 @@ pub fn render_dataset(
     dataset::write_telemetry(out, &records)?;
     staged.commit()?;
     Ok(RenderSummary { frames: written, dropped, dir: final_dir.to_path_buf() })
+}
+
+/// The slowly varying gimbal error ([`NoiseSpec::gimbal_drift_sd_deg`]): a first-order
+/// Gauss-Markov process per angle, stationary from the first shot.
+#[derive(Default)]
+struct Drift {
+    state: Option<(f64, [f64; 3])>,
+}
+
+impl Drift {
+    /// The error at time `t` (seconds; zero for random views, which have no flight).
+    fn step(
+        &mut self,
+        n: &NoiseSpec,
+        t: f64,
+        on_flight: bool,
+        rng: &mut impl rand::Rng,
+        unit: &Normal<f64>,
+    ) -> [f64; 3] {
+        if !on_flight || n.gimbal_drift_sd_deg.iter().all(|sd| *sd <= 0.0) {
+            return [0.0; 3];
+        }
+        let sd = n.gimbal_drift_sd_deg;
+        let next = match self.state {
+            None => [0, 1, 2].map(|i| sd[i] * unit.sample(rng)),
+            Some((t0, x)) => {
+                let a = (-(t - t0).max(0.0) / n.gimbal_drift_tau_s.max(1e-6)).exp();
+                let s = (1.0 - a * a).sqrt();
+                [0, 1, 2].map(|i| a * x[i] + s * sd[i] * unit.sample(rng))
+            }
+        };
+        self.state = Some((t, next));
+        next
+    }
 }
 
 /// What the vehicle reports for a true state: position noise, the gimbal attitude of

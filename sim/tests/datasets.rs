@@ -68,6 +68,34 @@ fn noise_is_applied_to_measured_only() {
     }
 }
 
+/// The slowly varying gimbal error wanders as set but hardly changes from one frame to the
+/// next (an autopilot's attitude estimate, not jitter): over 300 frames (50 s) at 6 Hz
+/// with a 20 s correlation time, frame-to-frame steps are a few hundredths of its SD.
+#[test]
+fn gimbal_drift_wanders_slowly() {
+    let noise = NoiseSpec { gimbal_drift_sd_deg: [3.0, 1.0, 0.0], ..NoiseSpec::none() };
+    let (_dir, ds) = render("coastline", 300, Some(noise));
+    let err: Vec<[f64; 3]> = ds
+        .records
+        .iter()
+        .map(|r| std::array::from_fn(|i| r.measured.gimbal_deg[i] - r.truth.gimbal_deg[i]))
+        .collect();
+    let rms = |f: &dyn Fn(&[f64; 3]) -> f64, v: &[[f64; 3]]| {
+        (v.iter().map(|e| f(e).powi(2)).sum::<f64>() / v.len() as f64).sqrt()
+    };
+    let steps: Vec<[f64; 3]> = err.windows(2).map(|w| std::array::from_fn(|i| w[1][i] - w[0][i])).collect();
+    let (yaw, pitch, roll) = (rms(&|e| e[0], &err), rms(&|e| e[1], &err), rms(&|e| e[2], &err));
+    // 50 s is a few correlation times: the RMS is of the SD's order, not exact.
+    assert!(yaw > 0.8 && yaw < 6.0, "yaw drift RMS {yaw}");
+    assert!(pitch > 0.25 && pitch < 2.0, "pitch drift RMS {pitch}");
+    assert_eq!(roll, 0.0, "no roll drift was asked for");
+    // At 1/6 s of a 20 s correlation time a step is sqrt(2 / 120) = 0.13 SD.
+    let step = rms(&|e| e[0], &steps);
+    assert!(step < 0.2 * 3.0, "yaw steps {step} deg RMS");
+    // Positions are untouched.
+    assert!(ds.records.iter().all(|r| r.measured.position == r.truth.position));
+}
+
 #[test]
 fn refuses_to_overwrite_and_reports_broken_telemetry() {
     let (dir, ds) = render("cliff", 2, None);

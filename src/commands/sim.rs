@@ -67,6 +67,12 @@ fn render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
     if let Some(v) = args.gimbal_offset_deg {
         noise.gimbal_offset_deg = v;
     }
+    if let Some(d) = args.gimbal_drift_deg {
+        noise.gimbal_drift_sd_deg = d;
+    }
+    if let Some(tau) = args.gimbal_drift_tau_s {
+        noise.gimbal_drift_tau_s = tau;
+    }
     if let Some(lag) = args.gimbal_lag_s {
         noise.gimbal_lag_s = lag;
     }

@@ -97,8 +97,10 @@ pub struct AreaLive {
     no_mask_warned: bool,
     started: std::time::Instant,
     settings: crate::settings::Area,
-    /// `gimbal.aim = "border"`: report where the border is, per frame.
+    /// `gimbal.aim = "border"`: report where the border is, per frame, smoothed over
+    /// frames ([`AIM_SMOOTHING`]).
     aim: bool,
+    aimed: Option<(f64, f64)>,
 }
 
 impl AreaLive {
@@ -144,6 +146,7 @@ impl AreaLive {
             started: std::time::Instant::now(),
             settings: s.area.clone(),
             aim: s.gimbal.aim == crate::settings::GimbalAim::Border,
+            aimed: None,
         })
     }
 
@@ -258,7 +261,21 @@ impl LivePipeline for AreaLive {
         let input =
             FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
         if self.aim {
-            report.aim = border_bearing(&small_mask, &frame.pose.camera, self.pipeline.intrinsics());
+            if let Some((yaw, pitch)) = border_bearing(
+                &small_mask,
+                &frame.pose.camera,
+                self.pipeline.intrinsics(),
+                self.settings.ground_down_m,
+            ) {
+                // Each frame's nearest shore is a few pixels' choice: smoothed, the
+                // setpoints move with the shore, not with the pixels.
+                let (y, p) = self.aimed.map_or((yaw, pitch), |(y, p)| {
+                    let dy = crate::geometry::wrap_angle(yaw - y);
+                    (crate::geometry::wrap_angle(y + AIM_SMOOTHING * dy), p + AIM_SMOOTHING * (pitch - p))
+                });
+                self.aimed = Some((y, p));
+                report.aim = Some((y, p));
+            }
         }
         let r = match self.pipeline.process(&input) {
             Ok(r) => r,
@@ -338,15 +355,23 @@ impl LivePipeline for AreaLive {
     }
 }
 
-/// Earth-frame bearing (yaw, pitch) of the centroid of the mask's border pixels: where
-/// the camera should look to keep the border in the middle of the picture. `None` when
-/// too little border is in view to say.
+/// Weight of a frame's aim in the smoothed one (about 1 s at 6 frames/s).
+const AIM_SMOOTHING: f64 = 0.2;
+
+/// Earth-frame bearing (yaw, pitch) of the nearest stretch of the border in view: where
+/// the camera should look to keep the closest shore in the middle of the picture, as a
+/// mission's ROI on the nearest shore point does. (The centroid of all border pixels, used
+/// before, was pulled up by the far shore: against PX4 SITL the gimbal settled 30 degrees
+/// down where the ROI's geometry is 54, doubling the range to the landmarks.) The border
+/// pixels are put on the ground plane `ground_down` (local NED down); the nearest 10 %
+/// (horizontally) are averaged. `None` when too little border is in view to say.
 fn border_bearing(
     mask: &opencv::core::Mat,
     pose: &crate::geometry::CameraPose,
     k: &Intrinsics,
+    ground_down: f64,
 ) -> Option<(f64, f64)> {
-    use opencv::{core, imgproc, prelude::*};
+    use opencv::{core, imgproc};
     let kernel = imgproc::get_structuring_element(
         imgproc::MORPH_RECT,
         core::Size::new(3, 3),
@@ -365,13 +390,33 @@ fn border_bearing(
         imgproc::morphology_default_border_value().ok()?,
     )
     .ok()?;
-    let m = imgproc::moments(&edge, true).ok()?;
-    // At least a few dozen border pixels, or the centroid is noise.
-    if m.m00 < 30.0 || edge.rows() == 0 {
+    let mut points = core::Vector::<core::Point>::new();
+    core::find_non_zero(&edge, &mut points).ok()?;
+    // At least a few dozen border pixels, or the border is noise.
+    if points.len() < 30 {
         return None;
     }
-    let px = crate::geometry::Pixel::new(m.m10 / m.m00, m.m01 / m.m00);
-    let b = pose.pixel_bearing(k, px);
+    let step = points.len().div_ceil(2000);
+    let mut ground: Vec<(f64, crate::geometry::Vec3)> = points
+        .iter()
+        .step_by(step)
+        .filter_map(|p| {
+            let g = pose.ground_intersection(
+                k,
+                crate::geometry::Pixel::new(p.x as f64, p.y as f64),
+                ground_down,
+            )?;
+            let d = (g - pose.position).xy().norm();
+            d.is_finite().then_some((d, g))
+        })
+        .collect();
+    if ground.len() < 10 {
+        return None;
+    }
+    let n = (ground.len() / 10).max(10);
+    ground.select_nth_unstable_by(n - 1, |a, b| a.0.total_cmp(&b.0));
+    let target = ground[..n].iter().map(|(_, g)| g).sum::<crate::geometry::Vec3>() / n as f64;
+    let b = crate::geometry::Bearing::from_direction(&(target - pose.position))?;
     Some((b.yaw, b.pitch))
 }
 
@@ -666,6 +711,43 @@ mod tests {
         let s = Settings::default();
         let k = crate::camera::intrinsics(&s).unwrap();
         AreaLive::new(&s, k, Geodetic::new(0.0, 0.0, 0.0), link, run).unwrap()
+    }
+
+    /// A straight shore along north, 22 m east of a camera 30 m up that looks east-north-
+    /// east and shallow: the aim is the nearest shore point (yaw 90, pitch -53.7 degrees),
+    /// not the middle of the shore in view, which the shallow view puts far off.
+    #[test]
+    fn the_gimbal_is_aimed_at_the_nearest_shore_in_view() {
+        use crate::geometry::{GimbalAngles, GimbalChain, Mount};
+        use opencv::prelude::*;
+        let k = Intrinsics { width: 480, height: 270, fx: 240.0, fy: 240.0, cx: 239.5, cy: 134.5 };
+        let a = GimbalAngles { yaw: 60f64.to_radians(), pitch: -35f64.to_radians(), roll: 0.0 };
+        let pose = crate::geometry::CameraPose::from_gimbal(
+            Vec3::new(0.0, 0.0, -30.0),
+            GimbalChain::YawPitchRoll,
+            a,
+            Mount::Earth,
+        );
+        let mut mask = opencv::core::Mat::new_rows_cols_with_default(
+            270,
+            480,
+            opencv::core::CV_8UC1,
+            opencv::core::Scalar::all(0.0),
+        )
+        .unwrap();
+        for v in 0..270 {
+            for u in 0..480 {
+                let px = crate::geometry::Pixel::new(u as f64, v as f64);
+                if pose.ground_intersection(&k, px, 0.0).is_some_and(|g| g.y > 22.0) {
+                    *mask.at_2d_mut::<u8>(v, u).unwrap() = 255;
+                }
+            }
+        }
+        let (yaw, pitch) = border_bearing(&mask, &pose, &k, 0.0).expect("a shore in view");
+        let (yaw, pitch) = (yaw.to_degrees(), pitch.to_degrees());
+        // The nearest 10 % of the shore in view spans a few metres along it.
+        assert!((yaw - 90.0).abs() < 6.0, "yaw {yaw:.1}");
+        assert!((pitch + 53.7).abs() < 2.0, "pitch {pitch:.1}");
     }
 
     fn landmark(id: u64) -> LandmarkRecord {

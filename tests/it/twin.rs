@@ -223,9 +223,10 @@ fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated
         "coastline, simulated time: {files} frames, {} landmarks, mean {:.2} m, max {:.2} m",
         e.landmarks, e.mean_m, e.max_m
     );
-    // 35 s at 6 frames/s: 24 landmarks at 1.42 m mean since the ray check counts the
-    // position noise (it set aside the short-baseline ones; 30 was the bound before).
-    assert!(e.landmarks >= 20, "{e:?}");
+    // 35 s at 6 frames/s: 105 landmarks at 1.49 m mean with the gimbal on the nearest
+    // shore in view; aimed at the middle of all the shore in view, the camera looked far
+    // and shallow and 24 converged (1.42 m).
+    assert!(e.landmarks >= 60, "{e:?}");
     assert_eq!(e.gt20, 0, "{e:?}");
     assert!(e.mean_m < 3.0, "the seed's coastline reached 2.82 m: {e:?}");
 }

@@ -27,14 +27,22 @@ pub enum Control {
 
 /// A setpoint is given this long to be reached before the gimbal's report is compared.
 pub const SETTLE: Duration = Duration::from_millis(500);
+/// The recent pointing error is over this long (the status's "last minute").
+pub const RECENT: Duration = Duration::from_secs(60);
+/// Resolution of the flight's error histogram, degrees (0..180).
+const BIN_DEG: f64 = 0.01;
 
 #[derive(Debug)]
 pub struct Gimbal {
     control: Control,
     /// The recent setpoints: when sent, and the direction each asks for (unit, NED).
     pub sent: std::collections::VecDeque<(Mono, [f64; 3])>,
-    /// Pointing errors (degrees) of reports against settled setpoints, the newest last.
-    pub errors: std::collections::VecDeque<f64>,
+    /// Pointing errors (degrees) of reports against settled setpoints over the last
+    /// [`RECENT`], with their times, the newest last.
+    pub errors: std::collections::VecDeque<(Mono, f64)>,
+    /// Every airborne report's error since the start, in [`BIN_DEG`] bins: the flight's
+    /// median in constant memory (PX4 reports the gimbal at up to 70 Hz).
+    flight: Vec<u64>,
     /// (yaw, pitch) radians, newest aim not yet sent.
     pending: Option<(f64, f64)>,
     next: Mono,
@@ -47,6 +55,7 @@ impl Default for Gimbal {
             control: Control::Released,
             sent: Default::default(),
             errors: Default::default(),
+            flight: vec![0; (180.0 / BIN_DEG) as usize + 1],
             pending: None,
             next: Mono::ZERO,
             refused_once: false,
@@ -64,24 +73,49 @@ impl Gimbal {
     }
 
     /// A gimbal report (optical axis, NED, unit) at `now`: its angle to the newest
-    /// setpoint sent at least [`SETTLE`] before is kept (the last 600, a minute at 10 Hz).
-    pub fn on_report(&mut self, now: Mono, axis: [f64; 3]) {
+    /// setpoint sent at least [`SETTLE`] before is kept for [`RECENT`] and, when the
+    /// vehicle is `airborne`, counted in the flight's median (on the ground an autopilot
+    /// holds the camera in its landing range whatever it is told: PX4's MNT_LND_P_*).
+    pub fn on_report(&mut self, now: Mono, axis: [f64; 3], airborne: bool) {
         let Some(&(_, want)) = self.sent.iter().rev().find(|(t, _)| *t + SETTLE <= now) else { return };
         let dot: f64 = (0..3).map(|i| axis[i] * want[i]).sum();
-        self.errors.push_back(dot.clamp(-1.0, 1.0).acos().to_degrees());
-        if self.errors.len() > 600 {
+        let error = dot.clamp(-1.0, 1.0).acos().to_degrees();
+        tracing::trace!("gimbal report {axis:.3?} against setpoint {want:.3?}: {error:.2} deg");
+        self.errors.push_back((now, error));
+        while self.errors.front().is_some_and(|(t, _)| *t + RECENT < now) {
             self.errors.pop_front();
+        }
+        if airborne {
+            let last = self.flight.len() - 1;
+            self.flight[((error / BIN_DEG).round() as usize).min(last)] += 1;
         }
     }
 
-    /// Median pointing error over the kept reports, degrees.
+    /// Median pointing error over the last [`RECENT`], degrees.
     pub fn median_error_deg(&self) -> Option<f64> {
-        let mut v: Vec<f64> = self.errors.iter().copied().collect();
+        let mut v: Vec<f64> = self.errors.iter().map(|e| e.1).collect();
         if v.is_empty() {
             return None;
         }
         v.sort_by(f64::total_cmp);
         Some(v[v.len() / 2])
+    }
+
+    /// Median pointing error over every airborne report so far, degrees (to
+    /// [`BIN_DEG`]).
+    pub fn flight_median_error_deg(&self) -> Option<f64> {
+        let total: u64 = self.flight.iter().sum();
+        if total == 0 {
+            return None;
+        }
+        let mut seen = 0;
+        for (i, n) in self.flight.iter().enumerate() {
+            seen += n;
+            if 2 * seen > total {
+                return Some(i as f64 * BIN_DEG);
+            }
+        }
+        None
     }
 
     pub fn release(&mut self) {
@@ -156,8 +190,12 @@ impl Gimbal {
                 None
             }
             other => {
-                // Take control again before the next setpoint.
+                // Take control again before the next setpoint. The refused setpoints are
+                // not where the gimbal was told to go: the autopilot points it (PX4's
+                // navigator takes it back for the landing), and comparing its reports with
+                // them would count the autopilot's choice as mavloc's pointing error.
                 self.control = Control::Released;
+                self.sent.clear();
                 (!std::mem::replace(&mut self.refused_once, true)).then(|| {
                     format!("autopilot refused {command:?}: {other:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?")
                 })
@@ -203,6 +241,74 @@ mod tests {
         // The held-back newest aim goes out at the next slot.
         assert_eq!(g.deadline(), Some(Mono::from_millis(2000)));
         assert!(g.poll_transmit(Mono::from_millis(2000), 1, me).is_some());
+    }
+
+    /// Reports are compared with the setpoint in force; once the autopilot refuses
+    /// setpoints (it points the gimbal itself), its pointing is not counted as an error.
+    #[test]
+    fn pointing_errors_count_only_setpoints_the_autopilot_took() {
+        let mut g = Gimbal::default();
+        let me = (1, 191);
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::ZERO, 1, me); // CONFIGURE
+        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_ACCEPTED);
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::from_millis(300), 1, me).unwrap();
+        let axis = |pitch: f64| [pitch.cos(), 0.0, -pitch.sin()];
+        // Before the setpoint has settled nothing is compared; after, the report is on it.
+        g.on_report(Mono::from_millis(500), axis(0.0), true);
+        assert!(g.errors.is_empty());
+        g.on_report(Mono::from_millis(900), axis(-1.0), true);
+        assert!(g.median_error_deg().unwrap() < 1e-6);
+        // Refused: the autopilot levels the camera for its landing.
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::from_millis(1100), 1, me);
+        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, MavResult::MAV_RESULT_DENIED);
+        for ms in [2000, 2500, 3000] {
+            g.on_report(Mono::from_millis(ms), axis(0.0), true);
+        }
+        assert_eq!(g.errors.len(), 1, "{:?}", g.errors);
+        // A wrong pointing under a setpoint in force does count (57 degrees off).
+        g.aim(0.0, -1.0);
+        while g.poll_transmit(Mono::from_millis(3100), 1, me).is_some() {}
+        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_ACCEPTED);
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::from_millis(3400), 1, me).unwrap();
+        g.on_report(Mono::from_millis(4000), axis(0.0), true);
+        assert_eq!(g.errors.len(), 2);
+        assert!((g.errors[1].1 - 57.3).abs() < 0.1, "{:?}", g.errors);
+    }
+
+    /// The recent median is over the last minute whatever the report rate (PX4 sends up
+    /// to 70 a second); the flight's counts airborne reports only, all of them.
+    #[test]
+    fn the_recent_median_is_a_minute_and_the_flights_is_airborne() {
+        let mut g = Gimbal::default();
+        let me = (1, 191);
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::ZERO, 1, me);
+        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_ACCEPTED);
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::ZERO, 1, me).unwrap();
+        let off = |deg: f64| {
+            let p = -1.0 - deg.to_radians();
+            [p.cos(), 0.0, -p.sin()]
+        };
+        // 82 s airborne at 50 Hz: the first 42 s 3 degrees off, then 40 s 1 degree off.
+        for i in 0..4100u64 {
+            let deg = if i < 2100 { 3.0 } else { 1.0 };
+            g.on_report(Mono::from_millis(1000 + i * 20), off(deg), true);
+        }
+        // Then 10 s on the ground, levelled by the autopilot (57 degrees off).
+        for i in 0..500u64 {
+            g.on_report(Mono::from_millis(83_000 + i * 20), off(57.3), false);
+        }
+        let flight = g.flight_median_error_deg().unwrap();
+        assert!((flight - 3.0).abs() < 0.02, "flight median {flight}");
+        // The last minute (33-93 s): 10 s at 3 degrees, 40 s at 1, 10 s on the ground.
+        let recent = g.median_error_deg().unwrap();
+        assert!((recent - 1.0).abs() < 0.02, "recent median {recent}");
+        assert!(g.errors.len() <= 3001, "a minute of reports: {}", g.errors.len());
     }
 
     #[test]

@@ -275,6 +275,8 @@ pub struct Counters {
     /// `gimbal.aim = "border"`: median angle between where mavloc pointed the gimbal and
     /// where the gimbal reports it looks, over the last minute of reports (degrees).
     pub gimbal_error_median_deg: Option<f64>,
+    /// The same over every report while the vehicle was airborne since the start.
+    pub gimbal_error_flight_median_deg: Option<f64>,
     pub statustext_dropped: u64,
     pub results_dropped: u64,
     /// Result writes that failed: checkpoints, snapshots, the write at stop. The results
@@ -457,6 +459,11 @@ impl Core {
     /// gimbal's reports over the last minute (degrees).
     pub fn gimbal_error_median_deg(&self) -> Option<f64> {
         self.gimbal.median_error_deg()
+    }
+
+    /// The same over every airborne report since the start (degrees).
+    pub fn gimbal_error_flight_median_deg(&self) -> Option<f64> {
+        self.gimbal.flight_median_error_deg()
     }
 
     /// The newest ground truth from the simulator (HIL_STATE_QUATERNION) and its arrival.
@@ -776,7 +783,8 @@ impl Core {
             if let (MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(_), Some((_, axis))) =
                 (&f.message, self.telemetry.gimbal_pointing)
             {
-                self.gimbal.on_report(rx, [axis.x, axis.y, axis.z]);
+                let airborne = !self.on_ground();
+                self.gimbal.on_report(rx, [axis.x, axis.y, axis.z], airborne);
             }
         }
         match &f.message {
@@ -1353,6 +1361,7 @@ impl Core {
         self.counters.telemetry_from_the_future = self.telemetry.implausible;
         self.counters.reboot_claims_rejected = self.telemetry.reboot_claims_rejected;
         self.counters.gimbal_error_median_deg = self.gimbal.median_error_deg();
+        self.counters.gimbal_error_flight_median_deg = self.gimbal.flight_median_error_deg();
         self.counters.vision_latency_median_ms = {
             let mut v: Vec<f64> = self.latencies.iter().copied().collect();
             v.sort_by(f64::total_cmp);
