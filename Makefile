@@ -92,7 +92,9 @@ bench: deps
 # mavloc against PX4 SITL (SIH, no Gazebo), built by you outside this project:
 #   MAVLOC_PX4_DIR=/path/to/PX4-Autopilot/build/px4_sitl_default make sitl
 # Results in results/sitl/<scenario>/ (report.json, PX4's .ulg, logs). Skipped without it.
-# SITL_ARGS="--aim border": mavloc points the gimbal instead of the mission.
+# Default scenarios: indoor (GPS off) and coastline-border (mavloc points the gimbal).
+# SITL_ARGS="--scenario coastline-mission": the mission's ROI items point it instead;
+# "--repeat N" cold starts; "--px4-param NAME=VALUE", "--set KEY=VALUE" on top of the configs.
 # A release build, as a drone runs it (the dev profile compiles mavloc at opt-level 1).
 sitl: deps
 	@if [ -z "$(MAVLOC_PX4_DIR)" ]; then \
