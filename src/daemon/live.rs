@@ -100,6 +100,8 @@ pub struct AreaLive {
     /// `gimbal.aim = "border"`: report where the border is, per frame, smoothed over
     /// frames ([`AIM_SMOOTHING`]).
     aim: bool,
+    /// The smoothed aim, earth-frame (yaw, pitch), radians; it waits through frames with
+    /// no border in view.
     aimed: Option<(f64, f64)>,
 }
 
@@ -715,7 +717,8 @@ mod tests {
 
     /// A straight shore along north, 22 m east of a camera 30 m up that looks east-north-
     /// east and shallow: the aim is the nearest shore point (yaw 90, pitch -53.7 degrees),
-    /// not the middle of the shore in view, which the shallow view puts far off.
+    /// not the middle of the shore in view, which the shallow view puts far off (the
+    /// centroid of the border pixels is at yaw 46, pitch -45 here).
     #[test]
     fn the_gimbal_is_aimed_at_the_nearest_shore_in_view() {
         use crate::geometry::{GimbalAngles, GimbalChain, Mount};
