@@ -341,7 +341,7 @@ def estimate_vs_truth(ulg):
     import numpy as np
     from pyulog import ULog
     u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_land_detected",
-                   "estimator_status_flags"])
+                   "estimator_status_flags", "vehicle_attitude", "vehicle_attitude_groundtruth"])
     d = {x.name: x.data for x in u.data_list}
     est, gt = d["vehicle_local_position"], d["vehicle_local_position_groundtruth"]
     t = gt["timestamp"]
@@ -375,21 +375,19 @@ def estimate_vs_truth(ulg):
         fa = airborne_mask(u, flags["timestamp"])
         if fa is not None and fa.any():
             out["ev_pos_fused_share"] = round(float(flags["cs_ev_pos"][fa].mean()), 4)
-    out["attitude_error_deg"] = attitude_vs_truth(ulg)
+    out["attitude_error_deg"] = attitude_vs_truth(u)
     # Where the vehicle came to rest: the truth's last sample, in the EKF's frame.
     out["rest_truth_ne"] = [round(float(truth["x"][-1]), 3), round(float(truth["y"][-1]), 3)]
     out["start_truth_ne"] = [round(float(truth["x"][0]), 3), round(float(truth["y"][0]), 3)]
     return out
 
 
-def attitude_vs_truth(ulg):
+def attitude_vs_truth(u):
     """EKF2's roll, pitch and yaw against SIH's truth over the airborne time, degrees: mean,
-    SD and 90th percentile of the absolute error each. The sim camera is turned on the
-    true body as the telemetry says the gimbal is, so this is the camera's attitude error
-    as mavloc sees it."""
+    SD and 90th percentile of the absolute error each, from the parsed flight log `u`. The
+    sim camera is turned on the true body as the telemetry says the gimbal is, so this is
+    the camera's attitude error as mavloc sees it."""
     import numpy as np
-    from pyulog import ULog
-    u = ULog(ulg, ["vehicle_attitude", "vehicle_attitude_groundtruth", "vehicle_land_detected"])
     d = {x.name: x.data for x in u.data_list}
     if "vehicle_attitude" not in d or "vehicle_attitude_groundtruth" not in d:
         return None
@@ -517,9 +515,7 @@ def run_scenario(a, name, out):
     else:
         # Over every gimbal report while airborne (the counter of the last minute ends on
         # the ground, where PX4 holds the camera in its landing range).
-        counters = report.get("mavloc_counters", {})
-        report["gimbal_error_median_deg"] = counters.get("gimbal_error_flight_median_deg",
-                                                         counters.get("gimbal_error_median_deg"))
+        report["gimbal_error_median_deg"] = report.get("mavloc_counters", {}).get("gimbal_error_flight_median_deg")
         lm = os.path.join(state, "results", "area", "landmarks.csv")
         if os.path.exists(lm):
             report["landmarks"] = max(0, sum(1 for _ in open(lm)) - 1)
@@ -591,6 +587,9 @@ def main():
         a.px4_param = dict(kv.split("=", 1) for kv in a.px4_param)
     except ValueError:
         ap.error("--px4-param takes NAME=VALUE")
+    bad = [kv for kv in a.set if "=" not in kv]
+    if bad:
+        ap.error(f"--set takes KEY=VALUE, not {bad[0]!r}")
     reexec_in_netns()
     os.environ["MAVLINK20"] = "1"
     scenarios = a.scenario or ([f"coastline-{a.aim}"] if a.aim else ["indoor", "coastline-border"])

@@ -29,6 +29,9 @@ pub enum Control {
 pub const SETTLE: Duration = Duration::from_millis(500);
 /// The recent pointing error is over this long (the status's "last minute").
 pub const RECENT: Duration = Duration::from_secs(60);
+/// At most this many recent errors are kept (a minute at 100 Hz): an autopilot that
+/// floods gimbal reports costs no more memory or sorting than that.
+const RECENT_MAX: usize = 6000;
 /// Resolution of the flight's error histogram, degrees (0..180).
 const BIN_DEG: f64 = 0.01;
 
@@ -38,7 +41,7 @@ pub struct Gimbal {
     /// The recent setpoints: when sent, and the direction each asks for (unit, NED).
     pub sent: std::collections::VecDeque<(Mono, [f64; 3])>,
     /// Pointing errors (degrees) of reports against settled setpoints over the last
-    /// [`RECENT`], with their times, the newest last.
+    /// [`RECENT`] (at most [`RECENT_MAX`]), with their times, the newest last.
     pub errors: std::collections::VecDeque<(Mono, f64)>,
     /// Every airborne report's error since the start, in [`BIN_DEG`] bins: the flight's
     /// median in constant memory (PX4 reports the gimbal at up to 70 Hz).
@@ -82,7 +85,7 @@ impl Gimbal {
         let error = dot.clamp(-1.0, 1.0).acos().to_degrees();
         tracing::trace!("gimbal report {axis:.3?} against setpoint {want:.3?}: {error:.2} deg");
         self.errors.push_back((now, error));
-        while self.errors.front().is_some_and(|(t, _)| *t + RECENT < now) {
+        while self.errors.front().is_some_and(|(t, _)| *t + RECENT < now) || self.errors.len() > RECENT_MAX {
             self.errors.pop_front();
         }
         if airborne {
@@ -309,6 +312,12 @@ mod tests {
         let recent = g.median_error_deg().unwrap();
         assert!((recent - 1.0).abs() < 0.02, "recent median {recent}");
         assert!(g.errors.len() <= 3001, "a minute of reports: {}", g.errors.len());
+        // A flood is capped: 10 s at 1 kHz keeps the newest RECENT_MAX.
+        for i in 0..10_000u64 {
+            g.on_report(Mono::from_millis(93_000) + Duration::from_micros(i * 1000), off(2.0), true);
+        }
+        assert_eq!(g.errors.len(), RECENT_MAX);
+        assert!(g.errors.iter().all(|e| (e.1 - 2.0).abs() < 1e-9));
     }
 
     #[test]

@@ -461,11 +461,6 @@ impl Core {
         self.gimbal.median_error_deg()
     }
 
-    /// The same over every airborne report since the start (degrees).
-    pub fn gimbal_error_flight_median_deg(&self) -> Option<f64> {
-        self.gimbal.flight_median_error_deg()
-    }
-
     /// The newest ground truth from the simulator (HIL_STATE_QUATERNION) and its arrival.
     pub fn truth(&self) -> Option<&(Mono, HIL_STATE_QUATERNION_DATA)> {
         self.telemetry.truth.as_ref()
