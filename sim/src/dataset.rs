@@ -132,8 +132,9 @@ pub fn render_dataset(
                 .collect()
         }
         None => {
-            let total = opts.frames.unwrap_or(usize::MAX).min(mission.frame_count());
-            (0..total).map(|i| (mission.state(i as f64 / mission.frame_rate), opts.appearance)).collect()
+            let times = mission.frame_times();
+            let total = opts.frames.unwrap_or(usize::MAX).min(times.len());
+            times[..total].iter().map(|&t| (mission.state(t), opts.appearance)).collect()
         }
     };
     let total = shots.len();

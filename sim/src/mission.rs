@@ -13,7 +13,7 @@ use mavloc_data::dataset::GimbalFrame;
 use mavloc_geometry::{Bearing, GimbalAngles, LocalFrame, Vec3};
 use serde::{Deserialize, Serialize};
 
-use crate::scenario::WorldKind;
+use crate::scenario::{MissionPattern, WorldKind};
 use crate::state::State;
 use crate::world::World;
 
@@ -33,6 +33,12 @@ pub struct Mission {
     floor_half: f64,
     altitude: f64,
     swing: f64,
+    /// The camera straight down, top to the direction of flight (a photo survey).
+    nadir: bool,
+    /// Stretches of the path (from, to, metres along it) where frames are taken: the
+    /// whole lap around a border; each line of a survey, not the turns between lines nor
+    /// the way home (a survey camera shoots on its lines only).
+    shooting: Vec<(f64, f64)>,
 }
 
 impl Mission {
@@ -40,7 +46,51 @@ impl Mission {
     pub fn plan(world: &World) -> Result<Mission, String> {
         let s = &world.scenario;
         let m = &s.mission;
+        let nadir = m.pattern == MissionPattern::Lines && s.kind != WorldKind::IndoorFloor;
+        // Waypoint indices where each survey line starts and ends.
+        let mut line_ends: Vec<(usize, usize)> = Vec::new();
         let (waypoints, rois, gimbal_frame) = match s.kind {
+            WorldKind::Coastline | WorldKind::Cliff if nadir => {
+                let ring = world
+                    .ground_truth
+                    .iter()
+                    .max_by(|a, b| path_length(a).total_cmp(&path_length(b)))
+                    .ok_or("the world has no ground-truth border to survey")?;
+                let samples = resample(ring, m.waypoint_spacing_m.min(5.0));
+                let k = (0..samples.len())
+                    .max_by(|&a, &b| samples[a].x.total_cmp(&samples[b].x))
+                    .ok_or("the border has no points")?;
+                let p = samples[k];
+                let along = (samples[(k + 1) % samples.len()]
+                    - samples[(k + samples.len() - 1) % samples.len()])
+                .normalize();
+                let mut across = Vec3::new(-along.y, along.x, 0.0);
+                if world.is_target(p.x + 2.0 * across.x, p.y + 2.0 * across.y) {
+                    across = -across;
+                }
+                let mut wps = Vec::new();
+                let mut ends = Vec::new();
+                let mid = (m.line_count as f64 - 1.0) / 2.0;
+                for i in 0..m.line_count {
+                    let centre = p + across * ((i as f64 - mid) * m.line_spacing_m);
+                    let half = along * (m.line_length_m / 2.0);
+                    let (a, b) = if i % 2 == 0 {
+                        (centre - half, centre + half)
+                    } else {
+                        (centre + half, centre - half)
+                    };
+                    // Waypoints every 5 m, so the path is flown straight at the speed limit.
+                    let n = (m.line_length_m / 5.0).ceil().max(1.0) as usize;
+                    ends.push((wps.len(), wps.len() + n));
+                    for j in 0..=n {
+                        let q = a + (b - a) * (j as f64 / n as f64);
+                        wps.push(Vec3::new(q.x, q.y, -m.altitude_m));
+                    }
+                }
+                let rois = wps.iter().map(|w| Vec3::new(w.x, w.y, 0.0)).collect();
+                line_ends = ends;
+                (wps, rois, GimbalFrame::Earth)
+            }
             WorldKind::Coastline | WorldKind::Cliff => {
                 let ring = world
                     .ground_truth
@@ -92,6 +142,11 @@ impl Mission {
             let d = (waypoints[k % waypoints.len()] - waypoints[k - 1]).norm();
             cumulative.push(cumulative[k - 1] + d);
         }
+        let shooting = if nadir {
+            line_ends.iter().map(|&(a, b)| (cumulative[a], cumulative[b])).collect()
+        } else {
+            vec![(0.0, cumulative[waypoints.len()])]
+        };
         Ok(Mission {
             waypoints,
             rois,
@@ -104,6 +159,8 @@ impl Mission {
             floor_half: 4.0,
             altitude: m.altitude_m,
             swing: m.altitude_swing_m,
+            nadir,
+            shooting,
         })
     }
 
@@ -119,7 +176,25 @@ impl Mission {
 
     /// Frames in one lap at the capture rate.
     pub fn frame_count(&self) -> usize {
-        (self.duration() * self.frame_rate).floor() as usize
+        self.frame_times().len()
+    }
+
+    /// When frames are taken, seconds from the start: every `1 / frame_rate` around a
+    /// lap; on a survey, from the start of each line to its end at the same spacing.
+    pub fn frame_times(&self) -> Vec<f64> {
+        let step = self.speed / self.frame_rate;
+        let mut times = Vec::new();
+        for &(from, to) in &self.shooting {
+            // A lap's end is its start: not shot twice. A line is shot from half a metre
+            // after its start to half a metre before its end, so the heading (from the
+            // velocity over 0.1 s) is the line's, not the turn's.
+            let (mut s, end) = if self.nadir { (from + 0.5, to - 0.5 + 1e-9) } else { (from, to - 1e-9) };
+            while s < end {
+                times.push(s / self.speed);
+                s += step;
+            }
+        }
+        times
     }
 
     fn position_at(&self, t: f64) -> Vec3 {
@@ -138,6 +213,10 @@ impl Mission {
         let velocity = (self.position_at(t + dt) - self.position_at(t - dt)) / (2.0 * dt);
         let heading = velocity.y.atan2(velocity.x);
         match self.gimbal_frame {
+            GimbalFrame::Earth if self.nadir => {
+                let gimbal = GimbalAngles { yaw: heading, pitch: -PI / 2.0, roll: 0.0 };
+                State { t, position, velocity, attitude: [0.0, 0.0, heading], gimbal }
+            }
             GimbalFrame::Earth => {
                 let target = mavloc_geometry::nearest_on_polylines(&self.border, &position)
                     .map(|(q, _)| q)
@@ -348,6 +427,43 @@ fn resample(line: &[Vec3], spacing: f64) -> Vec<Vec3> {
 mod tests {
     use super::*;
     use crate::scenario::Scenario;
+
+    /// The photo survey: three parallel lines 30 m apart across the shore, the middle one
+    /// flown back, photos only on the lines (none on the turns) every 12.5 m, the camera
+    /// straight down with its top to the direction of flight.
+    #[test]
+    fn a_survey_flies_parallel_lines_with_the_camera_straight_down() {
+        let world = World::build(&Scenario::load("coastline-survey").unwrap()).unwrap();
+        let m = Mission::plan(&world).unwrap();
+        let states: Vec<State> = m.frame_times().iter().map(|&t| m.state(t)).collect();
+        assert_eq!(states.len(), 18, "6 photos on each of 3 lines of 65 m");
+        let lines: Vec<&[State]> = states.chunks(6).collect();
+        let dir = |l: &[State]| (l[5].position - l[0].position).normalize();
+        for (i, line) in lines.iter().enumerate() {
+            for w in line.windows(2) {
+                assert!(((w[1].position - w[0].position).norm() - 12.5).abs() < 1e-6, "line {i}");
+            }
+            for s in line.iter() {
+                assert!((s.position.z + 40.0).abs() < 1e-9);
+                assert!((s.gimbal.pitch + std::f64::consts::FRAC_PI_2).abs() < 1e-12, "straight down");
+                let heading = Vec3::new(s.gimbal.yaw.cos(), s.gimbal.yaw.sin(), 0.0);
+                assert!(heading.dot(&dir(line)) > 0.9999, "top of the image to the direction of flight");
+            }
+        }
+        assert!(dir(lines[0]).dot(&dir(lines[1])) < -0.9999, "the middle line is flown back");
+        assert!(dir(lines[0]).dot(&dir(lines[2])) > 0.9999);
+        // 30 m apart, across the lines.
+        let across = |a: &State, b: &State| {
+            let d = b.position - a.position;
+            (d - dir(lines[0]) * d.dot(&dir(lines[0]))).norm()
+        };
+        assert!((across(&lines[0][0], &lines[1][0]) - 30.0).abs() < 1e-6);
+        assert!((across(&lines[0][0], &lines[2][0]) - 60.0).abs() < 1e-6);
+        // The middle line runs along the shore: it sees water and land.
+        let middle = &lines[1][3];
+        let (shore, _) = world.nearest_border_point(&middle.position).unwrap();
+        assert!((shore - Vec3::new(middle.position.x, middle.position.y, shore.z)).norm() < 15.0);
+    }
 
     #[test]
     fn coastline_mission_flies_outside_the_lake_and_looks_at_the_shore() {

@@ -88,6 +88,41 @@ pub struct MissionSpec {
     pub frame_rate_hz: f64,
     /// Spacing of waypoints along the border, metres.
     pub waypoint_spacing_m: f64,
+    /// `border` (the seed's: along the border, camera on it) or `lines` (a photo survey:
+    /// parallel lines across the border, flown back and forth, camera straight down).
+    #[serde(default)]
+    pub pattern: MissionPattern,
+    /// For `lines`: how many, how far apart (m) and how long (m). The lines run along the
+    /// border where it is furthest north, centred on it.
+    #[serde(default = "default_line_count")]
+    pub line_count: usize,
+    #[serde(default = "default_line_spacing")]
+    pub line_spacing_m: f64,
+    #[serde(default = "default_line_length")]
+    pub line_length_m: f64,
+}
+
+fn default_line_count() -> usize {
+    3
+}
+fn default_line_spacing() -> f64 {
+    25.0
+}
+fn default_line_length() -> f64 {
+    80.0
+}
+
+/// How the mission flies (`mission.pattern`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MissionPattern {
+    /// Along the border, offset from it, the gimbal on its nearest point (area seed sec.
+    /// 4.2.4).
+    #[default]
+    Border,
+    /// A photo survey: parallel lines, every other one flown back, the camera pointing
+    /// straight down with its top to the direction of flight (as a DJI survey does).
+    Lines,
 }
 
 /// Sensor noise and faults added to what the simulated vehicle reports (seed table 6.2,
@@ -180,6 +215,7 @@ impl Default for ViewSpec {
 /// The built-in scenarios, by name.
 pub const BUILT_IN: &[(&str, &str)] = &[
     ("coastline", include_str!("../scenarios/coastline.toml")),
+    ("coastline-survey", include_str!("../scenarios/coastline-survey.toml")),
     ("cliff", include_str!("../scenarios/cliff.toml")),
     ("indoor-floor", include_str!("../scenarios/indoor-floor.toml")),
 ];
@@ -232,6 +268,14 @@ impl Scenario {
         let m = &self.mission;
         if !(m.speed_m_s > 0.0 && m.frame_rate_hz > 0.0 && m.waypoint_spacing_m > 0.0 && m.altitude_m > 0.0) {
             return Err("mission: speed, frame rate, waypoint spacing and altitude must be positive".into());
+        }
+        if m.pattern == MissionPattern::Lines
+            && !(m.line_count >= 1 && m.line_spacing_m > 0.0 && m.line_length_m > 0.0)
+        {
+            return Err(
+                "mission: a survey needs line_count >= 1 and positive line_spacing_m and line_length_m"
+                    .into(),
+            );
         }
         if !(0.0..1.0).contains(&self.noise.drop_rate) {
             return Err(format!("noise.drop_rate {} must be in [0, 1)", self.noise.drop_rate));

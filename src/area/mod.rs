@@ -79,6 +79,10 @@ pub struct FrameReport {
     /// residual report checks each ray a landmark was built from, and a frame whose pose
     /// is wrong has all its matches gated).
     pub sightings: Vec<(u64, Pixel)>,
+    /// The sightings the landmarks are built from: those created here and the matches the
+    /// gate accepted (what a landmark's own triangulation may use; a gated match is a
+    /// sighting the filter refused).
+    pub accepted_sightings: Vec<(u64, Pixel)>,
     pub timing: StageTiming,
 }
 
@@ -181,6 +185,10 @@ impl AreaPipeline {
         report.converged = converged;
         let created = if self.trace { Some(&mut report.sightings) } else { None };
         report.added = self.library.add(input.index, &features, &used, &input.pose, &self.k, created);
+        report.accepted_sightings = report.sightings.clone();
+        report
+            .accepted_sightings
+            .extend(report.trace.iter().filter(|t| t.accepted).map(|t| (t.landmark, t.pixel)));
         report.sightings.extend(report.trace.iter().map(|t| (t.landmark, t.pixel)));
         report.landmarks = self.library.landmarks.len();
         report.timing =

@@ -86,7 +86,8 @@ pub struct RunSummary {
     pub refined_gimbal_offset_sd_deg: Option<[f64; 3]>,
     /// Flight lines (split where the track turns); the pairs of points a converged
     /// landmark gets from two lines' rays alone (one per landmark and pair of lines); the
-    /// median distance between them, with the recorded poses and after refinement
+    /// median distance between them, with the poses the filters ran on (aligned, when the
+    /// photos were), with the poses as tagged (only when aligned) and after refinement
     /// (`area::crosslines`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub flight_lines: Option<usize>,
@@ -94,6 +95,8 @@ pub struct RunSummary {
     pub cross_line_pairs: Option<usize>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_line_median_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cross_line_tagged_median_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_line_refined_median_m: Option<f64>,
     /// Photo alignment by tie points before the filters (`area.align_prior_deg`,
@@ -250,10 +253,16 @@ impl From<&super::library::TraceEntry> for TraceRow {
 
 /// Photo surveys are aligned up to this many photos (every overlapping pair is matched).
 pub const ALIGN_MAX_FRAMES: usize = 500;
+/// SD of the attitude of a photo aligned by its tie points, as the refinement after the
+/// landmark filters takes it (degrees): the alignment leaves its tie points 0.3 px off
+/// (median, Seneca's photos matched at 1600 px), hundreds to thousands per photo, so its
+/// attitude is known to a few hundredths of a degree; 0.05 deg is a pixel at 1250 px
+/// focal length.
+const ALIGNED_PRIOR_DEG: f64 = 0.05;
 
 /// Aligns the dataset's photos by their tie points (`area::align`), fills the summary's
-/// alignment fields and writes `alignment.csv`; returns each frame's rotation correction.
-/// Empty when no two photos share a tie point.
+/// alignment fields and writes `alignment.csv`; returns the rotation correction of each
+/// frame the tie points reached. Empty when no two photos share a tie point.
 fn align_photos(
     ds: &Dataset,
     s: &Settings,
@@ -358,7 +367,9 @@ fn align_photos(
         adjusting_s = t0.elapsed().as_secs_f64() - t_features - t_matching,
         "photos aligned by their tie points"
     );
-    Ok(a.corrections)
+    // Only the photos the tie points reached: the others keep their tags (and the
+    // refinement's prior for tags).
+    Ok(a.corrections.into_iter().filter(|(f, _)| per_frame.contains_key(f)).collect())
 }
 
 /// Runs the configured method over a dataset. `progress(done, total)` after each frame.
@@ -398,6 +409,9 @@ pub fn run_observed(
     };
     let residuals = observe || opts.trace || ds.records.len() <= RESIDUAL_MAX_FRAMES;
     let mut seen: Vec<(u64, u64, crate::geometry::Pixel)> = Vec::new();
+    // The subset the landmark filters accepted (the cross-line measure triangulates each
+    // landmark from what it was built of, not from matches its gate refused).
+    let mut accepted: Vec<(u64, u64, crate::geometry::Pixel)> = Vec::new();
     let mut poses = std::collections::BTreeMap::new();
     let mut measured = std::collections::BTreeMap::new();
     let mut pipeline = match opts.method {
@@ -481,11 +495,24 @@ pub fn run_observed(
                 frame_ms.push(t.elapsed().as_secs_f64() * 1000.0);
                 match_ms.push(report.timing.match_estimate.as_secs_f64() * 1000.0);
                 timing += report.timing;
+                tracing::debug!(
+                    frame = record.frame,
+                    features = report.features,
+                    matched = report.stats.matched,
+                    gated = report.stats.gated,
+                    conflicts = report.stats.conflicts,
+                    added = report.added,
+                    purged = report.purged,
+                    converged = report.converged.len(),
+                    tracked = report.landmarks,
+                    "frame processed"
+                );
                 results.extend(report.converged);
                 if residuals {
                     poses.insert(record.frame, pose);
                     measured.insert(record.frame, record.measured);
                     seen.extend(report.sightings.iter().map(|&(id, px)| (record.frame, id, px)));
+                    accepted.extend(report.accepted_sightings.iter().map(|&(id, px)| (record.frame, id, px)));
                 }
                 if let Some(f) = trace_file.as_mut() {
                     f.extend(&report.trace.iter().map(TraceRow::from).collect::<Vec<_>>())?;
@@ -561,7 +588,7 @@ pub fn run_observed(
         let cross = |poses: &std::collections::BTreeMap<u64, crate::geometry::CameraPose>,
                      landmarks: &[mavloc_data::results::LandmarkRecord]| {
             let at = landmarks.iter().map(|l| (l.id, l.position)).collect();
-            let mut d = super::crosslines::disagreement(&seen, poses, &k, &lines, &at, sd_rad);
+            let mut d = super::crosslines::disagreement(&accepted, poses, &k, &lines, &at, sd_rad);
             (d.len(), (!d.is_empty()).then(|| super::residuals::quantile(&mut d, 0.5)))
         };
         if surveyed_in_lines {
@@ -569,6 +596,14 @@ pub fn run_observed(
             summary.flight_lines = Some(line_count);
             summary.cross_line_pairs = Some(n);
             summary.cross_line_median_m = median;
+            if !alignment.is_empty() {
+                // The same sightings with the poses as tagged: what the alignment fixed.
+                let tagged = poses
+                    .keys()
+                    .map(|f| (*f, ds.camera_pose(&measured[f], s.gimbal.offsets_deg())))
+                    .collect();
+                summary.cross_line_tagged_median_m = cross(&tagged, &results).1;
+            }
         }
         if s.area.attitude_prior_deg > 0.0 && !results.is_empty() {
             // Attitude refinement (area::refine): landmarks, per-frame attitude
@@ -586,11 +621,17 @@ pub fn run_observed(
             };
             // Photos aligned by their tie points have each had their own rotation found
             // already, a shared offset with it: no static offset is left to tell apart
-            // (and for a nadir camera its yaw and roll are one rotation).
+            // (and for a nadir camera its yaw and roll are one rotation). Their rotations
+            // rest on thousands of tie points: the landmarks' few sightings may refine
+            // them by hundredths of a degree, not turn them (with the tags' 2 deg prior,
+            // Seneca's aligned photos turned by 0.66 deg, their sightings reprojected
+            // worse, 1.8 -> 2.4 px, and two lines' landmarks went from 0.19 to 0.33 m
+            // apart: a few false sightings pulling them).
             let r = if alignment.is_empty() {
                 super::refine::refine_with_offset(&seen, &results, &frames, &pose, &k, &params)
             } else {
-                super::refine::refine(&seen, &results, &poses, &k, &params)
+                let priors = alignment.keys().map(|f| (*f, ALIGNED_PRIOR_DEG.to_radians())).collect();
+                super::refine::refine_with_priors(&seen, &results, &poses, &k, &params, &priors)
             };
             let scale = downscale as f64;
             summary.refined_median_before_px = Some(r.median_before_px * scale);

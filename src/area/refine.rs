@@ -129,9 +129,25 @@ pub fn refine(
     k: &Intrinsics,
     p: &RefineParams,
 ) -> Refined {
+    refine_with_priors(sightings, landmarks, poses, k, p, &BTreeMap::new())
+}
+
+/// [`refine`] with some frames' rotation priors other than `p.prior` (radians, by frame):
+/// photos already aligned to each other by thousands of tie points (`area::align`) know
+/// their attitude far better than their tags did, and a few false landmark sightings
+/// must not turn them.
+pub fn refine_with_priors(
+    sightings: &[(u64, u64, Pixel)],
+    landmarks: &[LandmarkRecord],
+    poses: &BTreeMap<u64, CameraPose>,
+    k: &Intrinsics,
+    p: &RefineParams,
+    priors: &BTreeMap<u64, f64>,
+) -> Refined {
     let pose = |f: u64, d: &Vec3, _: &Vec3| corrected(&poses[&f], d);
     let frames: Vec<u64> = poses.keys().copied().collect();
-    solve_refined(sightings, landmarks, &frames, &pose, false, k, p)
+    let frame_prior = frames.iter().map(|f| priors.get(f).copied().unwrap_or(p.prior)).collect();
+    solve_refined(sightings, landmarks, &frames, &pose, false, k, p, frame_prior)
 }
 
 /// [`refine`] with a static gimbal offset shared by every frame besides each frame's own
@@ -150,9 +166,10 @@ pub fn refine_with_offset(
     p: &RefineParams,
 ) -> Refined {
     let pose = |f: u64, d: &Vec3, o: &Vec3| corrected(&pose(f, o), d);
-    solve_refined(sightings, landmarks, frames, &pose, true, k, p)
+    solve_refined(sightings, landmarks, frames, &pose, true, k, p, vec![p.prior; frames.len()])
 }
 
+#[allow(clippy::too_many_arguments)]
 fn solve_refined(
     sightings: &[(u64, u64, Pixel)],
     landmarks: &[LandmarkRecord],
@@ -161,6 +178,7 @@ fn solve_refined(
     shared: bool,
     k: &Intrinsics,
     p: &RefineParams,
+    frame_prior: Vec<f64>,
 ) -> Refined {
     let block: BTreeMap<u64, usize> = frames.iter().enumerate().map(|(i, &f)| (f, i)).collect();
     let shifting = p.shift_prior_m > 0.0;
@@ -175,6 +193,7 @@ fn solve_refined(
         fixed: &[],
         frame_block: &block,
         frame_blocks: frames.len(),
+        frame_prior,
         shift_block: &shift_block,
         shared,
         pose,
@@ -245,6 +264,7 @@ pub fn calibrate(
         fixed: &fixed_ids,
         frame_block: &no_frames,
         frame_blocks: 0,
+        frame_prior: Vec::new(),
         shift_block: &no_frames,
         shared: true,
         pose: &|f, _, o| pose(f, o),
@@ -275,6 +295,8 @@ struct Problem<'a> {
     /// Frame -> its own block (empty: no per-frame blocks).
     frame_block: &'a BTreeMap<u64, usize>,
     frame_blocks: usize,
+    /// SD of each frame block's prior (radians), by block.
+    frame_prior: Vec<f64>,
     /// Frame -> its position shift's block, after the rotation blocks (empty: none).
     shift_block: &'a BTreeMap<u64, usize>,
     /// A block shared by every frame, after the frames' own.
@@ -347,7 +369,7 @@ impl Problem<'_> {
         let shared_ix = self.shared.then_some(nf + nt);
         let prior = |b: usize| {
             if b < nf {
-                p.prior
+                self.frame_prior[b]
             } else if b < nf + nt {
                 p.shift_prior_m
             } else {

@@ -126,10 +126,20 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
     }
     if let (Some(lines), Some(n)) = (summary.flight_lines, summary.cross_line_pairs) {
         let m = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2} m"));
+        // As tagged (when the photos were aligned), as the filters ran, after refinement.
+        let mut stages = Vec::new();
+        if summary.cross_line_tagged_median_m.is_some() {
+            stages.push(format!("{} as tagged", m(summary.cross_line_tagged_median_m)));
+            stages.push(format!("{} aligned", m(summary.cross_line_median_m)));
+        } else {
+            stages.push(m(summary.cross_line_median_m));
+        }
+        if let Some(v) = summary.cross_line_refined_median_m {
+            stages.push(format!("{v:.2} m after refinement"));
+        }
         println!(
-            "{lines} flight lines; landmarks triangulated from each of two lines alone ({n} pairs) lie {} apart (median){}",
-            m(summary.cross_line_median_m),
-            summary.cross_line_refined_median_m.map_or(String::new(), |v| format!(", {v:.2} m after refinement"))
+            "{lines} flight lines; landmarks triangulated from each of two lines alone ({n} pairs) lie apart by {} (median)",
+            stages.join(", ")
         );
     }
     for f in &summary.yaw_off_180_frames {

@@ -193,6 +193,7 @@ pub const ENUM_KEYS: &[(&str, &[&str])] = &[
     ("gimbal.chain", &["yaw-pitch-roll", "yaw-roll-pitch"]),
     ("gimbal.aim", &["mission", "border"]),
     ("area.method", &["ukf", "ground-plane"]),
+    ("area.matching", &["global", "guided"]),
     ("area.segmenter", &["masks", "water", "hsv"]),
     ("indoor.dictionary", &["competitive", "k-means"]),
     ("indoor.motion_model", &["velocity", "noise"]),

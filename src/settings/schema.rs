@@ -271,9 +271,23 @@ pub struct Area {
     /// SD of the recorded positions for the same alignment, metres (each photo's
     /// position shift is estimated with it); 0 = positions held as recorded.
     pub align_shift_m: f64,
+    /// How features are matched to landmarks: `global` (the seed's, every feature of the
+    /// frame) or `guided` (only inside each landmark's predicted gate).
+    pub matching: AreaMatching,
     pub segmenter: Segmenter,
     pub hsv_low: Vec<f64>,
     pub hsv_high: Vec<f64>,
+}
+
+/// How a frame's features are matched to the landmarks (`area.matching`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AreaMatching {
+    /// The seed's (sec. 5.4): every landmark against every feature of the frame.
+    #[default]
+    Global,
+    /// Only inside the gate where each landmark's filter predicts it.
+    Guided,
 }
 
 /// Where target masks come from (`area.segmenter`).
@@ -313,6 +327,7 @@ impl Default for Area {
             attitude_prior_deg: 0.0,
             align_prior_deg: 0.0,
             align_shift_m: 5.0,
+            matching: AreaMatching::Global,
             segmenter: Segmenter::Masks,
             hsv_low: vec![90.0, 60.0, 30.0],
             hsv_high: vec![130.0, 255.0, 255.0],
