@@ -213,3 +213,52 @@ fn aligning_photos_by_their_tie_points_doubles_the_landmarks_and_halves_their_er
         aligned.mean_m
     );
 }
+
+/// The reverse line, on a survey shaped like the held-back one
+/// (`coastline-survey`: three nadir lines of six photos, the middle one flown back, each
+/// photo's gimbal 3 deg off): tagged as flown, no photo is turned; with the middle line's
+/// yaw tagged half a turn off (the DJI survey's tags were 177-179 deg off on its reverse
+/// line), the import's overlap check (`area::imageup`, consecutive photos as
+/// `mavloc import photos` pairs them) turns exactly that line's six photos, before any
+/// landmark exists.
+#[test]
+fn a_surveys_reverse_line_tagged_half_a_turn_off_is_found_by_the_overlap() {
+    use mavloc::area::imageup;
+    let opts = RenderOptions { size: Some((1000, 562)), ..RenderOptions::default() };
+    let dir = crate::fixtures::rendered("coastline-survey-1000x562", "coastline-survey", &opts);
+    let ds = Dataset::open(&dir).unwrap();
+    assert_eq!(ds.records.len(), 18);
+    let k = ds.camera.intrinsics();
+    let features: Vec<_> = ds
+        .records
+        .iter()
+        .map(|r| {
+            let img =
+                mavloc::imaging::read_image(&ds.frame_path(r), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+            imageup::features(&img).unwrap()
+        })
+        .collect();
+    let turned = |flip_middle: bool| {
+        let poses: Vec<_> = ds
+            .records
+            .iter()
+            .map(|r| {
+                let mut m = r.measured;
+                if flip_middle && (6..12).contains(&r.frame) {
+                    m.gimbal_deg[0] += 180.0;
+                }
+                ds.camera_pose(&m, [0.0; 3])
+            })
+            .collect();
+        let votes: Vec<_> = (1..poses.len())
+            .filter_map(|i| {
+                imageup::vote((i - 1, &features[i - 1], &poses[i - 1]), (i, &features[i], &poses[i]), &k, 0.0)
+                    .unwrap()
+            })
+            .collect();
+        imageup::verdicts(poses.len(), &votes)
+    };
+    assert!(turned(false).iter().all(|t| !t), "{:?}", turned(false));
+    let expected: Vec<bool> = (0..18).map(|f| (6..12).contains(&f)).collect();
+    assert_eq!(turned(true), expected);
+}
