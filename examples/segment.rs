@@ -31,7 +31,10 @@ fn main() -> anyhow::Result<()> {
         } else if a == "--shadow" {
             let v = args.next().ok_or_else(|| anyhow::anyhow!("--shadow needs U,V,U,V,..."))?;
             let f: Vec<f64> = v.split(',').map(str::parse).collect::<Result<_, _>>()?;
-            anyhow::ensure!(f.len() >= 6 && f.len().is_multiple_of(2), "--shadow needs three or more U,V corners");
+            anyhow::ensure!(
+                f.len() >= 6 && f.len().is_multiple_of(2),
+                "--shadow needs three or more U,V corners"
+            );
             shadow = Some(f);
         } else {
             images.push(a);

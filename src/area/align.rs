@@ -182,13 +182,24 @@ pub fn match_pairs(photos: &[Photo], k: &Intrinsics, down: f64) -> opencv::Resul
         }
     }
     let tried = wanted.len();
-    let mut out = Vec::new();
-    for (i, j) in wanted {
-        let matches = verified(&photos[i].features, &photos[j].features, threshold)?;
-        if !matches.is_empty() {
-            out.push(PairMatches { a: i, b: j, matches });
-        }
-    }
+    // Pairs in parallel, in a fixed order.
+    use rayon::prelude::*;
+    let wanted: Vec<(usize, usize)> = wanted.into_iter().collect();
+    let verified: Vec<Vec<(usize, usize)>> = wanted
+        .par_iter()
+        .map(|&(i, j)| {
+            // FLANN's trees and MAGSAC draw from OpenCV's per-thread generator: seeded per
+            // pair, a pair's matches do not depend on which thread ran the ones before.
+            opencv::core::set_rng_seed((i * 7919 + j) as i32 + 1)?;
+            verified(&photos[i].features, &photos[j].features, threshold)
+        })
+        .collect::<opencv::Result<_>>()?;
+    let out = wanted
+        .into_iter()
+        .zip(verified)
+        .filter(|(_, m)| !m.is_empty())
+        .map(|((a, b), matches)| PairMatches { a, b, matches })
+        .collect();
     Ok((out, tried))
 }
 
