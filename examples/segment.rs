@@ -1,7 +1,10 @@
 //! Segments images with `area.segmenter` and draws contact sheets of each beside its mask,
 //! to look at what a segmenter takes for the target on any photo (no dataset needed).
 //!
-//! `cargo run --release --example segment -- OUT_DIR IMAGE... [--set KEY=VALUE]... [--shadow U,V,U,V,...]`
+//! `cargo run --release --example segment -- OUT_DIR IMAGE... [--set KEY=VALUE]... [--shadow U,V,U,V,...] [--train IMAGE[=MASK]]...`
+//!
+//! `--train` segments with `area.segmenter = "learned"`, trained on the given images and
+//! masks (without `=MASK`, the image's mask from the configured rule, `water` unless set).
 //!
 //! `--shadow` first casts a synthetic shadow over a polygon (corners as fractions of the
 //! width and height) of each image: each channel scaled as skylight alone lights the
@@ -10,7 +13,7 @@
 //! against 119, 107, 91; the sunlit road is S 23, V 199), and prints how much of the
 //! polygon the segmenter took for the target.
 
-use mavloc::area::segment::{contact_sheets, segment, SheetRow};
+use mavloc::area::segment::{contact_sheets, segment, Learned, SheetRow};
 use mavloc::settings::{self, Layers};
 use opencv::core::{self, Mat, Point, Scalar, Vector};
 use opencv::prelude::*;
@@ -24,10 +27,12 @@ fn main() -> anyhow::Result<()> {
     let Some(out) = args.next() else {
         anyhow::bail!("usage: segment OUT_DIR IMAGE... [--set KEY=VALUE]... [--shadow U,V,U,V,...]")
     };
-    let (mut images, mut overrides, mut shadow) = (Vec::new(), Vec::new(), None);
+    let (mut images, mut overrides, mut shadow, mut train) = (Vec::new(), Vec::new(), None, Vec::new());
     while let Some(a) = args.next() {
         if a == "--set" {
             overrides.push(args.next().ok_or_else(|| anyhow::anyhow!("--set needs KEY=VALUE"))?);
+        } else if a == "--train" {
+            train.push(args.next().ok_or_else(|| anyhow::anyhow!("--train needs IMAGE[=MASK]"))?);
         } else if a == "--shadow" {
             let v = args.next().ok_or_else(|| anyhow::anyhow!("--shadow needs U,V,U,V,..."))?;
             let f: Vec<f64> = v.split(',').map(str::parse).collect::<Result<_, _>>()?;
@@ -42,9 +47,28 @@ fn main() -> anyhow::Result<()> {
     }
     let layers = Layers::from_process(None, overrides);
     let mut s = settings::load(&layers)?.settings;
-    if s.area.segmenter == mavloc::settings::Segmenter::Masks {
+    if matches!(s.area.segmenter, mavloc::settings::Segmenter::Masks | mavloc::settings::Segmenter::Learned) {
         s.area.segmenter = mavloc::settings::Segmenter::Water;
     }
+    let mut examples = Vec::new();
+    for t in &train {
+        let (img, mask) = t.split_once('=').map_or((t.as_str(), None), |(i, m)| (i, Some(m)));
+        let frame = imgcodecs::imread(img, imgcodecs::IMREAD_COLOR)?;
+        anyhow::ensure!(!frame.empty(), "{img}: cannot read it");
+        let mask = match mask {
+            Some(m) => imgcodecs::imread(m, imgcodecs::IMREAD_GRAYSCALE)?,
+            None => segment(&frame, &s.area)?.expect("a rule segmenter"),
+        };
+        examples.push((frame, mask));
+    }
+    let learned = if train.is_empty() {
+        None
+    } else {
+        Some(
+            Learned::train(&examples)?
+                .ok_or_else(|| anyhow::anyhow!("the training masks hold one class only"))?,
+        )
+    };
     let mut rows = Vec::new();
     for (i, path) in images.iter().enumerate() {
         let mut img = imgcodecs::imread(path, imgcodecs::IMREAD_COLOR)?;
@@ -53,7 +77,10 @@ fn main() -> anyhow::Result<()> {
             Some(f) => Some(cast_shadow(&mut img, f)?),
             None => None,
         };
-        let mask = segment(&img, &s.area)?.expect("a segmenter that makes masks");
+        let mask = match &learned {
+            Some(l) => l.segment(&img)?,
+            None => segment(&img, &s.area)?.expect("a segmenter that makes masks"),
+        };
         if let Some(area) = cast {
             let mut both = Mat::default();
             core::bitwise_and(&mask, &area, &mut both, &core::no_array())?;

@@ -450,6 +450,36 @@ pub fn run_observed(
         Some(c) => c.apply(&pose),
         None => pose,
     };
+    // `segmenter = "learned"`: trained on the masks the user made for some frames (those
+    // frames keep their own masks).
+    let learned = match s.area.segmenter {
+        crate::settings::Segmenter::Learned => {
+            let mut examples = Vec::new();
+            for r in ds.records.iter().take(total as usize) {
+                let (fp, mp) = (ds.frame_path(r), ds.mask_path(r));
+                if !mp.exists() {
+                    continue;
+                }
+                let frame =
+                    crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR).map_err(anyhow::Error::msg)?;
+                let mask = crate::imaging::read_image(&mp, imgcodecs::IMREAD_GRAYSCALE)
+                    .map_err(anyhow::Error::msg)?;
+                examples.push((frame, mask));
+            }
+            let trained = super::segment::Learned::train(&examples)?.ok_or_else(|| {
+                anyhow::anyhow!(
+                    "area.segmenter = \"learned\" learns from masks you make for a few frames: put them in {} \
+                     (8-bit PNG named as the frame, white on the target, black elsewhere, with some of each); \
+                     {} found",
+                    ds.dir.join("masks").display(),
+                    if examples.is_empty() { "none".to_string() } else { format!("{} with only one class", examples.len()) }
+                )
+            })?;
+            tracing::info!(frames = examples.len(), "segmenter learned from the dataset's masks");
+            Some(trained)
+        }
+        _ => None,
+    };
     let mut preparing = std::time::Duration::ZERO;
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
         let t_read = Instant::now();
@@ -467,9 +497,10 @@ pub fn run_observed(
                     k_full.height
                 ));
             }
-            let mask = match super::segment::segment(&img, &s.area).map_err(|e| e.to_string())? {
-                Some(m) => m,
-                None => crate::imaging::read_image(&mask_path, imgcodecs::IMREAD_GRAYSCALE)
+            let mask = match (super::segment::segment(&img, &s.area).map_err(|e| e.to_string())?, &learned) {
+                (Some(m), _) => m,
+                (None, Some(l)) if !mask_path.exists() => l.segment(&img).map_err(|e| e.to_string())?,
+                (None, _) => crate::imaging::read_image(&mask_path, imgcodecs::IMREAD_GRAYSCALE)
                     .map_err(|e| format!("its mask {e}"))?,
             };
             if (mask.cols(), mask.rows()) != (img.cols(), img.rows()) {

@@ -8,7 +8,10 @@
 //!   and a bright sea both work; then morphological clean-up and only large regions kept;
 //! - `hsv`: pixels inside the configured HSV box (`area.hsv_low`, `area.hsv_high`, OpenCV
 //!   ranges H 0-180, S and V 0-255), for other colour-distinct areas (a burn scar, a
-//!   flood's brown water), with the same clean-up.
+//!   flood's brown water), with the same clean-up;
+//! - `learned` (offline): a classifier of colour and local contrast trained on the masks
+//!   the user made for a few frames of the dataset ([`Learned`]), for a target the rules
+//!   get wrong (a shadow the water rule takes for water), with the same clean-up.
 //!
 //! Segmentation runs at most 800 px wide (masks are smooth; the clean-up kernels are in
 //! those pixels) and the mask is scaled back to the frame.
@@ -140,32 +143,132 @@ fn hsv_box(small: &Mat, low: &[f64], high: &[f64]) -> opencv::Result<Mat> {
 }
 
 /// The target mask of a BGR frame (255 inside), at the frame's size. `None` for
-/// `segmenter = "masks"`: the caller reads the dataset's mask.
+/// `segmenter = "masks"` (the caller reads the dataset's mask) and `"learned"` (the
+/// caller's trained [`Learned`]).
 pub fn segment(frame: &Mat, s: &AreaSettings) -> opencv::Result<Option<Mat>> {
-    if s.segmenter == Segmenter::Masks {
-        return Ok(None);
-    }
-    let scale = (WORK_WIDTH as f64 / frame.cols() as f64).min(1.0);
-    let mut small = Mat::default();
-    if scale < 1.0 {
-        let size = Size::new(WORK_WIDTH, (frame.rows() as f64 * scale).round() as i32);
-        imgproc::resize(frame, &mut small, size, 0.0, 0.0, imgproc::INTER_AREA)?;
-    } else {
-        small = frame.try_clone()?;
-    }
-    let m = match s.segmenter {
-        Segmenter::Water => water(&small)?,
-        Segmenter::Hsv => hsv_box(&small, &s.hsv_low, &s.hsv_high)?,
-        Segmenter::Masks => unreachable!(),
+    let small = match s.segmenter {
+        // The dataset's masks, or a model trained on some of them: `Learned::segment`.
+        Segmenter::Masks | Segmenter::Learned => return Ok(None),
+        Segmenter::Water | Segmenter::Hsv => shrunk(frame)?,
     };
+    let m = match s.segmenter {
+        Segmenter::Hsv => hsv_box(&small, &s.hsv_low, &s.hsv_high)?,
+        _ => water(&small)?,
+    };
+    Ok(Some(to_frame_size(&m, frame)?))
+}
+
+/// `frame` at most `WORK_WIDTH` wide.
+fn shrunk(frame: &Mat) -> opencv::Result<Mat> {
+    let scale = (WORK_WIDTH as f64 / frame.cols() as f64).min(1.0);
     if scale >= 1.0 {
-        return Ok(Some(m));
+        return frame.try_clone();
+    }
+    let mut small = Mat::default();
+    let size = Size::new(WORK_WIDTH, (frame.rows() as f64 * scale).round() as i32);
+    imgproc::resize(frame, &mut small, size, 0.0, 0.0, imgproc::INTER_AREA)?;
+    Ok(small)
+}
+
+/// A mask made at the working size, back at the frame's size (binary).
+fn to_frame_size(m: &Mat, frame: &Mat) -> opencv::Result<Mat> {
+    if m.size()? == frame.size()? {
+        return m.try_clone();
     }
     let mut full = Mat::default();
-    imgproc::resize(&m, &mut full, frame.size()?, 0.0, 0.0, imgproc::INTER_LINEAR)?;
+    imgproc::resize(m, &mut full, frame.size()?, 0.0, 0.0, imgproc::INTER_LINEAR)?;
     let mut bin = Mat::default();
     imgproc::threshold(&full, &mut bin, 127.0, 255.0, imgproc::THRESH_BINARY)?;
-    Ok(Some(bin))
+    Ok(bin)
+}
+
+/// Bins of the learned segmenter's feature: hue, saturation, value and local contrast.
+const BINS_H: usize = 30;
+const BINS_S: usize = 16;
+const BINS_V: usize = 16;
+/// Local contrast ([`texture`], 8-bit) split at these values: water's is under 8-16 in
+/// the DJI photos (the water rule's Otsu split came out at 40 there, capped).
+const TEXTURE_SPLITS: [u8; 3] = [8, 16, 32];
+const BINS: usize = BINS_H * BINS_S * BINS_V * (TEXTURE_SPLITS.len() + 1);
+
+/// Each pixel's bin, at the working size.
+fn feature_bins(small: &Mat) -> opencv::Result<Vec<u32>> {
+    let mut hsv = Mat::default();
+    imgproc::cvt_color(small, &mut hsv, imgproc::COLOR_BGR2HSV, 0)?;
+    let mut grey = Mat::default();
+    imgproc::cvt_color(small, &mut grey, imgproc::COLOR_BGR2GRAY, 0)?;
+    let tex = texture(&grey)?;
+    let (hsv, tex) = (hsv.try_clone()?, tex.try_clone()?);
+    let px = hsv.data_typed::<core::Vec3b>()?;
+    let t = tex.data_typed::<u8>()?;
+    Ok(px
+        .iter()
+        .zip(t)
+        .map(|(p, &t)| {
+            let h = (p[0] as usize * BINS_H / 181).min(BINS_H - 1);
+            let s = p[1] as usize * BINS_S / 256;
+            let v = p[2] as usize * BINS_V / 256;
+            let tb = TEXTURE_SPLITS.iter().filter(|&&x| t >= x).count();
+            (((h * BINS_S + s) * BINS_V + v) * (TEXTURE_SPLITS.len() + 1) + tb) as u32
+        })
+        .collect())
+}
+
+/// `area.segmenter = "learned"`: the probability of the target in each bin of colour
+/// (hue, saturation, value) and local contrast, counted over the pixels of frames the user
+/// made masks for (histogram back-projection; a bin no training pixel fell in gets the
+/// training frames' share of target). Trained per survey, it learns what this lake and
+/// this survey's shadows look like: trained on DJI_0031 with the water rule's mask (whose
+/// road has tree shadows), it took 8 % of a sky-lit shadow cast on DJI_0030 for water,
+/// where the water rule takes 32 % (`cargo run --release --example segment -- OUT DJI_0030
+/// --shadow ... --train DJI_0031=MASK`).
+pub struct Learned {
+    /// P(target | bin).
+    p: Vec<f32>,
+}
+
+impl Learned {
+    /// From frames and their masks (8-bit, non-zero inside; any size each). `None` when no
+    /// training pixel is inside or none outside the target.
+    pub fn train(examples: &[(Mat, Mat)]) -> opencv::Result<Option<Learned>> {
+        let (mut inside, mut outside) = (vec![0u32; BINS], vec![0u32; BINS]);
+        for (frame, mask) in examples {
+            let small = shrunk(frame)?;
+            let mut m = Mat::default();
+            imgproc::resize(mask, &mut m, small.size()?, 0.0, 0.0, imgproc::INTER_NEAREST)?;
+            let m = m.try_clone()?;
+            let bins = feature_bins(&small)?;
+            for (b, &k) in bins.iter().zip(m.data_typed::<u8>()?) {
+                if k > 127 {
+                    inside[*b as usize] += 1;
+                } else {
+                    outside[*b as usize] += 1;
+                }
+            }
+        }
+        let (ni, no) =
+            (inside.iter().map(|&c| c as f64).sum::<f64>(), outside.iter().map(|&c| c as f64).sum::<f64>());
+        if ni == 0.0 || no == 0.0 {
+            return Ok(None);
+        }
+        let prior = ni / (ni + no);
+        // One pseudo-count at the prior: a bin seen a few times says little.
+        let p = inside
+            .iter()
+            .zip(&outside)
+            .map(|(&i, &o)| ((i as f64 + prior) / (i as f64 + o as f64 + 1.0)) as f32)
+            .collect();
+        Ok(Some(Learned { p }))
+    }
+
+    /// The target mask of a BGR frame (255 inside), at the frame's size.
+    pub fn segment(&self, frame: &Mat) -> opencv::Result<Mat> {
+        let small = shrunk(frame)?;
+        let bins = feature_bins(&small)?;
+        let raw: Vec<u8> = bins.iter().map(|&b| if self.p[b as usize] > 0.5 { 255 } else { 0 }).collect();
+        let raw = Mat::from_slice(&raw)?.reshape(1, small.rows())?.try_clone()?;
+        to_frame_size(&clean(&raw)?, frame)
+    }
 }
 
 /// A PNG contact sheet: each frame (scaled to 480 px wide) beside itself with the mask
@@ -340,5 +443,75 @@ mod tests {
         let mask = segment(&shore(), &s).unwrap().unwrap();
         assert_eq!(*mask.at_2d::<u8>(150, 50).unwrap(), 255);
         assert_eq!(*mask.at_2d::<u8>(150, 350).unwrap(), 0);
+    }
+
+    fn photo(name: &str) -> Mat {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/dji-sample").join(name);
+        imgcodecs::imread(path.to_str().unwrap(), imgcodecs::IMREAD_COLOR).unwrap()
+    }
+
+    /// A shadow lit by the sky alone (blue 0.45, green 0.38, red 0.30 of the sunlit
+    /// values: the hue, saturation and value of the real tree shadow on DJI_0030's beach)
+    /// over the polygon with corners at these fractions of the size.
+    fn shadowed(img: &Mat, corners: &[(f64, f64)]) -> (Mat, Mat) {
+        let (w, h) = (img.cols() as f64, img.rows() as f64);
+        let poly: Vector<Point> =
+            corners.iter().map(|&(u, v)| Point::new((u * w) as i32, (v * h) as i32)).collect();
+        let mut area = Mat::zeros(img.rows(), img.cols(), core::CV_8UC1).unwrap().to_mat().unwrap();
+        let polys: Vector<Vector<Point>> = std::iter::once(poly).collect();
+        imgproc::fill_poly(&mut area, &polys, Scalar::all(255.0), imgproc::LINE_8, 0, Point::new(0, 0))
+            .unwrap();
+        let mut dark = Mat::default();
+        core::multiply(img, &Scalar::new(0.45, 0.38, 0.30, 0.0), &mut dark, 1.0, -1).unwrap();
+        let mut out = img.try_clone().unwrap();
+        dark.copy_to_masked(&mut out, &area).unwrap();
+        (out, area)
+    }
+
+    fn fraction(mask: &Mat, of: &Mat) -> f64 {
+        let mut both = Mat::default();
+        core::bitwise_and(mask, of, &mut both, &core::no_array()).unwrap();
+        core::count_non_zero(&both).unwrap() as f64 / core::count_non_zero(of).unwrap().max(1) as f64
+    }
+
+    /// The shadow: a sky-lit shadow cast across DJI_0030's road and beach is
+    /// smooth, not green and not bright, so the water rule takes a third of it for water.
+    /// The learned segmenter, trained on the next photo (DJI_0031, with the water rule's
+    /// mask: its tree shadows on the road are land there), takes none of it and still finds
+    /// the lake the rule finds on the unshadowed photo.
+    #[test]
+    fn a_segmenter_learned_from_one_photo_takes_no_shadow_for_water_where_the_rule_does() {
+        let rule = AreaSettings { segmenter: Segmenter::Water, ..AreaSettings::default() };
+        let corners = [(0.3125, 0.267), (0.65, 0.356), (0.65, 0.8), (0.3125, 0.733)];
+        let original = photo("DJI_0030.JPG");
+        let (shadowed, area) = shadowed(&original, &corners);
+        let by_rule = segment(&shadowed, &rule).unwrap().unwrap();
+        let rule_took = fraction(&by_rule, &area);
+
+        let teacher = photo("DJI_0031.JPG");
+        let teacher_mask = segment(&teacher, &rule).unwrap().unwrap();
+        let learned = Learned::train(&[(teacher, teacher_mask)]).unwrap().unwrap();
+        let by_learned = learned.segment(&shadowed).unwrap();
+        let learned_took = fraction(&by_learned, &area);
+        // The lake: against the rule's mask of the photo without the shadow.
+        let lake = segment(&original, &rule).unwrap().unwrap();
+        let (mut inter, mut union) = (Mat::default(), Mat::default());
+        core::bitwise_and(&by_learned, &lake, &mut inter, &core::no_array()).unwrap();
+        core::bitwise_or(&by_learned, &lake, &mut union, &core::no_array()).unwrap();
+        let iou = core::count_non_zero(&inter).unwrap() as f64 / core::count_non_zero(&union).unwrap() as f64;
+        println!("shadow taken for water: rule {rule_took:.3}, learned {learned_took:.3}; lake IoU {iou:.3}");
+        assert!(rule_took > 0.2, "the rule's failure this guards against: {rule_took}");
+        assert!(learned_took < 0.03, "{learned_took}");
+        assert!(iou > 0.75, "{iou}");
+    }
+
+    /// Training needs both classes; a frame's mask of one class alone gives no model.
+    #[test]
+    fn a_learned_segmenter_needs_both_classes() {
+        let img = shore();
+        let all = Mat::new_rows_cols_with_default(img.rows(), img.cols(), core::CV_8UC1, Scalar::all(255.0))
+            .unwrap();
+        assert!(Learned::train(&[(img.clone(), all)]).unwrap().is_none());
+        assert!(Learned::train(&[]).unwrap().is_none());
     }
 }

@@ -246,9 +246,14 @@ impl LivePipeline for AreaLive {
         let Some(mask) = segmented.as_ref().or(frame.mask.as_ref()) else {
             if !self.no_mask_warned {
                 self.no_mask_warned = true;
-                report.events.push(
-                    "area: this camera gives no target mask and area.segmenter = \"masks\"; frames are skipped (set area.segmenter to \"water\" or \"hsv\")".into(),
-                );
+                let why = if self.settings.segmenter == crate::settings::Segmenter::Learned {
+                    "area.segmenter = \"learned\" trains on a dataset's masks (mavloc area) and makes none live"
+                } else {
+                    "area.segmenter = \"masks\""
+                };
+                report.events.push(format!(
+                    "area: this camera gives no target mask and {why}; frames are skipped (set area.segmenter to \"water\" or \"hsv\")"
+                ));
             }
             return report;
         };

@@ -194,7 +194,7 @@ pub const ENUM_KEYS: &[(&str, &[&str])] = &[
     ("gimbal.aim", &["mission", "border"]),
     ("area.method", &["ukf", "ground-plane"]),
     ("area.matching", &["global", "guided"]),
-    ("area.segmenter", &["masks", "water", "hsv"]),
+    ("area.segmenter", &["masks", "water", "hsv", "learned"]),
     ("indoor.dictionary", &["competitive", "k-means"]),
     ("indoor.motion_model", &["velocity", "noise"]),
 ];

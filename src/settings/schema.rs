@@ -300,6 +300,8 @@ pub enum Segmenter {
     Water,
     /// A box in HSV (`hsv_low` .. `hsv_high`).
     Hsv,
+    /// Learned from the masks the user made for some frames (`mavloc area` only).
+    Learned,
 }
 
 impl Default for Area {

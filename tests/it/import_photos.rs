@@ -482,3 +482,46 @@ fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
         (f("cross_line_tagged_median_m"), f("cross_line_median_m"), f("cross_line_refined_median_m"));
     assert!(tagged > 10.0 && aligned < 0.5 && refined < 0.5, "{tagged:.2} / {aligned:.2} / {refined:.2} m");
 }
+
+/// `area.segmenter = "learned"` on an imported survey: the user's mask of one photo (here
+/// the water rule's, written where the dataset keeps masks) trains it, that photo keeps
+/// its own mask and the others are segmented by it; with no mask at all the run stops and
+/// says where to put one.
+#[test]
+fn the_learned_segmenter_trains_on_the_masks_the_user_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    mavloc::import::import_photos(&sample(), &ds, &ImportOptions::default()).unwrap();
+    let learned = ["--set", "area.segmenter=learned"];
+    let out = Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .env_remove("MAVLOC_CONFIG")
+        .arg("area")
+        .args(learned)
+        .arg("--dataset")
+        .arg(&ds)
+        .arg("--out")
+        .arg(dir.path().join("none"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("masks you make") && err.contains("none found"), "{err}");
+
+    let d = mavloc_data::Dataset::open(&ds).unwrap();
+    let r = &d.records[1];
+    let frame = mavloc::imaging::read_image(&d.frame_path(r), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+    let water =
+        mavloc::settings::Area { segmenter: mavloc::settings::Segmenter::Water, ..Default::default() };
+    let mask = mavloc::area::segment::segment(&frame, &water).unwrap().unwrap();
+    std::fs::create_dir_all(d.mask_path(r).parent().unwrap()).unwrap();
+    assert!(opencv::imgcodecs::imwrite_def(d.mask_path(r).to_str().unwrap(), &mask).unwrap());
+    let result = dir.path().join("r");
+    println!("{}", area(&ds, &result, &learned));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(
+        (summary["frames"].as_u64(), summary["skipped_frames"].as_u64()),
+        (Some(3), Some(0)),
+        "{summary}"
+    );
+    assert!(summary["landmarks"].as_u64().unwrap() >= 10, "{summary}");
+}
