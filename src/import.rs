@@ -87,6 +87,9 @@ pub enum Vendor {
     /// senseFly: the aircraft's heading, pitch and roll (`sensefly:` XMP); the camera is
     /// fixed to the airframe.
     SenseFly,
+    /// Plain EXIF GPS, no attitude: a camera fixed to the airframe, the aircraft taken as
+    /// level and heading along its track (`ImportOptions::ground_alt_m` required).
+    Exif,
 }
 
 /// `drone-dji:` values of a JPEG's XMP packet, attribute or element form.
@@ -168,15 +171,14 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     } else if !sensefly.is_empty() {
         Vendor::SenseFly
     } else {
-        let why = match &exif {
-            Ok(_) => "no DJI or senseFly XMP: the camera's attitude is not in the photo".to_string(),
-            Err(e) => format!("no readable EXIF ({e}) and no DJI or senseFly XMP"),
-        };
-        return Err(format!("{name}: {why}"));
+        match &exif {
+            Ok(_) => Vendor::Exif,
+            Err(e) => return Err(format!("{name}: no readable EXIF ({e}) and no DJI or senseFly XMP")),
+        }
     };
     let exif = match (exif, vendor) {
         (Ok(e), _) => Some(e),
-        (Err(e), Vendor::Dji) => return Err(format!("{name}: no readable EXIF ({e})")),
+        (Err(e), Vendor::Dji | Vendor::Exif) => return Err(format!("{name}: no readable EXIF ({e})")),
         (Err(e), Vendor::SenseFly) => {
             tracing::warn!("{name}: EXIF unreadable ({e}); position and attitude from XMP");
             None
@@ -298,6 +300,38 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 gimbal_deg: [0.0, -90.0, 0.0],
                 flight_deg: attitude,
                 vendor: "sensefly".into(),
+                focal_px,
+            }
+        }
+        Vendor::Exif => {
+            // Position and time from EXIF alone; the attitude comes from the track at
+            // import (`import_photos`), the height above ground from the user.
+            let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
+            let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
+            for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
+                if v.is_none() {
+                    missing.push(tag);
+                }
+            }
+            if focal_35mm.is_none() && focal_px.is_none() {
+                missing.push("FocalLengthIn35mmFilm or FocalLength with FocalPlaneXResolution");
+            }
+            let alt = gps_alt.unwrap_or(f64::NAN);
+            PhotoTags {
+                name: name.clone(),
+                width,
+                height,
+                lat_deg: lat.unwrap_or(f64::NAN),
+                lon_deg: lon.unwrap_or(f64::NAN),
+                gps_alt_m: alt,
+                time: exif_time.clone().unwrap_or_default(),
+                focal_mm,
+                focal_35mm,
+                absolute_alt_m: alt,
+                relative_alt_m: f64::NAN,
+                gimbal_deg: [0.0, -90.0, 0.0],
+                flight_deg: [0.0, 0.0, f64::NAN],
+                vendor: "exif".into(),
                 focal_px,
             }
         }
@@ -424,6 +458,10 @@ pub struct ImportOptions {
     /// body, degrees; default `[0, -90, 0]`, looking straight down with the image's top
     /// towards the nose.
     pub mount_deg: Option<[f64; 3]>,
+    /// For photos with plain EXIF GPS and no attitude tags: the ground's altitude in the
+    /// photos' GPS altitude datum (m), where new landmarks start (the photos do not say how
+    /// high above the ground they were taken).
+    pub ground_alt_m: Option<f64>,
 }
 
 /// What an import did.
@@ -441,6 +479,35 @@ pub struct ImportReport {
     pub overlap_median_m: Option<f64>,
     /// Photos whose image was found turned half a turn from their tags (yaw corrected).
     pub turned: Vec<String>,
+}
+
+/// Each photo's heading (degrees, clockwise from north) along the track: the course from
+/// the photo before to the photo after (one-sided at the ends; a photo taken where the
+/// previous one was keeps its neighbour's course). Photos in capture order.
+fn track_headings(photos: &mut [(f64, PathBuf, PhotoTags)]) {
+    let n = photos.len();
+    let course = |a: &PhotoTags, b: &PhotoTags| -> Option<f64> {
+        // Local east and north over a short distance.
+        let north = (b.lat_deg - a.lat_deg).to_radians() * 6_371_000.0;
+        let east = (b.lon_deg - a.lon_deg).to_radians() * 6_371_000.0 * a.lat_deg.to_radians().cos();
+        (north.hypot(east) > 0.5).then(|| east.atan2(north).to_degrees().rem_euclid(360.0))
+    };
+    let courses: Vec<Option<f64>> = (0..n)
+        .map(|i| {
+            let (a, b) = (i.saturating_sub(1), (i + 1).min(n - 1));
+            if a == b {
+                None
+            } else {
+                course(&photos[a].2, &photos[b].2)
+            }
+        })
+        .collect();
+    for i in 0..n {
+        let c = courses[i].or_else(|| {
+            (1..n).find_map(|d| courses.get(i + d).copied().flatten().or(courses[i.saturating_sub(d)]))
+        });
+        photos[i].2.flight_deg[2] = c.unwrap_or(0.0);
+    }
 }
 
 /// Nadir within this: turning the image about the optical axis is then a yaw of 180 deg.
@@ -555,7 +622,22 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             t.name, t.vendor, photos[0].2.name, photos[0].2.vendor
         ));
     }
-    let body_mounted = photos[0].2.vendor == "sensefly";
+    let body_mounted = photos[0].2.vendor == "sensefly" || photos[0].2.vendor == "exif";
+    if photos[0].2.vendor == "exif" {
+        // No attitude in the photos: level, heading along the track (the alignment by tie
+        // points finds the rest, as it does for senseFly's 10-20 deg heading errors).
+        let ground = opts.ground_alt_m.ok_or_else(|| {
+            format!(
+                "{} has EXIF GPS but no attitude tags (no DJI or senseFly XMP): give the ground's altitude with --ground-alt-m (in the photos' GPS altitude, {:.1} m for this one), and the camera's mount with --mount-deg if it is not straight down with its top to the nose",
+                photos[0].2.name, photos[0].2.gps_alt_m
+            )
+        })?;
+        photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        track_headings(&mut photos);
+        for (_, _, t) in photos.iter_mut() {
+            t.relative_alt_m = t.absolute_alt_m - ground;
+        }
+    }
     let mount_deg = opts.mount_deg.unwrap_or([0.0, -90.0, 0.0]);
     // By capture time; the name breaks ties (DJI writes whole seconds).
     photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));

@@ -6,10 +6,10 @@ use crate::cli::ImportCommand;
 
 pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
     match command {
-        ImportCommand::Photos { dir, out, calibration, force, mount_deg } => {
+        ImportCommand::Photos { dir, out, calibration, force, mount_deg, ground_alt_m } => {
             // Skipped photos and the image-up check speak through the log.
             crate::logging::init("info");
-            let opts = crate::import::ImportOptions { calibration, replace: force, mount_deg };
+            let opts = crate::import::ImportOptions { calibration, replace: force, mount_deg, ground_alt_m };
             let r = crate::import::import_photos(&dir, &out, &opts).map_err(anyhow::Error::msg)?;
             println!(
                 "{}: {} photos imported, {} skipped; fx {:.1} px from the {}",

@@ -525,3 +525,59 @@ fn the_learned_segmenter_trains_on_the_masks_the_user_made() {
     );
     assert!(summary["landmarks"].as_u64().unwrap() >= 10, "{summary}");
 }
+
+/// The JPEG without its XMP packet (APP1 `http://ns.adobe.com/xap/1.0/`): what a camera
+/// with plain EXIF GPS writes.
+fn without_xmp(jpeg: &[u8]) -> Vec<u8> {
+    let mut out = jpeg[..2].to_vec();
+    let mut i = 2;
+    while i + 4 <= jpeg.len() {
+        assert_eq!(jpeg[i], 0xFF, "a marker at {i}");
+        if jpeg[i + 1] == 0xDA {
+            out.extend_from_slice(&jpeg[i..]);
+            break;
+        }
+        let len = u16::from_be_bytes([jpeg[i + 2], jpeg[i + 3]]) as usize;
+        let seg = &jpeg[i..i + 2 + len];
+        if !(jpeg[i + 1] == 0xE1 && seg[4..].starts_with(b"http://ns.adobe.com/xap/1.0/")) {
+            out.extend_from_slice(seg);
+        }
+        i += 2 + len;
+    }
+    out
+}
+
+/// Photos with plain EXIF GPS and no attitude tags (Seneca's line A with its senseFly XMP
+/// removed): without the ground's altitude the import says what it needs; with it, each
+/// photo is a camera fixed to a level airframe heading along the track, at its GPS
+/// altitude above that ground (Seneca's: GPS 282.09 m, 72.03 m above take-off).
+#[test]
+fn plain_exif_photos_import_as_a_level_airframe_heading_along_its_track() {
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    for n in ["IMG_0527.jpg", "IMG_0528.jpg", "IMG_0529.jpg"] {
+        let bytes = std::fs::read(seneca().join(n)).unwrap();
+        std::fs::write(photos.join(n), without_xmp(&bytes)).unwrap();
+    }
+    let t = read_tags(&photos.join("IMG_0527.jpg")).unwrap();
+    assert_eq!(t.vendor, "exif");
+    let err = import_photos(&photos, &dir.path().join("no-ground"), &ImportOptions::default()).unwrap_err();
+    assert!(err.contains("--ground-alt-m") && err.contains("282.1"), "{err}");
+
+    let out = dir.path().join("ds");
+    let opts = ImportOptions { ground_alt_m: Some(282.092 - 72.030), ..Default::default() };
+    let r = import_photos(&photos, &out, &opts).unwrap();
+    assert_eq!(r.imported.len(), 3, "{r:?}");
+    let ds = mavloc_data::Dataset::open(&out).unwrap();
+    assert_eq!(ds.camera.gimbal_frame, mavloc_data::dataset::GimbalFrame::Body);
+    assert!((ds.records[0].measured.position[2] + 72.03).abs() < 0.05, "{:?}", ds.records[0].measured);
+    let p: Vec<[f64; 3]> = ds.records.iter().map(|r| r.measured.position).collect();
+    let course = |a: [f64; 3], b: [f64; 3]| (b[1] - a[1]).atan2(b[0] - a[0]).to_degrees().rem_euclid(360.0);
+    let expected = [course(p[0], p[1]), course(p[0], p[2]), course(p[1], p[2])];
+    for (r, want) in ds.records.iter().zip(expected) {
+        let [roll, pitch, yaw] = r.measured.attitude_deg;
+        assert_eq!((roll, pitch), (0.0, 0.0));
+        assert!((yaw - want).abs() < 0.5, "heading {yaw} against the track's {want}");
+    }
+}
