@@ -51,7 +51,7 @@ pub const PHOTO_SURVEY_SETTINGS: &str = include_str!("../config/photo-survey.tom
 const FILM_DIAGONAL_MM: f64 = 43.266_615;
 
 /// What one photo says about where it was taken.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct PhotoTags {
     pub name: String,
     pub width: u32,
@@ -481,30 +481,54 @@ pub struct ImportReport {
     pub turned: Vec<String>,
 }
 
-/// Each photo's heading (degrees, clockwise from north) along the track: the course from
-/// the photo before to the photo after (one-sided at the ends; a photo taken where the
-/// previous one was keeps its neighbour's course). Photos in capture order.
+/// Each photo's heading (degrees, clockwise from north) along the track, photos in capture
+/// order: the courses to and from its neighbours, averaged where they agree; where they do
+/// not (the first and last photo of a survey line, beside the turn to the next line) the
+/// one that continues its own line (agrees with the course one photo further out). A photo
+/// with no course (taken where its neighbours were) gets the nearest one's.
 fn track_headings(photos: &mut [(f64, PathBuf, PhotoTags)]) {
     let n = photos.len();
-    let course = |a: &PhotoTags, b: &PhotoTags| -> Option<f64> {
+    let course = |a: usize, b: usize| -> Option<f64> {
+        if a >= n || b >= n || a == b {
+            return None;
+        }
+        let (a, b) = (&photos[a].2, &photos[b].2);
         // Local east and north over a short distance.
         let north = (b.lat_deg - a.lat_deg).to_radians() * 6_371_000.0;
         let east = (b.lon_deg - a.lon_deg).to_radians() * 6_371_000.0 * a.lat_deg.to_radians().cos();
         (north.hypot(east) > 0.5).then(|| east.atan2(north).to_degrees().rem_euclid(360.0))
     };
+    let diff = |a: f64, b: f64| ((a - b + 540.0).rem_euclid(360.0) - 180.0).abs();
+    let agree = |a: Option<f64>, b: Option<f64>| matches!((a, b), (Some(a), Some(b)) if diff(a, b) <= 20.0);
     let courses: Vec<Option<f64>> = (0..n)
         .map(|i| {
-            let (a, b) = (i.saturating_sub(1), (i + 1).min(n - 1));
-            if a == b {
-                None
-            } else {
-                course(&photos[a].2, &photos[b].2)
+            let before = i.checked_sub(1).and_then(|a| course(a, i));
+            let after = course(i, i + 1);
+            match (before, after) {
+                (Some(b), Some(a)) if diff(a, b) <= 20.0 => {
+                    let (sb, cb) = b.to_radians().sin_cos();
+                    let (sa, ca) = a.to_radians().sin_cos();
+                    Some((sb + sa).atan2(cb + ca).to_degrees().rem_euclid(360.0))
+                }
+                (Some(b), Some(a)) => {
+                    let further_back = i.checked_sub(2).and_then(|x| course(x, x + 1));
+                    if agree(Some(b), further_back) {
+                        Some(b)
+                    } else if agree(Some(a), course(i + 1, i + 2)) {
+                        Some(a)
+                    } else {
+                        Some(b)
+                    }
+                }
+                (b, a) => b.or(a),
             }
         })
         .collect();
     for i in 0..n {
         let c = courses[i].or_else(|| {
-            (1..n).find_map(|d| courses.get(i + d).copied().flatten().or(courses[i.saturating_sub(d)]))
+            (1..n).find_map(|d| {
+                courses.get(i + d).copied().flatten().or(i.checked_sub(d).and_then(|j| courses[j]))
+            })
         });
         photos[i].2.flight_deg[2] = c.unwrap_or(0.0);
     }
@@ -616,6 +640,17 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         };
         return Err(format!("no photo in {} could be used: {first}: {why}{more}", dir.display()));
     }
+    // A stray photo without attitude tags among DJI or senseFly ones (an edited copy) is
+    // skipped, not taken for a camera of its own.
+    if photos.iter().any(|(_, _, t)| t.vendor != "exif") {
+        let (keep, plain): (Vec<_>, Vec<_>) = photos.into_iter().partition(|(_, _, t)| t.vendor != "exif");
+        for (_, _, t) in plain {
+            let why = "EXIF GPS but no attitude tags, among photos that have them".to_string();
+            tracing::warn!("skipped {}: {why}", t.name);
+            report.skipped.push((t.name, why));
+        }
+        photos = keep;
+    }
     if let Some((_, _, t)) = photos.iter().find(|(_, _, t)| t.vendor != photos[0].2.vendor) {
         return Err(format!(
             "{} has {} tags but {} has {}: one camera per dataset",
@@ -636,7 +671,17 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         track_headings(&mut photos);
         for (_, _, t) in photos.iter_mut() {
             t.relative_alt_m = t.absolute_alt_m - ground;
+            if t.relative_alt_m <= 0.0 {
+                return Err(format!(
+                    "{}: its GPS altitude {:.1} m is not above --ground-alt-m {ground} m (is the ground in the photos' altitude datum?)",
+                    t.name, t.absolute_alt_m
+                ));
+            }
         }
+    } else if opts.ground_alt_m.is_some() {
+        tracing::warn!(
+            "--ground-alt-m is for photos without attitude tags; these have them, so it is not used"
+        );
     }
     let mount_deg = opts.mount_deg.unwrap_or([0.0, -90.0, 0.0]);
     // By capture time; the name breaks ties (DJI writes whole seconds).
@@ -773,6 +818,33 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A survey of three lines flown back and forth, photos 12.5 m apart along a line, 30 m
+    /// between lines: each photo heads along its own line, the first and last of a line
+    /// too (the course to the next line's first photo is a diagonal 67 deg off).
+    #[test]
+    fn headings_follow_each_line_through_the_turns() {
+        let metre = 1.0 / 111_195.0;
+        let mut photos = Vec::new();
+        for line in 0..3 {
+            for k in 0..6 {
+                let along = if line % 2 == 0 { k } else { 5 - k } as f64 * 12.5;
+                let t = PhotoTags {
+                    lat_deg: along * metre,
+                    lon_deg: line as f64 * 30.0 * metre,
+                    flight_deg: [0.0, 0.0, f64::NAN],
+                    ..Default::default()
+                };
+                photos.push((photos.len() as f64, PathBuf::new(), t));
+            }
+        }
+        track_headings(&mut photos);
+        for (i, (_, _, t)) in photos.iter().enumerate() {
+            let want = if (i / 6) % 2 == 0 { 0.0 } else { 180.0 };
+            let off = ((t.flight_deg[2] - want + 540.0).rem_euclid(360.0) - 180.0).abs();
+            assert!(off < 0.5, "photo {i}: heading {} where its line runs {want}", t.flight_deg[2]);
+        }
+    }
 
     #[test]
     fn xmp_attributes_and_elements_are_both_read() {

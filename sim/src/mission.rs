@@ -182,17 +182,20 @@ impl Mission {
     /// When frames are taken, seconds from the start: every `1 / frame_rate` around a
     /// lap; on a survey, from the start of each line to its end at the same spacing.
     pub fn frame_times(&self) -> Vec<f64> {
+        if !self.nadir {
+            // Around a lap: one lap's worth, the lap's end (its start) not shot twice.
+            let count = (self.lap_length() / self.speed * self.frame_rate).floor() as usize;
+            return (0..count).map(|i| i as f64 / self.frame_rate).collect();
+        }
         let step = self.speed / self.frame_rate;
+        // A line is shot from a margin after its start to a margin before its end, so the
+        // heading (from the velocity over +-0.05 s) is the line's, not the turn's.
+        let margin = (0.1 * self.speed).max(0.5);
         let mut times = Vec::new();
         for &(from, to) in &self.shooting {
-            // A lap's end is its start: not shot twice. A line is shot from half a metre
-            // after its start to half a metre before its end, so the heading (from the
-            // velocity over 0.1 s) is the line's, not the turn's.
-            let (mut s, end) = if self.nadir { (from + 0.5, to - 0.5 + 1e-9) } else { (from, to - 1e-9) };
-            while s < end {
-                times.push(s / self.speed);
-                s += step;
-            }
+            let (start, end) = (from + margin, to - margin);
+            let shots = ((end - start) / step + 1e-9).floor().max(-1.0) as i64 + 1;
+            times.extend((0..shots).map(|i| (start + i as f64 * step) / self.speed));
         }
         times
     }

@@ -454,28 +454,34 @@ pub fn run_observed(
     // frames keep their own masks).
     let learned = match s.area.segmenter {
         crate::settings::Segmenter::Learned => {
-            let mut examples = Vec::new();
+            // One frame at a time; a masked frame that cannot be read is left out (the run
+            // names it when it reaches it).
+            let (mut counts, mut examples) = (super::segment::LearnedCounts::default(), 0);
             for r in ds.records.iter().take(total as usize) {
                 let (fp, mp) = (ds.frame_path(r), ds.mask_path(r));
                 if !mp.exists() {
                     continue;
                 }
-                let frame =
-                    crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR).map_err(anyhow::Error::msg)?;
-                let mask = crate::imaging::read_image(&mp, imgcodecs::IMREAD_GRAYSCALE)
-                    .map_err(anyhow::Error::msg)?;
-                examples.push((frame, mask));
+                let read = crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR)
+                    .and_then(|f| Ok((f, crate::imaging::read_image(&mp, imgcodecs::IMREAD_GRAYSCALE)?)));
+                match read {
+                    Ok((frame, mask)) => {
+                        counts.add(&frame, &mask)?;
+                        examples += 1;
+                    }
+                    Err(e) => tracing::warn!("not learned from: {e}"),
+                }
             }
-            let trained = super::segment::Learned::train(&examples)?.ok_or_else(|| {
+            let trained = counts.model().ok_or_else(|| {
                 anyhow::anyhow!(
                     "area.segmenter = \"learned\" learns from masks you make for a few frames: put them in {} \
                      (8-bit PNG named as the frame, white on the target, black elsewhere, with some of each); \
                      {} found",
                     ds.dir.join("masks").display(),
-                    if examples.is_empty() { "none".to_string() } else { format!("{} with only one class", examples.len()) }
+                    if examples == 0 { "none".to_string() } else { format!("{examples} with only one class") }
                 )
             })?;
-            tracing::info!(frames = examples.len(), "segmenter learned from the dataset's masks");
+            tracing::info!(frames = examples, "segmenter learned from the dataset's masks");
             Some(trained)
         }
         _ => None,

@@ -216,8 +216,8 @@ fn feature_bins(small: &Mat) -> opencv::Result<Vec<u32>> {
 
 /// `area.segmenter = "learned"`: the probability of the target in each bin of colour
 /// (hue, saturation, value) and local contrast, counted over the pixels of frames the user
-/// made masks for (histogram back-projection; a bin no training pixel fell in gets the
-/// training frames' share of target). Trained per survey, it learns what this lake and
+/// made masks for (histogram back-projection; a bin no training pixel fell in is not
+/// target). Trained per survey, it learns what this lake and
 /// this survey's shadows look like: trained on DJI_0031 with the water rule's mask (whose
 /// road has tree shadows), it took 8 % of a sky-lit shadow cast on DJI_0030 for water,
 /// where the water rule takes 32 % (`cargo run --release --example segment -- OUT DJI_0030
@@ -227,38 +227,74 @@ pub struct Learned {
     p: Vec<f32>,
 }
 
+/// The counts a [`Learned`] segmenter is made from, added one frame at a time (a survey's
+/// masked frames need not all be in memory).
+pub struct LearnedCounts {
+    inside: Vec<u32>,
+    outside: Vec<u32>,
+}
+
+impl Default for LearnedCounts {
+    fn default() -> Self {
+        LearnedCounts { inside: vec![0; BINS], outside: vec![0; BINS] }
+    }
+}
+
+impl LearnedCounts {
+    /// A frame and its mask (8-bit, non-zero inside; any size).
+    pub fn add(&mut self, frame: &Mat, mask: &Mat) -> opencv::Result<()> {
+        let small = shrunk(frame)?;
+        let mut m = Mat::default();
+        imgproc::resize(mask, &mut m, small.size()?, 0.0, 0.0, imgproc::INTER_NEAREST)?;
+        let m = m.try_clone()?;
+        for (b, &k) in feature_bins(&small)?.iter().zip(m.data_typed::<u8>()?) {
+            if k > 127 {
+                self.inside[*b as usize] += 1;
+            } else {
+                self.outside[*b as usize] += 1;
+            }
+        }
+        Ok(())
+    }
+
+    /// The segmenter; `None` when no training pixel is inside or none outside the target.
+    pub fn model(&self) -> Option<Learned> {
+        let sum = |v: &[u32]| v.iter().map(|&c| c as f64).sum::<f64>();
+        let (ni, no) = (sum(&self.inside), sum(&self.outside));
+        if ni == 0.0 || no == 0.0 {
+            return None;
+        }
+        // One pseudo-count at the training share of target, which a bin seen a few times
+        // hardly moves from; a bin never seen is not target, whatever that share (a
+        // training set mostly of water must not make every new colour water).
+        let prior = ni / (ni + no);
+        let p = self
+            .inside
+            .iter()
+            .zip(&self.outside)
+            .map(
+                |(&i, &o)| {
+                    if i + o == 0 {
+                        0.0
+                    } else {
+                        ((i as f64 + prior) / (i as f64 + o as f64 + 1.0)) as f32
+                    }
+                },
+            )
+            .collect();
+        Some(Learned { p })
+    }
+}
+
 impl Learned {
     /// From frames and their masks (8-bit, non-zero inside; any size each). `None` when no
     /// training pixel is inside or none outside the target.
     pub fn train(examples: &[(Mat, Mat)]) -> opencv::Result<Option<Learned>> {
-        let (mut inside, mut outside) = (vec![0u32; BINS], vec![0u32; BINS]);
+        let mut counts = LearnedCounts::default();
         for (frame, mask) in examples {
-            let small = shrunk(frame)?;
-            let mut m = Mat::default();
-            imgproc::resize(mask, &mut m, small.size()?, 0.0, 0.0, imgproc::INTER_NEAREST)?;
-            let m = m.try_clone()?;
-            let bins = feature_bins(&small)?;
-            for (b, &k) in bins.iter().zip(m.data_typed::<u8>()?) {
-                if k > 127 {
-                    inside[*b as usize] += 1;
-                } else {
-                    outside[*b as usize] += 1;
-                }
-            }
+            counts.add(frame, mask)?;
         }
-        let (ni, no) =
-            (inside.iter().map(|&c| c as f64).sum::<f64>(), outside.iter().map(|&c| c as f64).sum::<f64>());
-        if ni == 0.0 || no == 0.0 {
-            return Ok(None);
-        }
-        let prior = ni / (ni + no);
-        // One pseudo-count at the prior: a bin seen a few times says little.
-        let p = inside
-            .iter()
-            .zip(&outside)
-            .map(|(&i, &o)| ((i as f64 + prior) / (i as f64 + o as f64 + 1.0)) as f32)
-            .collect();
-        Ok(Some(Learned { p }))
+        Ok(counts.model())
     }
 
     /// The target mask of a BGR frame (255 inside), at the frame's size.
