@@ -33,12 +33,10 @@ pub struct Mission {
     floor_half: f64,
     altitude: f64,
     swing: f64,
-    /// The camera straight down, top to the direction of flight (a photo survey).
-    nadir: bool,
-    /// Stretches of the path (from, to, metres along it) where frames are taken: the
-    /// whole lap around a border; each line of a survey, not the turns between lines nor
-    /// the way home (a survey camera shoots on its lines only).
-    shooting: Vec<(f64, f64)>,
+    /// A photo survey's lines (from, to, metres along the path), where its frames are
+    /// taken (not on the turns between lines nor the way home); empty around a border.
+    /// A survey's camera looks straight down, top to the direction of flight.
+    lines: Vec<(f64, f64)>,
 }
 
 impl Mission {
@@ -142,11 +140,7 @@ impl Mission {
             let d = (waypoints[k % waypoints.len()] - waypoints[k - 1]).norm();
             cumulative.push(cumulative[k - 1] + d);
         }
-        let shooting = if nadir {
-            line_ends.iter().map(|&(a, b)| (cumulative[a], cumulative[b])).collect()
-        } else {
-            vec![(0.0, cumulative[waypoints.len()])]
-        };
+        let lines = line_ends.iter().map(|&(a, b)| (cumulative[a], cumulative[b])).collect();
         Ok(Mission {
             waypoints,
             rois,
@@ -159,8 +153,7 @@ impl Mission {
             floor_half: 4.0,
             altitude: m.altitude_m,
             swing: m.altitude_swing_m,
-            nadir,
-            shooting,
+            lines,
         })
     }
 
@@ -182,7 +175,7 @@ impl Mission {
     /// When frames are taken, seconds from the start: every `1 / frame_rate` around a
     /// lap; on a survey, from the start of each line to its end at the same spacing.
     pub fn frame_times(&self) -> Vec<f64> {
-        if !self.nadir {
+        if self.lines.is_empty() {
             // Around a lap: one lap's worth, the lap's end (its start) not shot twice.
             let count = (self.lap_length() / self.speed * self.frame_rate).floor() as usize;
             return (0..count).map(|i| i as f64 / self.frame_rate).collect();
@@ -192,7 +185,7 @@ impl Mission {
         // heading (from the velocity over +-0.05 s) is the line's, not the turn's.
         let margin = (0.1 * self.speed).max(0.5);
         let mut times = Vec::new();
-        for &(from, to) in &self.shooting {
+        for &(from, to) in &self.lines {
             let (start, end) = (from + margin, to - margin);
             let shots = ((end - start) / step + 1e-9).floor().max(-1.0) as i64 + 1;
             times.extend((0..shots).map(|i| (start + i as f64 * step) / self.speed));
@@ -216,7 +209,7 @@ impl Mission {
         let velocity = (self.position_at(t + dt) - self.position_at(t - dt)) / (2.0 * dt);
         let heading = velocity.y.atan2(velocity.x);
         match self.gimbal_frame {
-            GimbalFrame::Earth if self.nadir => {
+            GimbalFrame::Earth if !self.lines.is_empty() => {
                 let gimbal = GimbalAngles { yaw: heading, pitch: -PI / 2.0, roll: 0.0 };
                 State { t, position, velocity, attitude: [0.0, 0.0, heading], gimbal }
             }

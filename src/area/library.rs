@@ -11,6 +11,7 @@ use super::features::Features;
 use super::rays::{self, Ray, Rays};
 use crate::filter::{BearingModel, MeasurementModel, Ukf, UkfParams};
 use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
+use crate::settings::AreaMatching;
 use mavloc_data::results::LandmarkRecord;
 
 const DESCRIPTOR_LEN: usize = 128;
@@ -38,16 +39,6 @@ const RAYS_GATE_FACTOR: f64 = 1.2;
 /// every lone candidate taken, the refinement then moved Seneca's aligned photos by 0.8
 /// deg and its sightings reprojected worse: false matches.)
 const BACKGROUND_DISTANCE: f32 = 315.0;
-
-/// How a frame's features are matched to the landmarks (`area.matching`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
-pub enum Matching {
-    /// The seed's: against every feature of the frame ([`Library::global_claims`]).
-    #[default]
-    Global,
-    /// Only where each landmark's filter predicts it ([`Library::guided_claims`]).
-    Guided,
-}
 
 /// One vote of a landmark descriptor for feature `fi` at descriptor distance `d`.
 fn vote(votes: &mut Vec<(usize, u32, f32)>, fi: usize, d: f32) {
@@ -217,7 +208,7 @@ pub struct LibraryParams {
     pub max_descriptors: usize,
     /// New landmarks are taken closest to the border first, in steps of this many pixels.
     pub border_step_px: f32,
-    pub matching: Matching,
+    pub matching: AreaMatching,
 }
 
 impl LibraryParams {
@@ -240,10 +231,7 @@ impl LibraryParams {
             ground_down_m: a.ground_down_m,
             max_descriptors: a.max_descriptors as usize,
             border_step_px: (a.band_px as f32 / a.downscale.max(1) as f32 / 10.0).max(1.0),
-            matching: match a.matching {
-                crate::settings::AreaMatching::Global => Matching::Global,
-                crate::settings::AreaMatching::Guided => Matching::Guided,
-            },
+            matching: a.matching,
         }
     }
 
@@ -336,8 +324,8 @@ impl Library {
             return Ok((stats, used));
         }
         let mut claims = match self.params.matching {
-            Matching::Global => self.global_claims(features)?,
-            Matching::Guided => self.guided_claims(features, pose, k)?,
+            AreaMatching::Global => self.global_claims(features)?,
+            AreaMatching::Guided => self.guided_claims(features, pose, k)?,
         };
         claims.sort_by(|a, b| b.2.cmp(&a.2).then(a.3.total_cmp(&b.3)));
         let mut taken = vec![false; features.len()];
@@ -459,12 +447,12 @@ impl Library {
         let flat: &[f32] = if n > 0 { features.descriptors.data_typed::<f32>()? } else { &[] };
         let grid = PixelGrid::new(&features.pixels, k);
         let mut claims = Vec::new();
-        let mut candidates = Vec::new();
+        let (mut candidates, mut votes) = (Vec::new(), Vec::new());
         for (li, l) in self.landmarks.iter().enumerate() {
             let x = l.ukf.state();
             let Some(c) = pose.project(k, x) else { continue };
-            // The projection is linear in the camera-frame point: its Jacobian from two
-            // exact points per axis is exact up to the perspective division's curvature.
+            // Pixel Jacobian: `to_camera` is affine, so unit steps give its rotation
+            // exactly; `jp` differentiates the perspective division.
             let pc = pose.to_camera(x);
             if pc.z <= 1e-6 {
                 continue;
@@ -507,7 +495,7 @@ impl Library {
                 continue;
             }
             // Per landmark descriptor: nearest and second nearest among the candidates.
-            let mut votes: Vec<(usize, u32, f32)> = Vec::new();
+            votes.clear();
             for q in l.descriptors.chunks_exact(DESCRIPTOR_LEN) {
                 let (mut best, mut second) = ((usize::MAX, f32::INFINITY), f32::INFINITY);
                 for &fi in &candidates {

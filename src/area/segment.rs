@@ -146,14 +146,11 @@ fn hsv_box(small: &Mat, low: &[f64], high: &[f64]) -> opencv::Result<Mat> {
 /// `segmenter = "masks"` (the caller reads the dataset's mask) and `"learned"` (the
 /// caller's trained [`Learned`]).
 pub fn segment(frame: &Mat, s: &AreaSettings) -> opencv::Result<Option<Mat>> {
-    let small = match s.segmenter {
+    let m = match s.segmenter {
         // The dataset's masks, or a model trained on some of them: `Learned::segment`.
         Segmenter::Masks | Segmenter::Learned => return Ok(None),
-        Segmenter::Water | Segmenter::Hsv => shrunk(frame)?,
-    };
-    let m = match s.segmenter {
-        Segmenter::Hsv => hsv_box(&small, &s.hsv_low, &s.hsv_high)?,
-        _ => water(&small)?,
+        Segmenter::Water => water(&shrunk(frame)?)?,
+        Segmenter::Hsv => hsv_box(&shrunk(frame)?, &s.hsv_low, &s.hsv_high)?,
     };
     Ok(Some(to_frame_size(&m, frame)?))
 }
@@ -219,9 +216,9 @@ fn feature_bins(small: &Mat) -> opencv::Result<Vec<u32>> {
 /// made masks for (histogram back-projection; a bin no training pixel fell in is not
 /// target). Trained per survey, it learns what this lake and
 /// this survey's shadows look like: trained on DJI_0031 with the water rule's mask (whose
-/// road has tree shadows), it took 8 % of a sky-lit shadow cast on DJI_0030 for water,
-/// where the water rule takes 32 % (`cargo run --release --example segment -- OUT DJI_0030
-/// --shadow ... --train DJI_0031=MASK`).
+/// road has tree shadows), it takes none of a sky-lit shadow cast on DJI_0030, where the
+/// water rule takes 32 % (test `a_segmenter_learned_from_one_photo_...`; `cargo run
+/// --release --example segment -- OUT DJI_0030.JPG --shadow ... --train DJI_0031.JPG`).
 pub struct Learned {
     /// P(target | bin).
     p: Vec<f32>,
