@@ -323,7 +323,17 @@ mod tests {
             let b_rot = camera(r0 + dr, p0 + dp, yaw0 + dyaw);
             let a = FlowFrame::new(0.0, &render(&tex, &k, &a_rot, n0, e0, h0), a_rot, h0).unwrap();
             let b = FlowFrame::new(1.0 / 15.0, &render(&tex, &k, &b_rot, n0 + dn, e0 + de, h0 + dh), b_rot, h0 + dh).unwrap();
-            let m = motion(&a, &b, &k).unwrap();
+            let m = match motion(&a, &b, &k) {
+                // The canvas leaves a frame's view only when it is tilted beyond the range
+                // the generator starts from (10 deg at 0.3 m: roll 0.12 with pitch -0.16
+                // once came out), and then saying so is the right answer.
+                Err(NoMotion::OutOfView(_)) => {
+                    let tilt = r0.hypot(p0).max((r0 + dr).hypot(p0 + dp));
+                    prop_assert!(tilt > 0.15, "out of view at a tilt of {tilt:.3} rad, height {h0:.2} m");
+                    return Ok(());
+                }
+                other => other.unwrap(),
+            };
             let err = ((m.displacement.x - dn).powi(2) + (m.displacement.y - de).powi(2)).sqrt();
             // A pixel of the canvas is 2-10 mm here; the claimed SD is 0.3 px.
             prop_assert!(err <= 0.5 * m.pixel_m + 0.001,
