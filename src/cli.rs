@@ -109,8 +109,9 @@ pub struct CalibrateGimbalArgs {
 #[derive(Debug, Subcommand)]
 pub enum ImportCommand {
     /// Geotagged drone photos to a dataset: DJI (EXIF GPS, XMP gimbal and flight attitude),
-    /// senseFly (XMP position and attitude, camera fixed to the airframe) or plain EXIF GPS
-    /// (camera fixed to the airframe, heading from the track, --ground-alt-m).
+    /// senseFly (XMP position and attitude, camera fixed to the airframe), Parrot (EXIF GPS,
+    /// XMP gimbal attitude, --ground-alt-m) or plain EXIF GPS (camera fixed to the
+    /// airframe, heading from the track, --ground-alt-m).
     Photos {
         /// Folder of JPEG photos.
         dir: PathBuf,
@@ -127,9 +128,10 @@ pub enum ImportCommand {
         /// to the body in degrees (default 0,-90,0: straight down, image top to the nose).
         #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
         mount_deg: Option<[f64; 3]>,
-        /// Photos with plain EXIF GPS and no attitude tags: the ground's altitude in the
-        /// photos' GPS altitude (m); they are taken as from a camera fixed to a level
-        /// airframe heading along its track.
+        /// Photos with no height above take-off (plain EXIF GPS, Parrot XMP): the
+        /// ground's altitude in the photos' GPS altitude (m). Photos with no attitude tags
+        /// at all are taken as from a camera fixed to a level airframe heading along its
+        /// track.
         #[arg(long, allow_hyphen_values = true, value_name = "METRES")]
         ground_alt_m: Option<f64>,
     },

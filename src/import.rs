@@ -6,7 +6,11 @@
 //! (`drone-dji:` AbsoluteAltitude, RelativeAltitude, Gimbal{Roll,Yaw,Pitch}Degree,
 //! Flight{Roll,Yaw,Pitch}Degree) with `quick-xml`, whether written as attributes or as
 //! elements. senseFly photos (`sensefly:` XMP: Latitude, Longitude, AltitudeAMSL, Height,
-//! Heading, PitchAngle, RollAngle, UTCTime) import with the camera fixed to the body. A
+//! Heading, PitchAngle, RollAngle, UTCTime) import with the camera fixed to the body.
+//! Parrot photos (`drone-parrot:` XMP of the ANAFI family: Camera{Yaw,Pitch,Roll}Degree,
+//! the gimbal's earth-frame angles with pitch -90 straight down as DJI's) import with
+//! EXIF's GPS position and altitude and the ground's altitude from the user, as plain
+//! EXIF photos do: their XMP has no height above take-off. A
 //! photo missing any tag the pose needs is reported by name and skipped, never guessed.
 //! Before anything is written, consecutive photos are checked against each other for a
 //! half-turned image (`area::imageup`).
@@ -71,8 +75,9 @@ pub struct PhotoTags {
     pub gimbal_deg: [f64; 3],
     /// Vehicle roll, pitch, yaw, degrees.
     pub flight_deg: [f64; 3],
-    /// Whose tags gave the pose: "dji" (gimbal angles in the earth frame) or "sensefly"
-    /// (the aircraft's attitude; the camera is fixed to the body).
+    /// Whose tags gave the pose: "dji" or "parrot" (gimbal angles in the earth frame),
+    /// "sensefly" (the aircraft's attitude; the camera is fixed to the body) or "exif"
+    /// (no attitude).
     pub vendor: String,
     /// Focal length in pixels of this file from EXIF FocalLength and FocalPlaneXResolution,
     /// when both are there (scaled from the EXIF image width to the file's).
@@ -87,6 +92,11 @@ pub enum Vendor {
     /// senseFly: the aircraft's heading, pitch and roll (`sensefly:` XMP); the camera is
     /// fixed to the airframe.
     SenseFly,
+    /// Parrot ANAFI: gimbal angles in the earth frame (`drone-parrot:` XMP), pitch -90
+    /// straight down as DJI's (OpenDroneMap reads CameraPitchDegree -82 as 8 deg off
+    /// nadir; a public ANAFI photo's tags are pitch -78.4, yaw 176.3); no height above
+    /// take-off (`ImportOptions::ground_alt_m` required).
+    Parrot,
     /// Plain EXIF GPS, no attitude: a camera fixed to the airframe, the aircraft taken as
     /// level and heading along its track (`ImportOptions::ground_alt_m` required).
     Exif,
@@ -166,19 +176,26 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let exif = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes));
     let dji = xmp_values(&bytes, "drone-dji:");
     let sensefly = xmp_values(&bytes, "sensefly:");
+    let parrot = xmp_values(&bytes, "drone-parrot:");
     let vendor = if !dji.is_empty() {
         Vendor::Dji
     } else if !sensefly.is_empty() {
         Vendor::SenseFly
+    } else if !parrot.is_empty() {
+        Vendor::Parrot
     } else {
         match &exif {
             Ok(_) => Vendor::Exif,
-            Err(e) => return Err(format!("{name}: no readable EXIF ({e}) and no DJI or senseFly XMP")),
+            Err(e) => {
+                return Err(format!("{name}: no readable EXIF ({e}) and no DJI, senseFly or Parrot XMP"))
+            }
         }
     };
     let exif = match (exif, vendor) {
         (Ok(e), _) => Some(e),
-        (Err(e), Vendor::Dji | Vendor::Exif) => return Err(format!("{name}: no readable EXIF ({e})")),
+        (Err(e), Vendor::Dji | Vendor::Parrot | Vendor::Exif) => {
+            return Err(format!("{name}: no readable EXIF ({e})"))
+        }
         (Err(e), Vendor::SenseFly) => {
             tracing::warn!("{name}: EXIF unreadable ({e}); position and attitude from XMP");
             None
@@ -300,6 +317,50 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 gimbal_deg: [0.0, -90.0, 0.0],
                 flight_deg: attitude,
                 vendor: "sensefly".into(),
+                focal_px,
+            }
+        }
+        Vendor::Parrot => {
+            // Position, altitude and time from EXIF; the gimbal's earth-frame angles from
+            // the XMP (the airframe's, Flight*Degree, when written); the height above the
+            // ground from the user at import.
+            let gimbal = [
+                num(&parrot, "CameraYawDegree"),
+                num(&parrot, "CameraPitchDegree"),
+                num(&parrot, "CameraRollDegree"),
+            ];
+            let opt = |k: &str| parrot.get(k).and_then(|v| v.trim_start_matches('+').parse::<f64>().ok());
+            let flight = [
+                opt("FlightRollDegree").unwrap_or(0.0),
+                opt("FlightPitchDegree").unwrap_or(0.0),
+                opt("FlightYawDegree").unwrap_or(gimbal[0]),
+            ];
+            let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
+            let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
+            for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
+                if v.is_none() {
+                    missing.push(tag);
+                }
+            }
+            if focal_35mm.is_none() && focal_px.is_none() {
+                missing.push("FocalLengthIn35mmFilm or FocalLength with FocalPlaneXResolution");
+            }
+            let alt = gps_alt.unwrap_or(f64::NAN);
+            PhotoTags {
+                name: name.clone(),
+                width,
+                height,
+                lat_deg: lat.unwrap_or(f64::NAN),
+                lon_deg: lon.unwrap_or(f64::NAN),
+                gps_alt_m: alt,
+                time: exif_time.clone().unwrap_or_default(),
+                focal_mm,
+                focal_35mm,
+                absolute_alt_m: alt,
+                relative_alt_m: f64::NAN,
+                gimbal_deg: gimbal,
+                flight_deg: flight,
+                vendor: "parrot".into(),
                 focal_px,
             }
         }
@@ -658,17 +719,31 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         ));
     }
     let body_mounted = photos[0].2.vendor == "sensefly" || photos[0].2.vendor == "exif";
-    if photos[0].2.vendor == "exif" {
-        // No attitude in the photos: level, heading along the track (the alignment by tie
-        // points finds the rest, as it does for senseFly's 10-20 deg heading errors).
+    let needs_ground = matches!(photos[0].2.vendor.as_str(), "exif" | "parrot");
+    if needs_ground {
         let ground = opts.ground_alt_m.ok_or_else(|| {
+            let what = if photos[0].2.vendor == "parrot" {
+                "Parrot XMP, which has no height above take-off"
+            } else {
+                "EXIF GPS but no attitude tags (no DJI, senseFly or Parrot XMP)"
+            };
             format!(
-                "{} has EXIF GPS but no attitude tags (no DJI or senseFly XMP): give the ground's altitude with --ground-alt-m (in the photos' GPS altitude, {:.1} m for this one), and the camera's mount with --mount-deg if it is not straight down with its top to the nose",
-                photos[0].2.name, photos[0].2.gps_alt_m
+                "{} has {what}: give the ground's altitude with --ground-alt-m (in the photos' GPS altitude, {:.1} m for this one){}",
+                photos[0].2.name,
+                photos[0].2.gps_alt_m,
+                if photos[0].2.vendor == "exif" {
+                    ", and the camera's mount with --mount-deg if it is not straight down with its top to the nose"
+                } else {
+                    ""
+                }
             )
         })?;
         photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        track_headings(&mut photos);
+        if photos[0].2.vendor == "exif" {
+            // No attitude in the photos: level, heading along the track (the alignment by
+            // tie points finds the rest, as it does for senseFly's 10-20 deg heading errors).
+            track_headings(&mut photos);
+        }
         for (_, _, t) in photos.iter_mut() {
             t.relative_alt_m = t.absolute_alt_m - ground;
             if t.relative_alt_m <= 0.0 {
@@ -680,7 +755,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         }
     } else if opts.ground_alt_m.is_some() {
         tracing::warn!(
-            "--ground-alt-m is for photos without attitude tags; these have them, so it is not used"
+            "--ground-alt-m is for photos without a height above take-off; these have it, so it is not used"
         );
     }
     let mount_deg = opts.mount_deg.unwrap_or([0.0, -90.0, 0.0]);

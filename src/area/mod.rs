@@ -10,7 +10,8 @@
 //! For photo surveys: [`imageup`] finds photos tagged half a turn off, [`align`] aligns
 //! the photos to each other by tie points before the filters run (ours), [`refine`]
 //! adjusts attitudes and a static gimbal offset with the landmarks (sec. 6.10-6.11),
-//! [`crosslines`] measures how well two flight lines agree.
+//! [`crosslines`] measures how well two flight lines agree, [`segment`] finds the target
+//! in real images, [`shadow`] keeps cast shadows out of the water it finds.
 //!
 //! The pipeline is a plain synchronous library: it takes a grey frame, its target mask and
 //! the camera pose the telemetry gives, and returns what changed. It knows nothing of
@@ -29,6 +30,7 @@ pub mod rays;
 pub mod refine;
 pub mod residuals;
 pub mod segment;
+pub mod shadow;
 
 use std::time::{Duration, Instant};
 

@@ -5,7 +5,8 @@
 //! - `masks`: the dataset's `masks/NNNNNN.png` (rendered, or made by another tool);
 //! - `water`: open water: smooth (low local contrast) and neither vegetation-green nor
 //!   light and colourless (sand, foam, paving), by per-image thresholds (Otsu) rather than fixed ones, so a dark lake
-//!   and a bright sea both work; then morphological clean-up and only large regions kept;
+//!   and a bright sea both work; not a cast shadow ([`super::shadow`]: told apart by its
+//!   edges); then morphological clean-up and only large regions kept;
 //! - `hsv`: pixels inside the configured HSV box (`area.hsv_low`, `area.hsv_high`, OpenCV
 //!   ranges H 0-180, S and V 0-255), for other colour-distinct areas (a burn scar, a
 //!   flood's brown water), with the same clean-up;
@@ -30,7 +31,7 @@ fn kernel(size: i32) -> opencv::Result<Mat> {
     imgproc::get_structuring_element(imgproc::MORPH_ELLIPSE, Size::new(size, size), Point::new(-1, -1))
 }
 
-fn morph(src: &Mat, op: i32, size: i32) -> opencv::Result<Mat> {
+pub(super) fn morph(src: &Mat, op: i32, size: i32) -> opencv::Result<Mat> {
     let mut out = Mat::default();
     imgproc::morphology_ex(
         src,
@@ -112,6 +113,18 @@ fn hsv_in(hsv: &Mat, low: [f64; 3], high: [f64; 3]) -> opencv::Result<Mat> {
 }
 
 fn water(small: &Mat) -> opencv::Result<Mat> {
+    let candidate = smooth_dark_not_land(small)?;
+    // A shadow on paving is as smooth, dark and blue as water; it is told apart by its
+    // edges (a change of light, not of material). Grown a little so the shadow's soft
+    // rim (penumbra) goes with it.
+    let shade = morph(&super::shadow::cast_shadows(small)?, imgproc::MORPH_DILATE, 9)?;
+    let mut raw = Mat::default();
+    core::subtract(&candidate, &shade, &mut raw, &core::no_array(), -1)?;
+    clean(&raw)
+}
+
+/// The water rule's pixels before shadows are taken out.
+fn smooth_dark_not_land(small: &Mat) -> opencv::Result<Mat> {
     let mut grey = Mat::default();
     imgproc::cvt_color(small, &mut grey, imgproc::COLOR_BGR2GRAY, 0)?;
     let tex = texture(&grey)?;
@@ -131,9 +144,9 @@ fn water(small: &Mat) -> opencv::Result<Mat> {
     core::bitwise_or(&veg, &bright, &mut not_land, &core::no_array())?;
     let mut land_free = Mat::default();
     core::bitwise_not(&not_land, &mut land_free, &core::no_array())?;
-    let mut raw = Mat::default();
-    core::bitwise_and(&smooth, &land_free, &mut raw, &core::no_array())?;
-    clean(&raw)
+    let mut candidate = Mat::default();
+    core::bitwise_and(&smooth, &land_free, &mut candidate, &core::no_array())?;
+    Ok(candidate)
 }
 
 fn hsv_box(small: &Mat, low: &[f64], high: &[f64]) -> opencv::Result<Mat> {
@@ -508,18 +521,17 @@ mod tests {
     }
 
     /// The shadow: a sky-lit shadow cast across DJI_0030's road and beach is
-    /// smooth, not green and not bright, so the water rule takes a third of it for water.
-    /// The learned segmenter, trained on the next photo (DJI_0031, with the water rule's
-    /// mask: its tree shadows on the road are land there), takes none of it and still finds
-    /// the lake the rule finds on the unshadowed photo.
+    /// smooth, not green and not bright, so the water rule before its shadow check takes a
+    /// third of it for water. The learned segmenter, trained on the next photo (DJI_0031,
+    /// with the water rule's mask: its tree shadows on the road are land there), takes
+    /// none of it and still finds the lake the rule finds on the unshadowed photo.
     #[test]
     fn a_segmenter_learned_from_one_photo_takes_no_shadow_for_water_where_the_rule_does() {
         let rule = AreaSettings { segmenter: Segmenter::Water, ..AreaSettings::default() };
         let corners = [(0.3125, 0.267), (0.65, 0.356), (0.65, 0.8), (0.3125, 0.733)];
         let original = photo("DJI_0030.JPG");
         let (shadowed, area) = shadowed(&original, &corners);
-        let by_rule = segment(&shadowed, &rule).unwrap().unwrap();
-        let rule_took = fraction(&by_rule, &area);
+        let rule_took = fraction(&unchecked(&shadowed), &area);
 
         let teacher = photo("DJI_0031.JPG");
         let teacher_mask = segment(&teacher, &rule).unwrap().unwrap();
@@ -533,9 +545,82 @@ mod tests {
         core::bitwise_or(&by_learned, &lake, &mut union, &core::no_array()).unwrap();
         let iou = core::count_non_zero(&inter).unwrap() as f64 / core::count_non_zero(&union).unwrap() as f64;
         println!("shadow taken for water: rule {rule_took:.3}, learned {learned_took:.3}; lake IoU {iou:.3}");
-        assert!(rule_took > 0.2, "the rule's failure this guards against: {rule_took}");
+        assert!(rule_took > 0.2, "the failure this guards against: {rule_took}");
         assert!(learned_took < 0.03, "{learned_took}");
         assert!(iou > 0.75, "{iou}");
+    }
+
+    /// The water rule without its shadow check, at the frame's size.
+    fn unchecked(frame: &Mat) -> Mat {
+        let raw = smooth_dark_not_land(&shrunk(frame).unwrap()).unwrap();
+        to_frame_size(&clean(&raw).unwrap(), frame).unwrap()
+    }
+
+    fn iou(a: &Mat, b: &Mat, within: &Mat) -> f64 {
+        let (mut i, mut u) = (Mat::default(), Mat::default());
+        core::bitwise_and(a, b, &mut i, within).unwrap();
+        core::bitwise_or(a, b, &mut u, within).unwrap();
+        core::count_non_zero(&i).unwrap() as f64 / core::count_non_zero(&u).unwrap().max(1) as f64
+    }
+
+    /// Sky-lit shadows cast over paving, beach and grass of the three DJI photos: smooth,
+    /// dark and bluish, so the rule's colour and smoothness take 19-32 % of each for water.
+    /// The shadow check (`area::shadow`: the shadow's edge is a change of light, not of
+    /// material) leaves none of them, and each photo's lake, outside the shadow, is the
+    /// lake of the photo without it.
+    #[test]
+    fn the_water_rule_takes_no_cast_shadow_for_water_and_keeps_the_lake() {
+        let rule = AreaSettings { segmenter: Segmenter::Water, ..AreaSettings::default() };
+        let cases: [(&str, &[(f64, f64)]); 3] = [
+            ("DJI_0030.JPG", &[(0.3125, 0.267), (0.65, 0.356), (0.65, 0.8), (0.3125, 0.733)]),
+            ("DJI_0031.JPG", &[(0.3, 0.0), (0.5, 0.0), (0.5, 1.0), (0.3, 1.0)]),
+            ("DJI_0032.JPG", &[(0.0, 0.5), (0.3, 0.5), (0.3, 1.0), (0.0, 1.0)]),
+        ];
+        for (name, corners) in cases {
+            let original = photo(name);
+            let (shadowed, area) = shadowed(&original, corners);
+            let before = fraction(&unchecked(&shadowed), &area);
+            let checked = segment(&shadowed, &rule).unwrap().unwrap();
+            let after = fraction(&checked, &area);
+            let mut outside = Mat::default();
+            core::bitwise_not(&area, &mut outside, &core::no_array()).unwrap();
+            let lake = segment(&original, &rule).unwrap().unwrap();
+            let kept = iou(&checked, &lake, &outside);
+            println!("{name}: shadow taken for water {before:.3} without the check, {after:.3} with it; lake IoU {kept:.3}");
+            assert!(before > 0.15, "{name}: the failure this guards against: {before}");
+            assert!(after < 0.02, "{name}: {after} of the shadow taken for water");
+            assert!(kept > 0.95, "{name}: lake IoU {kept}");
+        }
+    }
+
+    /// A lake darker and bluer than its beach, as the simulator's is (RGB 38, 62, 84 against
+    /// light sand), has the colour change of a shadow's edge, but the material changes:
+    /// the water is smooth, the sand is not. It stays water.
+    #[test]
+    fn a_blue_lake_darker_than_its_beach_is_water_not_a_shadow() {
+        let (w, h) = (400, 300);
+        let mut m = Mat::new_rows_cols_with_default(h, w, core::CV_8UC3, Scalar::all(0.0)).unwrap();
+        let mut state = 99u32;
+        for y in 0..h {
+            for x in 0..w {
+                state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+                let n = (state >> 24) as i32 - 128;
+                let px = if (x - 200).pow(2) + (y - 150).pow(2) < 100 * 100 {
+                    [84 + n / 64, 62 + n / 64, 38 + n / 64]
+                } else {
+                    [150 + n / 3, 170 + n / 3, 185 + n / 3]
+                };
+                *m.at_2d_mut::<core::Vec3b>(y, x).unwrap() =
+                    core::Vec3b::from(px.map(|c| c.clamp(0, 255) as u8));
+            }
+        }
+        let small = shrunk(&m).unwrap();
+        let shade = super::super::shadow::cast_shadows(&small).unwrap();
+        assert_eq!(core::count_non_zero(&shade).unwrap(), 0, "the lake taken for a shadow");
+        let s = AreaSettings { segmenter: Segmenter::Water, ..AreaSettings::default() };
+        let mask = segment(&m, &s).unwrap().unwrap();
+        assert_eq!(*mask.at_2d::<u8>(150, 200).unwrap(), 255, "lake");
+        assert_eq!(*mask.at_2d::<u8>(20, 20).unwrap(), 0, "sand");
     }
 
     /// Training needs both classes; a frame's mask of one class alone gives no model.

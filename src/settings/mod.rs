@@ -562,6 +562,23 @@ pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
     if !key.is_empty() && !key.starts_with("credential:") {
         need_file("mavlink.signing_key", key, "the signing key file");
     }
+    // A live camera gives frames only: with `masks` or `learned` (which trains on a
+    // dataset's masks, `mavloc area` only) the area pipeline would skip every frame.
+    if s.daemon.pipeline == PipelineKind::Area
+        && matches!(s.camera.source, CameraSource::V4l2 | CameraSource::File)
+        && matches!(s.area.segmenter, Segmenter::Masks | Segmenter::Learned)
+    {
+        let value = if s.area.segmenter == Segmenter::Masks { "\"masks\"" } else { "\"learned\"" };
+        problems.push(Problem {
+            key: "area.segmenter".into(),
+            value: Some(value.into()),
+            expected: format!(
+                "\"water\" or \"hsv\" with camera.source = \"{}\": that camera gives no masks (\"learned\" trains on a dataset's masks, for mavloc area), so every frame would be skipped",
+                if s.camera.source == CameraSource::V4l2 { "v4l2" } else { "file" }
+            ),
+            origin: origin("area.segmenter"),
+        });
+    }
     problems
 }
 

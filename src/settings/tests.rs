@@ -276,3 +276,28 @@ fn the_installed_drone_configuration_is_a_real_drone_one() {
     assert_eq!(sitl.camera.source, CameraSource::Sim);
     assert_eq!(Path::new(&sitl.daemon.state_dir), path.with_file_name("sitl-state"));
 }
+
+/// A live camera gives no masks: `mavloc run` (and `config check`) refuse the area pipeline
+/// with `masks` or `learned` there, naming the key, instead of skipping every frame.
+#[test]
+fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
+    for (segmenter, source) in [("masks", "v4l2"), ("learned", "v4l2"), ("learned", "file")] {
+        let layers = Layers {
+            overrides: vec![
+                format!("area.segmenter={segmenter}"),
+                format!("camera.source={source}"),
+                "camera.path=/".into(),
+            ],
+            ..Layers::default()
+        };
+        let p = problems(check(&layers));
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert_eq!(p[0].key, "area.segmenter");
+        assert!(p[0].expected.contains("gives no masks") && p[0].expected.contains(source), "{}", p[0].expected);
+    }
+    // Rules that make their own masks, and cameras that carry masks, are fine.
+    for sets in [["area.segmenter=water", "camera.source=v4l2"], ["area.segmenter=masks", "camera.source=sim"]] {
+        let layers = Layers { overrides: sets.map(String::from).to_vec(), ..Layers::default() };
+        assert!(check(&layers).is_ok(), "{sets:?}");
+    }
+}

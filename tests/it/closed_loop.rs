@@ -354,8 +354,8 @@ fn dataset_replay_gives_the_offline_landmarks() {
 fn a_missing_v4l2_device_is_named_and_the_daemon_stays_up() {
     let dir = tempfile::tempdir().unwrap();
     let state = dir.path().join("state");
-    let mut child =
-        daemon(&state, &["camera.source=v4l2".into(), "camera.device=/dev/video-mavloc-absent".into()]);
+    let sets = ["camera.source=v4l2", "camera.device=/dev/video-mavloc-absent", "area.segmenter=water"];
+    let mut child = daemon(&state, &sets.map(String::from));
     let text = wait_for(&state.join("mavloc.log"), "camera lost", Duration::from_secs(20));
     assert!(text.contains("V4L2 device /dev/video-mavloc-absent does not exist"), "{text}");
     // Still running, still writing its status.

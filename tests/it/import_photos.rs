@@ -583,3 +583,65 @@ fn plain_exif_photos_import_as_a_level_airframe_heading_along_its_track() {
         assert!((yaw - want).abs() < 0.5, "heading {yaw} against the track's {want}");
     }
 }
+
+/// The JPEG with its XMP packet replaced by `packet` (an APP1 segment after SOI).
+fn with_xmp(jpeg: &[u8], packet: &str) -> Vec<u8> {
+    let plain = without_xmp(jpeg);
+    let mut body = b"http://ns.adobe.com/xap/1.0/\0".to_vec();
+    body.extend_from_slice(packet.as_bytes());
+    let len = u16::try_from(body.len() + 2).unwrap().to_be_bytes();
+    let mut out = plain[..2].to_vec();
+    out.extend_from_slice(&[0xFF, 0xE1, len[0], len[1]]);
+    out.extend_from_slice(&body);
+    out.extend_from_slice(&plain[2..]);
+    out
+}
+
+/// Parrot ANAFI photos (`drone-parrot:` XMP, element form as ANAFI writes it): the DJI
+/// sample re-tagged with its own gimbal angles as Parrot's Camera{Yaw,Pitch,Roll}Degree
+/// imports to the same poses as the DJI original, the ground's altitude (which Parrot's
+/// XMP does not carry) given by the user and asked for when missing.
+#[test]
+fn parrot_photos_import_with_the_gimbal_in_the_earth_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    for n in ["DJI_0030.JPG", "DJI_0031.JPG", "DJI_0032.JPG"] {
+        let t = read_tags(&sample().join(n)).unwrap();
+        let [yaw, pitch, roll] = t.gimbal_deg;
+        let [froll, fpitch, fyaw] = t.flight_deg;
+        let packet = format!(
+            r#"<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description xmlns:drone-parrot="http://www.parrot.com/drone-parrot/1.0/"><drone-parrot:CameraPitchDegree>{pitch}</drone-parrot:CameraPitchDegree><drone-parrot:CameraRollDegree>{roll}</drone-parrot:CameraRollDegree><drone-parrot:CameraYawDegree>{yaw}</drone-parrot:CameraYawDegree><drone-parrot:FlightRollDegree>{froll}</drone-parrot:FlightRollDegree><drone-parrot:FlightPitchDegree>{fpitch}</drone-parrot:FlightPitchDegree><drone-parrot:FlightYawDegree>{fyaw}</drone-parrot:FlightYawDegree></rdf:Description></rdf:RDF></x:xmpmeta>"#
+        );
+        let bytes = std::fs::read(sample().join(n)).unwrap();
+        std::fs::write(photos.join(n), with_xmp(&bytes, &packet)).unwrap();
+    }
+    let t = read_tags(&photos.join("DJI_0030.JPG")).unwrap();
+    assert_eq!(t.vendor, "parrot");
+    assert_eq!(t.gimbal_deg, [44.2, -89.9, 0.0], "yaw, pitch, roll");
+    assert_eq!(t.flight_deg, [2.9, 1.3, 46.2], "roll, pitch, yaw");
+    let err = import_photos(&photos, &dir.path().join("no-ground"), &ImportOptions::default()).unwrap_err();
+    assert!(err.contains("Parrot") && err.contains("--ground-alt-m") && err.contains("198.6"), "{err}");
+
+    // The DJI tags put take-off 40.10 m below the first photo's 198.61 m.
+    let opts = ImportOptions { ground_alt_m: Some(198.61 - 40.10), ..Default::default() };
+    import_photos(&photos, &dir.path().join("parrot"), &opts).unwrap();
+    import_photos(&sample(), &dir.path().join("dji"), &ImportOptions::default()).unwrap();
+    let parrot = mavloc_data::Dataset::open(&dir.path().join("parrot")).unwrap();
+    let dji = mavloc_data::Dataset::open(&dir.path().join("dji")).unwrap();
+    assert_eq!(parrot.camera.gimbal_frame, mavloc_data::dataset::GimbalFrame::Earth);
+    assert_eq!(parrot.records.len(), 3);
+    for (p, d) in parrot.records.iter().zip(&dji.records) {
+        assert_eq!(p.measured.gimbal_deg, d.measured.gimbal_deg);
+        assert_eq!(p.measured.attitude_deg, d.measured.attitude_deg);
+        for k in 0..3 {
+            // EXIF's GPS altitude against DJI's XMP altitude: 198.609 against 198.61.
+            assert!(
+                (p.measured.position[k] - d.measured.position[k]).abs() < 0.01,
+                "{:?} {:?}",
+                p.measured,
+                d.measured
+            );
+        }
+    }
+}
