@@ -11,7 +11,9 @@
 //! ground, blue 0.45, green 0.38, red 0.30 (set so the shadow on DJI_0030's road has the
 //! hue, saturation and value of the real tree shadow on its beach: H 110, S 92, V 86
 //! against 119, 107, 91; the sunlit road is S 23, V 199), and prints how much of the
-//! polygon the segmenter took for the target.
+//! polygon the segmenter took for the target. Each image's line gives the share of the frame
+//! the mask covers and the share the water rule's shadow check (`area::shadow`) takes for
+//! cast shadows.
 
 use mavloc::area::segment::{contact_sheets, segment, Learned, SheetRow};
 use mavloc::settings::{self, Layers};
@@ -87,6 +89,19 @@ fn main() -> anyhow::Result<()> {
             let taken = core::count_non_zero(&both)? as f64 / core::count_non_zero(&area)?.max(1) as f64;
             println!("{path}: {:.1} % of the shadow taken for the target", 100.0 * taken);
         }
+        // What the water rule's shadow check finds (at the segmenter's 800 px working width).
+        let mut small = Mat::default();
+        let scale = (800.0 / img.cols() as f64).min(1.0);
+        imgproc::resize(&img, &mut small, core::Size::new(0, 0), scale, scale, imgproc::INTER_AREA)?;
+        let shadows = mavloc::area::shadow::cast_shadows(&small)?;
+        let share = |m: &Mat| -> anyhow::Result<f64> {
+            Ok(100.0 * core::count_non_zero(m)? as f64 / (m.rows() * m.cols()).max(1) as f64)
+        };
+        println!(
+            "{path}: target {:.1} % of the frame; cast shadows found {:.1} %",
+            share(&mask)?,
+            share(&shadows)?
+        );
         rows.push(SheetRow::new(i as u64, &img, &mask)?);
     }
     std::fs::create_dir_all(&out)?;

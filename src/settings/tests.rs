@@ -293,10 +293,16 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
         let p = problems(check(&layers));
         assert_eq!(p.len(), 1, "{p:?}");
         assert_eq!(p[0].key, "area.segmenter");
-        assert!(p[0].expected.contains("gives no masks") && p[0].expected.contains(source), "{}", p[0].expected);
+        assert!(
+            p[0].expected.contains("gives no masks") && p[0].expected.contains(source),
+            "{}",
+            p[0].expected
+        );
     }
     // Rules that make their own masks, and cameras that carry masks, are fine.
-    for sets in [["area.segmenter=water", "camera.source=v4l2"], ["area.segmenter=masks", "camera.source=sim"]] {
+    for sets in
+        [["area.segmenter=water", "camera.source=v4l2"], ["area.segmenter=masks", "camera.source=sim"]]
+    {
         let layers = Layers { overrides: sets.map(String::from).to_vec(), ..Layers::default() };
         assert!(check(&layers).is_ok(), "{sets:?}");
     }

@@ -453,7 +453,7 @@ fn opencv_log_lines_go_through_tracing() {
     std::fs::write(
         &config,
         format!(
-            "[camera]\nsource = \"file\"\npath = \"bad.mp4\"\n[mavlink]\nconnection = \"udpin:127.0.0.1:{port}\"\n\
+            "[camera]\nsource = \"file\"\npath = \"bad.mp4\"\n[area]\nsegmenter = \"water\"\n[mavlink]\nconnection = \"udpin:127.0.0.1:{port}\"\n\
              [daemon]\nstate_dir = \"{}\"\n",
             dir.path().join("state").display(),
         ),
