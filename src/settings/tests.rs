@@ -307,3 +307,17 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
         assert!(check(&layers).is_ok(), "{sets:?}");
     }
 }
+
+/// The photo-survey settings hold the alignment's per-photo shifts to the positions' own
+/// noise: a looser shift prior lets photos move where they turned
+/// (`area::align::tests::the_shift_prior_keeps_photos_from_moving_where_they_turned`; the
+/// rendered three-line survey's map rose 2.5 m with 5 m).
+#[test]
+fn photo_surveys_hold_the_alignment_shifts_to_the_position_noise() {
+    let survey = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/photo-survey.toml");
+    let layers = Layers { dataset: Some(survey), ..Layers::default() };
+    let a = load(&layers).unwrap().settings.area;
+    let noise = a.position_noise_m.iter().cloned().fold(0.0, f64::max);
+    assert!(a.align_prior_deg > 0.0, "photo surveys are aligned");
+    assert!(a.align_shift_m > 0.0 && a.align_shift_m <= noise, "{} m against {noise} m", a.align_shift_m);
+}
