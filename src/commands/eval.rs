@@ -31,7 +31,11 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
         .ok()
         .and_then(|t| serde_json::from_str::<crate::area::offline::RunSummary>(&t).ok())
         .map_or(f64::NAN, |s| s.frames_per_s);
-    let e = crate::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
+    let mut e = crate::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
+    // A rendered dataset carries its scenario, so its ground is known everywhere.
+    if let Some(surface) = crate::simulated::surface::true_surface(dataset).map_err(anyhow::Error::msg)? {
+        e = e.with_surface(&landmarks, surface);
+    }
     let title = format!("{} vs {}", result.display(), dataset.display());
     let plots = [result.join("histogram.png"), result.join("views.png")];
     let points: Vec<_> = landmarks.iter().map(|l| l.position).collect();
