@@ -1,7 +1,8 @@
 //! Where the area pipeline's time goes, per stage, at the working resolution (960x540,
 //! band 25 px, L_max 200): band (distance transform vs the seed's dilation), SIFT in the
 //! band, match-and-estimate against a full library, the UKF updates alone, purge, and a
-//! whole frame at steady state. Frames come from the coastline mission.
+//! whole frame at steady state. Frames come from the coastline mission. Beside them, the
+//! water segmenter on a real photo and its shadow check alone.
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use mavloc::area::features::{prepare, FeatureExtractor, Pieces};
@@ -125,6 +126,30 @@ fn stages(c: &mut Criterion) {
         });
     }
     group.finish();
+
+    // Segmenting a real photo (DJI_0030, 4000x2250) with the water rule, and the rule's
+    // shadow check (`area::shadow`) alone at the rule's 800 px working width: the check's
+    // share of the segmenter.
+    let photo_path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/dji-sample/DJI_0030.JPG");
+    let photo = opencv::imgcodecs::imread(photo_path, opencv::imgcodecs::IMREAD_COLOR).unwrap();
+    let water = mavloc::settings::Area { segmenter: mavloc::settings::Segmenter::Water, ..s.area.clone() };
+    c.bench_function("area_segment_water_4000px_photo", |b| {
+        b.iter(|| mavloc::area::segment::segment(&photo, &water).unwrap())
+    });
+    let mut small = Mat::default();
+    let scale = 800.0 / photo.cols() as f64;
+    opencv::imgproc::resize(
+        &photo,
+        &mut small,
+        opencv::core::Size::new(0, 0),
+        scale,
+        scale,
+        opencv::imgproc::INTER_AREA,
+    )
+    .unwrap();
+    c.bench_function("area_shadow_check_800px", |b| {
+        b.iter(|| mavloc::area::shadow::cast_shadows(&small).unwrap())
+    });
 
     // Purge 20 of 220 landmarks.
     let descriptor = vec![0.5f32; 128];

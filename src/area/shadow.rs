@@ -53,14 +53,17 @@ const LIGHT_OVER_MATERIAL: usize = 2;
 /// The cast shadows of an 8-bit BGR image (the segmenter's working size): 255 inside.
 pub fn cast_shadows(small: &Mat) -> opencv::Result<Mat> {
     let (w, h) = (small.cols(), small.rows());
-    let img = small.try_clone()?; // continuous
+    // A continuous copy, read as one slice.
+    let img = small.try_clone()?;
+    // ln(blue / red) > CANDIDATE_BLUE without a logarithm per pixel.
+    let blue_over_red = CANDIDATE_BLUE.exp();
     let cand: Vec<u8> = img
         .data_typed::<core::Vec3b>()?
         .iter()
         .map(|p| {
-            let blue = ((p[0] as f32 + 1.0) / (p[2] as f32 + 1.0)).ln();
+            let bluish = p[0] as f32 + 1.0 > blue_over_red * (p[2] as f32 + 1.0);
             let value = p[0].max(p[1]).max(p[2]);
-            if blue > CANDIDATE_BLUE && value < CANDIDATE_MAX_VALUE {
+            if bluish && value < CANDIDATE_MAX_VALUE {
                 255
             } else {
                 0
