@@ -249,6 +249,38 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
             }
         }
     };
+    // Position, altitude and time from EXIF alone (plain EXIF and Parrot photos); the
+    // attitude is the caller's, the height above the ground comes from the user at import.
+    let exif_position = |missing: &mut Vec<&'static str>| {
+        let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
+        let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
+        for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
+            if v.is_none() {
+                missing.push(tag);
+            }
+        }
+        if focal_35mm.is_none() && focal_px.is_none() {
+            missing.push("FocalLengthIn35mmFilm or FocalLength with FocalPlaneXResolution");
+        }
+        let alt = gps_alt.unwrap_or(f64::NAN);
+        PhotoTags {
+            name: name.clone(),
+            width,
+            height,
+            lat_deg: lat.unwrap_or(f64::NAN),
+            lon_deg: lon.unwrap_or(f64::NAN),
+            gps_alt_m: alt,
+            time: exif_time.clone().unwrap_or_default(),
+            focal_mm,
+            focal_35mm,
+            absolute_alt_m: alt,
+            relative_alt_m: f64::NAN,
+            gimbal_deg: [f64::NAN; 3],
+            flight_deg: [f64::NAN; 3],
+            vendor: String::new(),
+            focal_px,
+        }
+    };
     let tags = match vendor {
         Vendor::Dji => {
             let absolute = num(&dji, "AbsoluteAltitude");
@@ -335,65 +367,21 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 opt("FlightPitchDegree").unwrap_or(0.0),
                 opt("FlightYawDegree").unwrap_or(gimbal[0]),
             ];
-            let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
-            let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
-            for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
-                if v.is_none() {
-                    missing.push(tag);
-                }
-            }
-            if focal_35mm.is_none() && focal_px.is_none() {
-                missing.push("FocalLengthIn35mmFilm or FocalLength with FocalPlaneXResolution");
-            }
-            let alt = gps_alt.unwrap_or(f64::NAN);
             PhotoTags {
-                name: name.clone(),
-                width,
-                height,
-                lat_deg: lat.unwrap_or(f64::NAN),
-                lon_deg: lon.unwrap_or(f64::NAN),
-                gps_alt_m: alt,
-                time: exif_time.clone().unwrap_or_default(),
-                focal_mm,
-                focal_35mm,
-                absolute_alt_m: alt,
-                relative_alt_m: f64::NAN,
                 gimbal_deg: gimbal,
                 flight_deg: flight,
                 vendor: "parrot".into(),
-                focal_px,
+                ..exif_position(&mut missing)
             }
         }
         Vendor::Exif => {
             // Position and time from EXIF alone; the attitude comes from the track at
             // import (`import_photos`), the height above ground from the user.
-            let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
-            let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
-            for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
-                if v.is_none() {
-                    missing.push(tag);
-                }
-            }
-            if focal_35mm.is_none() && focal_px.is_none() {
-                missing.push("FocalLengthIn35mmFilm or FocalLength with FocalPlaneXResolution");
-            }
-            let alt = gps_alt.unwrap_or(f64::NAN);
             PhotoTags {
-                name: name.clone(),
-                width,
-                height,
-                lat_deg: lat.unwrap_or(f64::NAN),
-                lon_deg: lon.unwrap_or(f64::NAN),
-                gps_alt_m: alt,
-                time: exif_time.clone().unwrap_or_default(),
-                focal_mm,
-                focal_35mm,
-                absolute_alt_m: alt,
-                relative_alt_m: f64::NAN,
                 gimbal_deg: [0.0, -90.0, 0.0],
                 flight_deg: [0.0, 0.0, f64::NAN],
                 vendor: "exif".into(),
-                focal_px,
+                ..exif_position(&mut missing)
             }
         }
     };

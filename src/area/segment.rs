@@ -72,10 +72,15 @@ fn clean(raw: &Mat) -> opencv::Result<Mat> {
             keep.push(c);
         }
     }
-    let mut out = Mat::zeros(m.rows(), m.cols(), core::CV_8UC1)?.to_mat()?;
+    filled(&keep, m.rows(), m.cols())
+}
+
+/// A `rows` x `cols` mask, 255 inside the outlines (holes filled).
+pub(super) fn filled(outlines: &Vector<Vector<Point>>, rows: i32, cols: i32) -> opencv::Result<Mat> {
+    let mut out = Mat::zeros(rows, cols, core::CV_8UC1)?.to_mat()?;
     imgproc::draw_contours(
         &mut out,
-        &keep,
+        outlines,
         -1,
         Scalar::all(255.0),
         imgproc::FILLED,

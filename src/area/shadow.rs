@@ -152,19 +152,7 @@ pub fn cast_shadows(small: &Mat) -> opencv::Result<Mat> {
             shadows.push(c);
         }
     }
-    let mut out = Mat::zeros(h, w, core::CV_8UC1)?.to_mat()?;
-    imgproc::draw_contours(
-        &mut out,
-        &shadows,
-        -1,
-        Scalar::all(255.0),
-        imgproc::FILLED,
-        imgproc::LINE_8,
-        &core::no_array(),
-        i32::MAX,
-        Point::new(0, 0),
-    )?;
-    Ok(out)
+    super::segment::filled(&shadows, h, w)
 }
 
 fn box_mean(src: &Mat, size: i32) -> opencv::Result<Mat> {
