@@ -136,17 +136,7 @@ fn stages(c: &mut Criterion) {
     c.bench_function("area_segment_water_4000px_photo", |b| {
         b.iter(|| mavloc::area::segment::segment(&photo, &water).unwrap())
     });
-    let mut small = Mat::default();
-    let scale = 800.0 / photo.cols() as f64;
-    opencv::imgproc::resize(
-        &photo,
-        &mut small,
-        opencv::core::Size::new(0, 0),
-        scale,
-        scale,
-        opencv::imgproc::INTER_AREA,
-    )
-    .unwrap();
+    let small = mavloc::area::segment::shrunk(&photo).unwrap();
     c.bench_function("area_shadow_check_800px", |b| {
         b.iter(|| mavloc::area::shadow::cast_shadows(&small).unwrap())
     });

@@ -89,11 +89,8 @@ fn main() -> anyhow::Result<()> {
             let taken = core::count_non_zero(&both)? as f64 / core::count_non_zero(&area)?.max(1) as f64;
             println!("{path}: {:.1} % of the shadow taken for the target", 100.0 * taken);
         }
-        // What the water rule's shadow check finds (at the segmenter's 800 px working width).
-        let mut small = Mat::default();
-        let scale = (800.0 / img.cols() as f64).min(1.0);
-        imgproc::resize(&img, &mut small, core::Size::new(0, 0), scale, scale, imgproc::INTER_AREA)?;
-        let shadows = mavloc::area::shadow::cast_shadows(&small)?;
+        // What the water rule's shadow check finds (at the segmenter's working size).
+        let shadows = mavloc::area::shadow::cast_shadows(&mavloc::area::segment::shrunk(&img)?)?;
         let share = |m: &Mat| -> anyhow::Result<f64> {
             Ok(100.0 * core::count_non_zero(m)? as f64 / (m.rows() * m.cols()).max(1) as f64)
         };

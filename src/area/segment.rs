@@ -173,8 +173,9 @@ pub fn segment(frame: &Mat, s: &AreaSettings) -> opencv::Result<Option<Mat>> {
     Ok(Some(to_frame_size(&m, frame)?))
 }
 
-/// `frame` at most `WORK_WIDTH` wide.
-fn shrunk(frame: &Mat) -> opencv::Result<Mat> {
+/// `frame` at most `WORK_WIDTH` wide: the size the segmenters (and the shadow check)
+/// work at.
+pub fn shrunk(frame: &Mat) -> opencv::Result<Mat> {
     let scale = (WORK_WIDTH as f64 / frame.cols() as f64).min(1.0);
     if scale >= 1.0 {
         return frame.try_clone();

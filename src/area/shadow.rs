@@ -53,8 +53,14 @@ const LIGHT_OVER_MATERIAL: usize = 2;
 /// The cast shadows of an 8-bit BGR image (the segmenter's working size): 255 inside.
 pub fn cast_shadows(small: &Mat) -> opencv::Result<Mat> {
     let (w, h) = (small.cols(), small.rows());
-    // A continuous copy, read as one slice.
-    let img = small.try_clone()?;
+    // Read as one slice: a copy only when the image is a view into a larger one.
+    let copy;
+    let img = if small.is_continuous() {
+        small
+    } else {
+        copy = small.try_clone()?;
+        &copy
+    };
     // ln(blue / red) > CANDIDATE_BLUE without a logarithm per pixel.
     let blue_over_red = CANDIDATE_BLUE.exp();
     let cand: Vec<u8> = img
@@ -79,7 +85,7 @@ pub fn cast_shadows(small: &Mat) -> opencv::Result<Mat> {
     img.convert_to(&mut f, core::CV_32FC3, 1.0, 1.0)?;
     let colour = box_mean(&f, 5)?;
     let mut grey = Mat::default();
-    imgproc::cvt_color(&img, &mut grey, imgproc::COLOR_BGR2GRAY, 0)?;
+    imgproc::cvt_color(img, &mut grey, imgproc::COLOR_BGR2GRAY, 0)?;
     let mut lap = Mat::default();
     imgproc::laplacian(&grey, &mut lap, core::CV_32F, 3, 1.0, 0.0, core::BORDER_REPLICATE)?;
     let mut abs = Mat::default();
