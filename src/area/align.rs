@@ -111,16 +111,58 @@ fn footprint(pose: &CameraPose, k: &Intrinsics, down: f64) -> Option<([f64; 2], 
     Some((centre, reach))
 }
 
-/// Verified matches of two photos: ratio-test matches that fit one fundamental matrix.
-fn verified(a: &PhotoFeatures, b: &PhotoFeatures, threshold_px: f64) -> opencv::Result<Vec<(usize, usize)>> {
-    let m = imageup::matched_fast(a, b)?;
+/// A ratio-test match is kept only if the two tagged poses put it on the ground plane
+/// within this many times what the attitude prior allows apart: `GATE` x tan(prior) x
+/// the two photos' heights above the plane. Repeated ground fools the fundamental matrix:
+/// over flat ground it is underdetermined (a homography and any epipole), so one pair's
+/// matches can fit it twice over, and a ground that repeats turned half a turn (a tiled
+/// texture mirrored both ways, rows of a field) links photos that never overlapped. On the
+/// rendered three-line survey (`examples/tie_truth.rs`, poses 3 deg off) true matches
+/// lay a median 0.7-12 m apart as tagged, false ones 35-68 m; the false links turned the
+/// photos at one end of the block by 1.5-3 deg even from exact poses.
+const GATE: f64 = 3.0;
+
+/// Whether the tagged poses `a` and `b` put pixels `u` and `v` on the plane `down` within
+/// the gate (above) of each other, the tags trusted to `gate_tan` (tangent of the prior).
+fn on_same_ground(
+    a: &CameraPose,
+    b: &CameraPose,
+    k: &Intrinsics,
+    down: f64,
+    gate_tan: f64,
+    u: Pixel,
+    v: Pixel,
+) -> bool {
+    let limit = GATE * gate_tan * ((down - a.position.z).abs() + (down - b.position.z).abs());
+    match (on_ground(a, k, u, down), on_ground(b, k, v, down)) {
+        (Some(ga), Some(gb)) => (ga[0] - gb[0]).hypot(ga[1] - gb[1]) <= limit,
+        // A ray that misses the plane (an oblique camera's sky) cannot be gated here.
+        _ => true,
+    }
+}
+
+/// Verified matches of two photos: ratio-test matches that the tagged poses put on the
+/// same ground within the gate (above), and that fit one fundamental matrix.
+fn verified(
+    a: &Photo,
+    b: &Photo,
+    k: &Intrinsics,
+    down: f64,
+    gate_tan: f64,
+    threshold_px: f64,
+) -> opencv::Result<Vec<(usize, usize)>> {
+    let (fa, fb) = (&a.features, &b.features);
+    let m: Vec<(usize, usize)> = imageup::matched_fast(fa, fb)?
+        .into_iter()
+        .filter(|&(i, j)| on_same_ground(&a.pose, &b.pose, k, down, gate_tan, fa.pixels()[i], fb.pixels()[j]))
+        .collect();
     if m.len() < MIN_INLIERS {
         return Ok(Vec::new());
     }
     let pts = |f: &PhotoFeatures, pick: &dyn Fn(&(usize, usize)) -> usize| -> Vector<Point2f> {
         m.iter().map(|p| f.pixels()[pick(p)]).map(|p| Point2f::new(p.u as f32, p.v as f32)).collect()
     };
-    let (pa, pb) = (pts(a, &|p| p.0), pts(b, &|p| p.1));
+    let (pa, pb) = (pts(fa, &|p| p.0), pts(fb, &|p| p.1));
     let mut mask = Mat::default();
     let f =
         calib3d::find_fundamental_mat(&pa, &pb, calib3d::USAC_MAGSAC, threshold_px, 0.999, 2000, &mut mask)?;
@@ -154,8 +196,15 @@ pub struct PairMatches {
 }
 
 /// Matches every pair of `photos` (poses and `k` at full resolution) whose footprints on
-/// the plane `down` overlap; returns the pairs that linked and how many were tried.
-pub fn match_pairs(photos: &[Photo], k: &Intrinsics, down: f64) -> opencv::Result<(Vec<PairMatches>, usize)> {
+/// the plane `down` overlap, their attitude tags trusted to `prior_deg` (the gate above);
+/// returns the pairs that linked and how many were tried.
+pub fn match_pairs(
+    photos: &[Photo],
+    k: &Intrinsics,
+    down: f64,
+    prior_deg: f64,
+) -> opencv::Result<(Vec<PairMatches>, usize)> {
+    let gate_tan = prior_deg.to_radians().tan();
     let scale = (WORK_WIDTH / k.width as f64).min(1.0);
     let threshold = EPIPOLAR_PX / scale;
     let prints: Vec<_> = photos.iter().map(|p| footprint(&p.pose, k, down)).collect();
@@ -191,7 +240,7 @@ pub fn match_pairs(photos: &[Photo], k: &Intrinsics, down: f64) -> opencv::Resul
             // FLANN's trees and MAGSAC draw from OpenCV's per-thread generator: seeded per
             // pair, a pair's matches do not depend on which thread ran the ones before.
             opencv::core::set_rng_seed((i * 7919 + j) as i32 + 1)?;
-            verified(&photos[i].features, &photos[j].features, threshold)
+            verified(&photos[i], &photos[j], k, down, gate_tan, threshold)
         })
         .collect::<opencv::Result<_>>()?;
     let out = wanted
@@ -455,6 +504,42 @@ mod tests {
     fn nadir(north: f64, east: f64, yaw_deg: f64) -> CameraPose {
         let a = GimbalAngles { yaw: yaw_deg.to_radians(), pitch: -90f64.to_radians(), roll: 0.0 };
         CameraPose::from_gimbal(Vec3::new(north, east, -70.0), GimbalChain::YawPitchRoll, a, Mount::Earth)
+    }
+
+    /// The match gate keeps every true match of a survey whose tags are up to 8 deg off
+    /// (trusted to 5 deg) and drops every match between photos that never overlapped
+    /// (ground repeated half a turn: pixel (u, v) of one photo matched to (2 cx - u,
+    /// 2 cy - v) of another, as rotation-invariant SIFT matches a point-mirrored copy).
+    #[test]
+    fn the_match_gate_keeps_what_the_tags_allow_and_drops_ground_seen_elsewhere() {
+        let (k, _, tagged, photos, pairs, linked) = survey(0.3);
+        let tan = 5f64.to_radians().tan();
+        let mut kept = 0;
+        for p in &pairs[..linked] {
+            for &(x, y) in &p.matches {
+                let (u, v) = (photos[p.a].features.pixels()[x], photos[p.b].features.pixels()[y]);
+                assert!(
+                    on_same_ground(&tagged[p.a], &tagged[p.b], &k, 0.0, tan, u, v),
+                    "pair {}-{}",
+                    p.a,
+                    p.b
+                );
+                kept += 1;
+            }
+        }
+        assert!(kept > 1000, "{kept} true matches");
+        // Line 0's first photo and line 2's last: 90 m across and 100 m along apart.
+        let (a, b) = (0, 17);
+        let twins: Vec<_> = photos[a]
+            .features
+            .pixels()
+            .iter()
+            .map(|u| (*u, Pixel::new(2.0 * k.cx - u.u, 2.0 * k.cy - u.v)))
+            .collect();
+        assert!(twins.len() > 100);
+        for (u, v) in twins {
+            assert!(!on_same_ground(&tagged[a], &tagged[b], &k, 0.0, tan, u, v), "{u:?} - {v:?}");
+        }
     }
 
     /// A survey the tie points see exactly: three lines of nadir photos 70 m up (the middle

@@ -294,7 +294,7 @@ fn align_photos(
         .collect::<opencv::Result<_>>()?;
     let photos: Vec<align::Photo> = read.into_iter().flatten().collect();
     let t_features = t0.elapsed().as_secs_f64();
-    let (pairs, tried) = align::match_pairs(&photos, &k, s.area.ground_down_m)?;
+    let (pairs, tried) = align::match_pairs(&photos, &k, s.area.ground_down_m, s.area.align_prior_deg)?;
     let t_matching = t0.elapsed().as_secs_f64() - t_features;
     summary.tie_pairs_matched = Some(tried);
     let tagged: BTreeMap<u64, crate::geometry::CameraPose> =
