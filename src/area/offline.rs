@@ -126,6 +126,12 @@ pub struct RunSummary {
     pub cross_line_tie_median_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_line_tie_aligned_median_m: Option<f64>,
+    /// When the alignment reached every photo and `area.aligned_*` are set: the bearing
+    /// noise (degrees) and the sightings per landmark the filters ran with.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub aligned_bearing_noise_deg: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub aligned_min_observations: Option<u32>,
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
@@ -449,6 +455,40 @@ pub fn run_observed(
     let aligned = |f: u64, pose: crate::geometry::CameraPose| match alignment.get(&f) {
         Some(c) => c.apply(&pose),
         None => pose,
+    };
+    // Poses that fit thousands of tie points are not the tags: once every photo is
+    // aligned, the filters may take each sighting for what SIFT measures and a landmark
+    // from two photos (the alignment has checked those photos' poses against each other;
+    // a single tag cannot be). A photo the alignment did not reach keeps its tag's error,
+    // and the filters keep the tags' settings for the whole run.
+    let tuned;
+    let s = match summary.aligned_photos {
+        Some(n)
+            if n as u64 == total
+                && (s.area.aligned_bearing_noise_deg > 0.0 || s.area.aligned_min_observations > 0) =>
+        {
+            let mut t = s.clone();
+            if s.area.aligned_bearing_noise_deg > 0.0 {
+                t.area.bearing_noise_deg = s.area.aligned_bearing_noise_deg;
+            }
+            if s.area.aligned_min_observations > 0 {
+                t.area.min_observations = s.area.aligned_min_observations;
+            }
+            summary.aligned_bearing_noise_deg = Some(t.area.bearing_noise_deg);
+            summary.aligned_min_observations = Some(t.area.min_observations);
+            if let Some(p) = pipeline.as_mut() {
+                p.reconfigure(&t.area, k)?;
+            }
+            tuned = t;
+            &tuned
+        }
+        Some(n) if s.area.aligned_bearing_noise_deg > 0.0 || s.area.aligned_min_observations > 0 => {
+            tracing::warn!(
+                "photo alignment reached {n} of {total} photos: the landmark filters keep the tags' bearing noise and sightings"
+            );
+            s
+        }
+        _ => s,
     };
     // `segmenter = "learned"`: trained on the masks the user made for some frames (those
     // frames keep their own masks).

@@ -99,6 +99,9 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
             summary.align_correction_median_deg.unwrap_or(f64::NAN),
         );
     }
+    if let (Some(b), Some(n)) = (summary.aligned_bearing_noise_deg, summary.aligned_min_observations) {
+        println!("every photo aligned: the landmark filters ran with {b} deg of bearing noise and {n} sightings a landmark (area.aligned_*)");
+    }
     if let Some(n) = summary.cross_line_tie_pairs {
         let m = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2} m"));
         println!(

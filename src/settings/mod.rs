@@ -689,6 +689,8 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     v.range("area.attitude_prior_deg", a.attitude_prior_deg, 0.0, 30.0);
     v.range("area.align_prior_deg", a.align_prior_deg, 0.0, 45.0);
     v.range("area.align_shift_m", a.align_shift_m, 0.0, 1000.0);
+    v.range("area.aligned_bearing_noise_deg", a.aligned_bearing_noise_deg, 0.0, 20.0);
+    v.range_int("area.aligned_min_observations", a.aligned_min_observations.into(), 0, 10_000);
     if !(a.position_noise_m.len() == 3
         && a.position_noise_m.iter().all(|c| c.is_finite() && (0.0..=100.0).contains(c)))
     {

@@ -271,6 +271,13 @@ pub struct Area {
     /// SD of the recorded positions for the same alignment, metres (each photo's
     /// position shift is estimated with it); 0 = positions held as recorded.
     pub align_shift_m: f64,
+    /// Bearing noise of the landmark filters once the alignment has reached every photo,
+    /// degrees (its poses fit thousands of tie points, the tags did not); 0 = the same as
+    /// `bearing_noise_deg`.
+    pub aligned_bearing_noise_deg: f64,
+    /// Sightings a landmark needs once the alignment has reached every photo; 0 = the same
+    /// as `min_observations`.
+    pub aligned_min_observations: u32,
     /// How features are matched to landmarks: `global` (the seed's, every feature of the
     /// frame) or `guided` (only inside each landmark's predicted gate).
     pub matching: AreaMatching,
@@ -329,6 +336,8 @@ impl Default for Area {
             attitude_prior_deg: 0.0,
             align_prior_deg: 0.0,
             align_shift_m: 5.0,
+            aligned_bearing_noise_deg: 0.0,
+            aligned_min_observations: 0,
             matching: AreaMatching::Global,
             segmenter: Segmenter::Masks,
             hsv_low: vec![90.0, 60.0, 30.0],

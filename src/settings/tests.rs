@@ -321,3 +321,18 @@ fn photo_surveys_hold_the_alignment_shifts_to_the_position_noise() {
     assert!(a.align_prior_deg > 0.0, "photo surveys are aligned");
     assert!(a.align_shift_m > 0.0 && a.align_shift_m <= noise, "{} m against {noise} m", a.align_shift_m);
 }
+
+/// Once aligned, photo surveys trust the poses more than the tags, never less: a tighter
+/// bearing noise and no more sightings a landmark (`area.aligned_*`; the tags' values stay
+/// for a survey the alignment does not reach whole).
+#[test]
+fn photo_surveys_trust_aligned_poses_more_than_the_tags() {
+    let survey = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/photo-survey.toml");
+    let layers = Layers { dataset: Some(survey), ..Layers::default() };
+    let a = load(&layers).unwrap().settings.area;
+    assert!(a.aligned_bearing_noise_deg > 0.0 && a.aligned_bearing_noise_deg < a.bearing_noise_deg, "{a:?}");
+    assert!(a.aligned_min_observations >= 2 && a.aligned_min_observations < a.min_observations, "{a:?}");
+    // The defaults leave video as it was.
+    let d = crate::settings::Settings::default().area;
+    assert_eq!((d.aligned_bearing_noise_deg, d.aligned_min_observations), (0.0, 0));
+}

@@ -189,10 +189,15 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["frames"], 3);
-    // Landmarks seen in all three photos converge (the survey config asks for three
-    // sightings), consistently with every photo they were seen in.
+    // Every photo aligned by its tie points, so the filters take a landmark from two
+    // photos at SIFT's own bearing noise (`area.aligned_*`): 180 landmarks where the tags'
+    // settings, three sightings at 0.7 deg, gave 20; consistently with every photo they
+    // were seen in.
+    assert_eq!(summary["aligned_photos"], 3, "{summary}");
+    assert_eq!(summary["aligned_min_observations"], 2, "{summary}");
+    assert_eq!(summary["aligned_bearing_noise_deg"], 0.1, "{summary}");
     let n = summary["landmarks"].as_u64().unwrap();
-    assert!(n >= 10, "{summary}");
+    assert!(n >= 120, "{summary}");
     assert!(summary["residual_p90_px"].as_f64().unwrap() < 80.0, "{summary}");
     assert_eq!(summary["yaw_off_180_frames"], serde_json::json!(null), "{summary}");
     let residuals = std::fs::read_to_string(result.join("residuals.csv")).unwrap();
@@ -233,8 +238,48 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
         assert!(right > 5.0, "landmark {at:?} is {right:.1} m right of the flight line");
     }
     assert_eq!(landmarks as u64, n);
+    // A landmark from two photos has no third to show a false match: one would lie metres
+    // off the shore's height. They all lie on the shore and its rocks, within 0.5 m of the
+    // median height (measured: 2.84-3.75 m below the first photo's take-off, median 3.35).
+    let csv = std::fs::read_to_string(result.join("landmarks.csv")).unwrap();
+    let mut downs: Vec<f64> =
+        csv.lines().skip(1).map(|l| l.split(',').nth(3).unwrap().parse().unwrap()).collect();
+    downs.sort_by(f64::total_cmp);
+    let median = downs[downs.len() / 2];
+    let worst = downs.iter().map(|d| (d - median).abs()).fold(0.0, f64::max);
+    assert!(worst < 1.0, "a landmark {worst:.2} m off the median height {median:.2} m");
     let kml = std::fs::read_to_string(result.join("area.kml")).unwrap();
     assert_eq!(kml.matches("<Point>").count() as u64, n, "every landmark in the KML");
+}
+
+/// A photo the alignment cannot reach (here a blank frame: no tie point) keeps its tag's
+/// error, and a landmark from it and one other photo would have no third sighting to show
+/// it: the whole run keeps the tags' settings (three sightings at 0.7 deg).
+#[test]
+fn a_photo_the_alignment_cannot_reach_keeps_the_tags_settings_for_the_run() {
+    use opencv::prelude::*;
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    import_photos(&sample(), &ds, &ImportOptions::default()).unwrap();
+    let frame = ds.join("frames/000002.jpg");
+    let img = opencv::imgcodecs::imread(frame.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+    let grey = opencv::core::Mat::new_rows_cols_with_default(
+        img.rows(),
+        img.cols(),
+        opencv::core::CV_8UC3,
+        opencv::core::Scalar::all(128.0),
+    )
+    .unwrap();
+    opencv::imgcodecs::imwrite(frame.to_str().unwrap(), &grey, &opencv::core::Vector::new()).unwrap();
+    let result = dir.path().join("r");
+    println!("{}", area(&ds, &result, &[]));
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["aligned_photos"], 2, "{summary}");
+    assert_eq!(summary["aligned_min_observations"], serde_json::Value::Null, "{summary}");
+    assert_eq!(summary["aligned_bearing_noise_deg"], serde_json::Value::Null, "{summary}");
+    let csv = std::fs::read_to_string(result.join("landmarks.csv")).unwrap();
+    assert!(csv.lines().skip(1).all(|l| l.split(',').nth(5).unwrap().parse::<u32>().unwrap() >= 3), "{csv}");
 }
 
 #[test]
