@@ -132,6 +132,10 @@ pub struct RunSummary {
     pub aligned_bearing_noise_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub aligned_min_observations: Option<u32>,
+    /// Photos left out of the landmark filters with those settings: the alignment did not
+    /// reach them.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub unaligned_frames: Vec<u64>,
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
@@ -456,17 +460,29 @@ pub fn run_observed(
         Some(c) => c.apply(&pose),
         None => pose,
     };
-    // Poses that fit thousands of tie points are not the tags: once every photo is
+    // Poses that fit thousands of tie points are not the tags: once the photos are
     // aligned, the filters may take each sighting for what SIFT measures and a landmark
     // from two photos (the alignment has checked those photos' poses against each other;
-    // a single tag cannot be). A photo the alignment did not reach keeps its tag's error,
-    // and the filters keep the tags' settings for the whole run.
+    // a single tag cannot be). A photo the alignment did not reach keeps its tag's error:
+    // when at least half the photos are reached, the others are left out of the filters
+    // (one photo over open water with no tie point should not cost the whole survey its
+    // landmarks); when fewer are, the filters keep the tags' settings for the whole run.
+    let tuning = s.area.aligned_bearing_noise_deg > 0.0 || s.area.aligned_min_observations > 0;
+    let reached = summary.aligned_photos.unwrap_or(0) as u64;
+    let tunes = tuning && reached >= 2 && 2 * reached >= total;
+    let left_out: std::collections::BTreeSet<u64> = if tunes {
+        ds.records
+            .iter()
+            .take(total as usize)
+            .map(|r| r.frame)
+            .filter(|f| !alignment.contains_key(f))
+            .collect()
+    } else {
+        Default::default()
+    };
     let tuned;
     let s = match summary.aligned_photos {
-        Some(n)
-            if n as u64 == total
-                && (s.area.aligned_bearing_noise_deg > 0.0 || s.area.aligned_min_observations > 0) =>
-        {
+        Some(_) if tunes => {
             let mut t = s.clone();
             if s.area.aligned_bearing_noise_deg > 0.0 {
                 t.area.bearing_noise_deg = s.area.aligned_bearing_noise_deg;
@@ -482,9 +498,9 @@ pub fn run_observed(
             tuned = t;
             &tuned
         }
-        Some(n) if s.area.aligned_bearing_noise_deg > 0.0 || s.area.aligned_min_observations > 0 => {
+        Some(n) if tuning => {
             tracing::warn!(
-                "photo alignment reached {n} of {total} photos: the landmark filters keep the tags' bearing noise and sightings"
+                "photo alignment reached {n} of {total} photos, fewer than half: the landmark filters keep the tags' bearing noise and sightings"
             );
             s
         }
@@ -570,6 +586,16 @@ pub fn run_observed(
         let (grey, small_mask) = prepare(&img, &mask, downscale)?;
         preparing += t_read.elapsed();
         let pose = aligned(record.frame, ds.camera_pose(&record.measured, s.gimbal.offsets_deg()));
+        if pipeline.is_some() && left_out.contains(&record.frame) {
+            tracing::warn!(
+                frame = record.frame,
+                "left out of the landmark filters: no tie point links it to the other photos, so its pose is the tag's ({})",
+                frame_path.display()
+            );
+            summary.unaligned_frames.push(record.frame);
+            progress(i as u64 + 1, total);
+            continue;
+        }
         match pipeline.as_mut() {
             Some(p) => {
                 let t = Instant::now();

@@ -100,7 +100,15 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         );
     }
     if let (Some(b), Some(n)) = (summary.aligned_bearing_noise_deg, summary.aligned_min_observations) {
-        println!("every photo aligned: the landmark filters ran with {b} deg of bearing noise and {n} sightings a landmark (area.aligned_*)");
+        if summary.unaligned_frames.is_empty() {
+            println!("every photo aligned: the landmark filters ran with {b} deg of bearing noise and {n} sightings a landmark (area.aligned_*)");
+        } else {
+            println!(
+                "photos aligned: the landmark filters ran with {b} deg of bearing noise and {n} sightings a landmark (area.aligned_*), without the {} photo(s) no tie point reached (frames {:?})",
+                summary.unaligned_frames.len(),
+                summary.unaligned_frames
+            );
+        }
     }
     if let Some(n) = summary.cross_line_tie_pairs {
         let m = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2} m"));

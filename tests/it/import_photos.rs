@@ -254,9 +254,10 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
 
 /// A photo the alignment cannot reach (here a blank frame: no tie point) keeps its tag's
 /// error, and a landmark from it and one other photo would have no third sighting to show
-/// it: the whole run keeps the tags' settings (three sightings at 0.7 deg).
+/// it: it is left out of the landmark filters and named, and the two aligned photos still
+/// give landmarks from two sightings.
 #[test]
-fn a_photo_the_alignment_cannot_reach_keeps_the_tags_settings_for_the_run() {
+fn a_photo_the_alignment_cannot_reach_is_left_out_of_the_filters() {
     use opencv::prelude::*;
     let dir = tempfile::tempdir().unwrap();
     let ds = dir.path().join("ds");
@@ -276,10 +277,14 @@ fn a_photo_the_alignment_cannot_reach_keeps_the_tags_settings_for_the_run() {
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["aligned_photos"], 2, "{summary}");
-    assert_eq!(summary["aligned_min_observations"], serde_json::Value::Null, "{summary}");
-    assert_eq!(summary["aligned_bearing_noise_deg"], serde_json::Value::Null, "{summary}");
+    assert_eq!(summary["unaligned_frames"], serde_json::json!([2]), "{summary}");
+    assert_eq!(summary["aligned_min_observations"], 2, "{summary}");
+    assert_eq!(summary["frames"], 2, "{summary}");
     let csv = std::fs::read_to_string(result.join("landmarks.csv")).unwrap();
-    assert!(csv.lines().skip(1).all(|l| l.split(',').nth(5).unwrap().parse::<u32>().unwrap() >= 3), "{csv}");
+    let last_frames: Vec<u64> =
+        csv.lines().skip(1).map(|l| l.split(',').nth(7).unwrap().parse().unwrap()).collect();
+    assert!(last_frames.len() >= 20, "{csv}");
+    assert!(last_frames.iter().all(|&f| f <= 1), "no landmark seen in the left-out photo: {csv}");
 }
 
 #[test]
