@@ -249,11 +249,13 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
             }
         }
     };
-    // Position, altitude and time from EXIF alone (plain EXIF and Parrot photos); the
-    // attitude is the caller's, the height above the ground comes from the user at import.
-    let exif_position = |missing: &mut Vec<&'static str>| {
+    // Position, altitude and time from EXIF (DJI, Parrot and plain EXIF photos), the
+    // altitude from `fallback_alt` where EXIF has none; the attitude and the height above
+    // the ground are the caller's.
+    let exif_position = |missing: &mut Vec<&'static str>, fallback_alt: Option<f64>| {
         let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
         let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
+        let gps_alt = gps_alt.or(fallback_alt);
         for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
             if v.is_none() {
                 missing.push(tag);
@@ -289,33 +291,14 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 [num(&dji, "GimbalYawDegree"), num(&dji, "GimbalPitchDegree"), num(&dji, "GimbalRollDegree")];
             let flight =
                 [num(&dji, "FlightRollDegree"), num(&dji, "FlightPitchDegree"), num(&dji, "FlightYawDegree")];
-            let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
-            let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
-            if lat.is_none() {
-                missing.push("GPSLatitude");
-            }
-            if lon.is_none() {
-                missing.push("GPSLongitude");
-            }
-            if focal_35mm.is_none() && focal_px.is_none() {
-                missing.push("FocalLengthIn35mmFilm");
-            }
+            // EXIF GPSAltitude, else DJI's own AbsoluteAltitude (missing is then named).
             PhotoTags {
-                name: name.clone(),
-                width,
-                height,
-                lat_deg: lat.unwrap_or(f64::NAN),
-                lon_deg: lon.unwrap_or(f64::NAN),
-                gps_alt_m: gps_alt.unwrap_or(absolute),
-                time: exif_time.clone().unwrap_or_default(),
-                focal_mm,
-                focal_35mm,
                 absolute_alt_m: absolute,
                 relative_alt_m: relative,
                 gimbal_deg: gimbal,
                 flight_deg: flight,
                 vendor: "dji".into(),
-                focal_px,
+                ..exif_position(&mut missing, Some(absolute).filter(|a| a.is_finite()))
             }
         }
         Vendor::SenseFly => {
@@ -371,7 +354,7 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 gimbal_deg: gimbal,
                 flight_deg: flight,
                 vendor: "parrot".into(),
-                ..exif_position(&mut missing)
+                ..exif_position(&mut missing, None)
             }
         }
         Vendor::Exif => {
@@ -381,7 +364,7 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 gimbal_deg: [0.0, -90.0, 0.0],
                 flight_deg: [0.0, 0.0, f64::NAN],
                 vendor: "exif".into(),
-                ..exif_position(&mut missing)
+                ..exif_position(&mut missing, None)
             }
         }
     };
