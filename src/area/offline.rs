@@ -126,8 +126,8 @@ pub struct RunSummary {
     pub cross_line_tie_median_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cross_line_tie_aligned_median_m: Option<f64>,
-    /// When the alignment reached every photo and `area.aligned_*` are set: the bearing
-    /// noise (degrees) and the sightings per landmark the filters ran with.
+    /// When the alignment reached at least half the photos and `area.aligned_*` are set:
+    /// the bearing noise (degrees) and the sightings per landmark the filters ran with.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub aligned_bearing_noise_deg: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -469,42 +469,33 @@ pub fn run_observed(
     // landmarks); when fewer are, the filters keep the tags' settings for the whole run.
     let tuning = s.area.aligned_bearing_noise_deg > 0.0 || s.area.aligned_min_observations > 0;
     let reached = summary.aligned_photos.unwrap_or(0) as u64;
-    let tunes = tuning && reached >= 2 && 2 * reached >= total;
-    let left_out: std::collections::BTreeSet<u64> = if tunes {
-        ds.records
-            .iter()
-            .take(total as usize)
-            .map(|r| r.frame)
-            .filter(|f| !alignment.contains_key(f))
-            .collect()
-    } else {
-        Default::default()
-    };
+    let mut left_out = std::collections::BTreeSet::new();
     let tuned;
-    let s = match summary.aligned_photos {
-        Some(_) if tunes => {
-            let mut t = s.clone();
-            if s.area.aligned_bearing_noise_deg > 0.0 {
-                t.area.bearing_noise_deg = s.area.aligned_bearing_noise_deg;
-            }
-            if s.area.aligned_min_observations > 0 {
-                t.area.min_observations = s.area.aligned_min_observations;
-            }
-            summary.aligned_bearing_noise_deg = Some(t.area.bearing_noise_deg);
-            summary.aligned_min_observations = Some(t.area.min_observations);
-            if let Some(p) = pipeline.as_mut() {
-                p.reconfigure(&t.area, k)?;
-            }
-            tuned = t;
-            &tuned
+    let s = if tuning && reached >= 2 && 2 * reached >= total {
+        left_out.extend(
+            ds.records.iter().take(total as usize).map(|r| r.frame).filter(|f| !alignment.contains_key(f)),
+        );
+        let mut t = s.clone();
+        if s.area.aligned_bearing_noise_deg > 0.0 {
+            t.area.bearing_noise_deg = s.area.aligned_bearing_noise_deg;
         }
-        Some(n) if tuning => {
+        if s.area.aligned_min_observations > 0 {
+            t.area.min_observations = s.area.aligned_min_observations;
+        }
+        summary.aligned_bearing_noise_deg = Some(t.area.bearing_noise_deg);
+        summary.aligned_min_observations = Some(t.area.min_observations);
+        if let Some(p) = pipeline.as_mut() {
+            p.reconfigure(&t.area, k)?;
+        }
+        tuned = t;
+        &tuned
+    } else {
+        if tuning && summary.aligned_photos.is_some() {
             tracing::warn!(
-                "photo alignment reached {n} of {total} photos, fewer than half: the landmark filters keep the tags' bearing noise and sightings"
+                "photo alignment reached {reached} of {total} photos, fewer than half: the landmark filters keep the tags' bearing noise and sightings"
             );
-            s
         }
-        _ => s,
+        s
     };
     // `segmenter = "learned"`: trained on the masks the user made for some frames (those
     // frames keep their own masks).

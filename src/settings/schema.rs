@@ -271,12 +271,12 @@ pub struct Area {
     /// SD of the recorded positions for the same alignment, metres (each photo's
     /// position shift is estimated with it); 0 = positions held as recorded.
     pub align_shift_m: f64,
-    /// Bearing noise of the landmark filters once the alignment has reached every photo,
-    /// degrees (its poses fit thousands of tie points, the tags did not); 0 = the same as
-    /// `bearing_noise_deg`.
+    /// Bearing noise of the landmark filters once the alignment has reached at least half
+    /// the photos (the others are left out), degrees: its poses fit thousands of tie
+    /// points, the tags did not; 0 = the same as `bearing_noise_deg`.
     pub aligned_bearing_noise_deg: f64,
-    /// Sightings a landmark needs once the alignment has reached every photo; 0 = the same
-    /// as `min_observations`.
+    /// Sightings a landmark needs once the alignment has reached at least half the photos;
+    /// 0 = the same as `min_observations`.
     pub aligned_min_observations: u32,
     /// How features are matched to landmarks: `global` (the seed's, every feature of the
     /// frame) or `guided` (only inside each landmark's predicted gate).

@@ -324,7 +324,7 @@ fn photo_surveys_hold_the_alignment_shifts_to_the_position_noise() {
 
 /// Once aligned, photo surveys trust the poses more than the tags, never less: a tighter
 /// bearing noise and no more sightings a landmark (`area.aligned_*`; the tags' values stay
-/// for a survey the alignment does not reach whole).
+/// for a survey the alignment reaches less than half of).
 #[test]
 fn photo_surveys_trust_aligned_poses_more_than_the_tags() {
     let survey = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/photo-survey.toml");
