@@ -218,12 +218,13 @@ impl Dictionary {
         let counts = (0..=img.height - h)
             .into_par_iter()
             .fold(
-                || vec![0u64; self.len()],
-                |mut counts, y| {
-                    c.count_row(img, mask, y, &mut counts);
-                    counts
+                || (vec![0u64; self.len()], Vec::new()),
+                |(mut counts, mut buf), y| {
+                    c.count_row(img, mask, y, &mut counts, &mut buf);
+                    (counts, buf)
                 },
             )
+            .map(|(counts, _)| counts)
             .reduce(|| vec![0u64; self.len()], |a, b| a.iter().zip(&b).map(|(x, y)| x + y).collect());
         normalise(&counts)
     }
@@ -237,8 +238,9 @@ impl Dictionary {
             return vec![0.0; self.len()];
         }
         let mut counts = vec![0u64; self.len()];
+        let mut buf = Vec::new();
         for y in 0..=img.height - h {
-            c.count_row(img, mask, y, &mut counts);
+            c.count_row(img, mask, y, &mut counts, &mut buf);
         }
         normalise(&counts)
     }
@@ -372,13 +374,34 @@ impl Classifier {
         normalise(&counts)
     }
 
-    /// Adds the nearest textons of the allowed patches whose top row is `y`.
-    fn count_row(&self, img: &YuvImage, mask: Option<&PatchMask>, y: usize, counts: &mut [u64]) {
+    /// Appends the patch with top-left corner `(x, y)` to `buf`, laid out as textons are.
+    #[inline]
+    fn gather(&self, img: &YuvImage, x: usize, y: usize, buf: &mut Vec<f32>) {
+        for dy in 0..self.h {
+            let row = (y + dy) * img.width + x;
+            buf.extend(img.data[row..row + self.w].iter().flatten());
+        }
+    }
+
+    /// Adds the nearest textons of the allowed patches whose top row is `y`. The row's
+    /// patches are gathered first and searched by [`Tables::count`], the AVX2/FMA kernel
+    /// the flight uses: searching each patch in place by [`Classifier::nearest`] leaves
+    /// vectorising to the compiler, which unoptimised (test) builds do not do.
+    fn count_row(
+        &self,
+        img: &YuvImage,
+        mask: Option<&PatchMask>,
+        y: usize,
+        counts: &mut [u64],
+        buf: &mut Vec<f32>,
+    ) {
+        buf.clear();
         for x in 0..=img.width - self.w {
             if mask.is_none_or(|m| m.allows(x, y)) {
-                counts[self.nearest(img, x, y)] += 1;
+                self.gather(img, x, y, buf);
             }
         }
+        self.tables().count(buf, counts);
     }
 
     /// Histogram of `samples` random allowed patch positions, normalised.
@@ -393,23 +416,24 @@ impl Classifier {
         if img.width < self.w || img.height < self.h || self.n == 0 {
             return vec![0.0; self.n];
         }
+        let mut buf = Vec::with_capacity(samples * self.dim);
         match mask {
             Some(m) if m.positions.is_empty() => return vec![0.0; self.n],
             Some(m) => {
                 for _ in 0..samples {
                     let p = m.positions[rng.random_range(0..m.positions.len())];
-                    let (x, y) = (p as usize % m.cols, p as usize / m.cols);
-                    counts[self.nearest(img, x, y)] += 1;
+                    self.gather(img, p as usize % m.cols, p as usize / m.cols, &mut buf);
                 }
             }
             None => {
                 for _ in 0..samples {
                     let x = rng.random_range(0..=img.width - self.w);
                     let y = rng.random_range(0..=img.height - self.h);
-                    counts[self.nearest(img, x, y)] += 1;
+                    self.gather(img, x, y, &mut buf);
                 }
             }
         }
+        self.tables().count(&buf, &mut counts);
         normalise(&counts)
     }
 }
@@ -441,7 +465,73 @@ impl Tables<'_> {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn count_avx2(&self, patches: &[f32], counts: &mut [u64]) {
-        self.count_impl::<true>(patches, counts)
+        match self.norms.len() {
+            1 => self.count_avx2_groups::<1>(patches, counts),
+            2 => self.count_avx2_groups::<2>(patches, counts),
+            3 => self.count_avx2_groups::<3>(patches, counts),
+            4 => self.count_avx2_groups::<4>(patches, counts),
+            _ => self.count_impl::<true>(patches, counts),
+        }
+    }
+
+    /// [`Self::nearest_groups`] written in AVX2 intrinsics, the same operations in the
+    /// same order (so the same textons win): its speed then does not hang on the
+    /// auto-vectoriser, which unoptimised builds (the tests') do not run.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn count_avx2_groups<const G: usize>(&self, patches: &[f32], counts: &mut [u64]) {
+        use std::arch::x86_64::{
+            _mm256_add_ps, _mm256_fmadd_ps, _mm256_loadu_ps, _mm256_set1_ps, _mm256_setzero_ps,
+            _mm256_storeu_ps,
+        };
+        let dim = self.dim;
+        assert!(self.weights.len() >= G * dim && self.norms.len() == G);
+        let last = self.n.saturating_sub(1);
+        for p in patches.chunks_exact(dim) {
+            let mut even = [_mm256_setzero_ps(); G];
+            let mut odd = [_mm256_setzero_ps(); G];
+            let mut k = 0;
+            while k + 1 < dim {
+                let (v0, v1) = (_mm256_set1_ps(p[k]), _mm256_set1_ps(p[k + 1]));
+                for g in 0..G {
+                    // SAFETY: g * dim + k + 1 < G * dim <= weights.len() (asserted above),
+                    // and each entry is 8 contiguous f32.
+                    let (w0, w1) = unsafe {
+                        let w = self.weights.as_ptr().add(g * dim + k) as *const f32;
+                        (_mm256_loadu_ps(w), _mm256_loadu_ps(w.add(LANES)))
+                    };
+                    even[g] = _mm256_fmadd_ps(w0, v0, even[g]);
+                    odd[g] = _mm256_fmadd_ps(w1, v1, odd[g]);
+                }
+                k += 2;
+            }
+            if k < dim {
+                let v = _mm256_set1_ps(p[k]);
+                for (g, e) in even.iter_mut().enumerate() {
+                    // SAFETY: as above, g * dim + k < G * dim.
+                    let w = unsafe { _mm256_loadu_ps(self.weights.as_ptr().add(g * dim + k) as *const f32) };
+                    *e = _mm256_fmadd_ps(w, v, *e);
+                }
+            }
+            let mut best = (f32::INFINITY, 0);
+            for g in 0..G {
+                let mut scores = [0.0f32; LANES];
+                // SAFETY: norms[g] and scores are 8 contiguous f32 each.
+                unsafe {
+                    let norm = _mm256_loadu_ps(self.norms[g].as_ptr());
+                    _mm256_storeu_ps(
+                        scores.as_mut_ptr(),
+                        _mm256_add_ps(_mm256_add_ps(norm, even[g]), odd[g]),
+                    );
+                }
+                for (l, score) in scores.iter().enumerate() {
+                    if *score < best.0 {
+                        best = (*score, g * LANES + l);
+                    }
+                }
+            }
+            counts[best.1.min(last)] += 1;
+        }
     }
 
     #[inline(always)]
@@ -719,6 +809,68 @@ mod tests {
                 assert!(d[flat] <= d[plain] * (1.0 + 1e-4) + 1e-2, "flat at {x},{y}");
                 assert!(d[c.tables().nearest::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
                 assert!(d[c.tables().nearest_by_group::<false>(&buf)] <= d[plain] * (1.0 + 1e-4) + 1e-2);
+            }
+        }
+    }
+
+    /// The AVX2 kernel (1-4 groups of 8 textons) and the portable one with fused
+    /// multiply-adds do the same operations in the same order: the same texton wins for
+    /// every patch, for every group count and an odd patch size.
+    #[test]
+    fn the_avx2_kernel_picks_the_textons_the_portable_kernel_picks() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        for n in [3, 8, 12, 20, 27, 32, 40] {
+            let dim = 3 * 3 * 3;
+            let textons: Vec<Vec<f32>> =
+                (0..n).map(|_| (0..dim).map(|_| rng.random_range(0.0..255.0)).collect()).collect();
+            let c = Dictionary { w: 3, h: 3, textons }.classifier();
+            let patches: Vec<f32> = (0..500 * dim).map(|_| rng.random_range(0.0..255.0)).collect();
+            let (mut fast, mut portable) = (vec![0u64; n], vec![0u64; n]);
+            c.tables().count(&patches, &mut fast);
+            c.tables().count_impl::<true>(&patches, &mut portable);
+            assert_eq!(fast, portable, "{n} textons");
+            assert_eq!(fast.iter().sum::<u64>(), 500);
+        }
+    }
+
+    /// The whole-image histogram (rows gathered, then searched by the flat kernel) counts
+    /// every allowed patch once, as the per-patch search does; a mask drops exactly the
+    /// patches it forbids.
+    #[test]
+    fn full_histograms_count_every_allowed_patch_as_the_per_patch_search_does() {
+        let img = two_textures(40, 20);
+        let dict = Dictionary::learn(
+            std::slice::from_ref(&img),
+            5,
+            4,
+            4,
+            500,
+            Learning::KMeans { iterations: 5 },
+            2,
+        )
+        .unwrap();
+        let c = dict.classifier();
+        let mut valid = vec![true; 40 * 20];
+        for i in (0..valid.len()).step_by(37) {
+            valid[i] = false;
+        }
+        let mask = PatchMask::from_valid(40, 20, &valid, 4, 4);
+        for m in [None, Some(&mask)] {
+            let mut counts = vec![0u64; dict.len()];
+            for y in 0..=16 {
+                for x in 0..=36 {
+                    if m.is_none_or(|m| m.allows(x, y)) {
+                        counts[c.nearest(&img, x, y)] += 1;
+                    }
+                }
+            }
+            let total = counts.iter().sum::<u64>() as f32;
+            assert_eq!(total as usize, m.map_or(37 * 17, |m| m.len()));
+            let want: Vec<f32> = counts.iter().map(|n| *n as f32 / total).collect();
+            for got in [dict.histogram_full(&img, m), dict.histogram_full_serial(&img, m)] {
+                // Float ties may fall either way: at most a patch or two of 629.
+                let l1: f32 = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).sum();
+                assert!(l1 <= 4.0 / total, "{got:?} vs {want:?}");
             }
         }
     }
