@@ -146,6 +146,23 @@ fn stages(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new("full_sampling_one_core", n), |b| {
             b.iter(|| d.histogram_full_serial(black_box(&canvases[1].img), Some(&canvases[1].mask)))
         });
+        // The same counts searched patch by patch in place (`Classifier::nearest`, what
+        // full sampling did before it gathered rows for the flat kernel).
+        let c = d.classifier();
+        g.bench_function(BenchmarkId::new("full_sampling_one_core_per_patch", n), |b| {
+            b.iter(|| {
+                let (img, mask) = (black_box(&canvases[1].img), &canvases[1].mask);
+                let mut counts = vec![0u64; d.len()];
+                for y in 0..=img.height - d.h {
+                    for x in 0..=img.width - d.w {
+                        if mask.allows(x, y) {
+                            counts[c.nearest(img, x, y)] += 1;
+                        }
+                    }
+                }
+                counts
+            })
+        });
         // The flight path: 400 patches gathered from a frame, classified (AVX2 and FMA
         // where the CPU has them).
         let classifier = d.classifier();
