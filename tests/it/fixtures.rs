@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
 
-use mavloc::indoor::offline::{train, Labelling, TrainOptions};
+use mavloc::indoor::offline::{train, Labelling, TrainOptions, TrainReport};
 use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
@@ -71,7 +71,13 @@ pub fn indoor_views() -> PathBuf {
 /// The small indoor model the live indoor flights use, trained on [`indoor_views`] with
 /// the default settings.
 pub fn small_indoor_model() -> &'static Path {
-    static MODEL: OnceLock<PathBuf> = OnceLock::new();
+    &small_indoor_training().0
+}
+
+/// [`small_indoor_model`] and what its training reported: trained once per build, for
+/// every test that trains with the default settings on these views.
+pub fn small_indoor_training() -> &'static (PathBuf, TrainReport) {
+    static MODEL: OnceLock<(PathBuf, TrainReport)> = OnceLock::new();
     MODEL.get_or_init(|| {
         let views = indoor_views();
         let dir = cached("indoor-floor-model-400", |out| {
@@ -82,9 +88,12 @@ pub fn small_indoor_model() -> &'static Path {
                 labelling: Labelling::Telemetry,
                 seed: 1,
             };
-            train(&opts, &mavloc::settings::Indoor::default(), |_, _| {}).unwrap();
+            let report = train(&opts, &mavloc::settings::Indoor::default(), |_, _| {}).unwrap();
+            std::fs::write(out.join("report.json"), serde_json::to_string(&report).unwrap()).unwrap();
         });
-        dir.join("floor.model")
+        let report =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+        (dir.join("floor.model"), report)
     })
 }
 
