@@ -780,8 +780,8 @@ mod tests {
         assert_eq!(dict.histogram_random(&img, Some(&none), 50, &mut rng), vec![0.0, 0.0]);
     }
 
-    #[test]
-    fn nearest_by_norm_trick_matches_plain_distance() {
+    /// A 40x20 image of two textures and 5 textons of 4x4 learned from it.
+    fn two_texture_dictionary() -> (YuvImage, Dictionary) {
         let img = two_textures(40, 20);
         let dict = Dictionary::learn(
             std::slice::from_ref(&img),
@@ -793,6 +793,12 @@ mod tests {
             2,
         )
         .unwrap();
+        (img, dict)
+    }
+
+    #[test]
+    fn nearest_by_norm_trick_matches_plain_distance() {
+        let (img, dict) = two_texture_dictionary();
         let c = dict.classifier();
         let mut buf = Vec::new();
         for y in 0..=16 {
@@ -838,17 +844,7 @@ mod tests {
     /// patches it forbids.
     #[test]
     fn full_histograms_count_every_allowed_patch_as_the_per_patch_search_does() {
-        let img = two_textures(40, 20);
-        let dict = Dictionary::learn(
-            std::slice::from_ref(&img),
-            5,
-            4,
-            4,
-            500,
-            Learning::KMeans { iterations: 5 },
-            2,
-        )
-        .unwrap();
+        let (img, dict) = two_texture_dictionary();
         let c = dict.classifier();
         let mut valid = vec![true; 40 * 20];
         for i in (0..valid.len()).step_by(37) {
