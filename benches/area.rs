@@ -141,6 +141,66 @@ fn stages(c: &mut Criterion) {
         b.iter(|| mavloc::area::shadow::cast_shadows(&small).unwrap())
     });
 
+    // The photo runs' bundle adjustment (`area::refine`, which `area::align` runs twice on
+    // the tie points): 18 nadir photos in three lines of six at 70 m, 4000 tie points over
+    // their ground, each photo's attitude 2 deg off and every track starting 2 m off.
+    {
+        use mavloc::area::refine::{corrected, refine, RefineParams};
+        use mavloc::geometry::{GimbalAngles, GimbalChain, Intrinsics, Mount, Pixel};
+        use mavloc_data::results::LandmarkRecord;
+        use rand::{Rng, SeedableRng};
+        use std::collections::BTreeMap;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let k = Intrinsics { width: 1600, height: 900, fx: 1300.0, fy: 1300.0, cx: 799.5, cy: 449.5 };
+        let truth: BTreeMap<u64, CameraPose> = (0..18u64)
+            .map(|i| {
+                let (line, along) = ((i / 6) as f64, (i % 6) as f64);
+                let angles = GimbalAngles { yaw: 0.0, pitch: -89f64.to_radians(), roll: 0.0 };
+                let position = Vec3::new(along * 25.0, line * 45.0, -70.0);
+                (i, CameraPose::from_gimbal(position, GimbalChain::YawPitchRoll, angles, Mount::Earth))
+            })
+            .collect();
+        let unit = |rng: &mut rand::rngs::StdRng| {
+            Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
+                .normalize()
+        };
+        let tagged: BTreeMap<u64, CameraPose> =
+            truth.iter().map(|(&f, p)| (f, corrected(p, &(unit(&mut rng) * 2f64.to_radians())))).collect();
+        let points: Vec<Vec3> = (0..4000)
+            .map(|_| {
+                Vec3::new(
+                    rng.random_range(-40.0..165.0),
+                    rng.random_range(-30.0..120.0),
+                    rng.random_range(-2.0..2.0),
+                )
+            })
+            .collect();
+        let mut sightings: Vec<(u64, u64, Pixel)> = Vec::new();
+        for (&f, p) in &truth {
+            for (j, x) in points.iter().enumerate() {
+                if let Some(px) = p.project(&k, x).filter(|px| k.contains(*px)) {
+                    sightings.push((f, j as u64, px));
+                }
+            }
+        }
+        let start: Vec<LandmarkRecord> = points
+            .iter()
+            .enumerate()
+            .map(|(j, x)| LandmarkRecord {
+                id: j as u64,
+                position: x + unit(&mut rng) * 2.0,
+                sigma_max_m: 0.5,
+                observations: 3,
+                first_frame: 0,
+                last_frame: 0,
+            })
+            .collect();
+        let params = RefineParams::new(2.0);
+        c.bench_function("area_refine_18_photos_4000_tracks", |b| {
+            b.iter(|| refine(&sightings, &start, &tagged, &k, &params))
+        });
+    }
+
     // Purge 20 of 220 landmarks.
     let descriptor = vec![0.5f32; 128];
     c.bench_function("area_purge_220_to_180", |b| {
