@@ -1,9 +1,10 @@
 //! Fixtures several test modules share: datasets the simulator renders and the small
-//! indoor model, built once per build of this test binary. They are cached in cargo's
-//! test scratch folder (`target/tmp`) under a stamp of this binary, which has the
-//! renderer and the trainer compiled in: a changed build renders and trains again, a
-//! rerun of the same build reads what is there. Rendering is deterministic for a
-//! scenario and options, so a cached dataset is the one the test would render.
+//! indoor model, built once and cached in cargo's test scratch folder (`target/tmp`).
+//! A rendered dataset is stamped with the renderer's inputs (the sources of the simulator
+//! and of the crates it uses, its scenarios and textures, and `Cargo.lock`), so a change
+//! elsewhere in mavloc does not render again (about a minute each time); the model is
+//! stamped with this test binary, which has the trainer compiled in. Rendering and
+//! training are deterministic, so a cached fixture is the one the test would make.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
@@ -20,16 +21,49 @@ fn build_stamp() -> String {
     format!("{} {:?}", m.len(), m.modified().unwrap())
 }
 
-/// Builds `key` with `make` (which writes into the folder it is given) unless this
-/// build already did. Serialised: fixtures are CPU-bound and used read-only.
-fn cached(key: &str, make: impl FnOnce(&Path)) -> PathBuf {
+/// What a rendered dataset depends on: a hash of the files the renderer is built from and
+/// reads (the simulator crate, the geometry and data crates it uses, the locked
+/// dependency versions). A file missed here would leave a stale dataset, so it is whole
+/// folders, not a list of files.
+fn renderer_stamp() -> &'static str {
+    static STAMP: OnceLock<String> = OnceLock::new();
+    STAMP.get_or_init(|| {
+        use std::hash::{Hash, Hasher};
+        fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
+            let mut entries: Vec<PathBuf> =
+                std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+            entries.sort();
+            for p in entries {
+                if p.is_dir() {
+                    walk(&p, out);
+                } else {
+                    out.push(p);
+                }
+            }
+        }
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let mut files = vec![root.join("Cargo.lock"), root.join("sim/Cargo.toml")];
+        for dir in ["sim/src", "sim/scenarios", "sim/assets", "src/geometry", "data"] {
+            walk(&root.join(dir), &mut files);
+        }
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        for f in files {
+            f.strip_prefix(root).unwrap().hash(&mut h);
+            std::fs::read(&f).unwrap().hash(&mut h);
+        }
+        format!("renderer {:016x}", h.finish())
+    })
+}
+
+/// Builds `key` with `make` (which writes into the folder it is given) unless it was built
+/// with the same `stamp`. Serialised: fixtures are CPU-bound and used read-only.
+fn cached(key: &str, stamp: &str, make: impl FnOnce(&Path)) -> PathBuf {
     static LOCK: Mutex<()> = Mutex::new(());
     let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("fixtures");
     let dir = root.join(key);
     let stamp_file = root.join(format!("{key}.stamp"));
-    let stamp = build_stamp();
-    if dir.is_dir() && std::fs::read_to_string(&stamp_file).ok().as_deref() == Some(stamp.as_str()) {
+    if dir.is_dir() && std::fs::read_to_string(&stamp_file).ok().as_deref() == Some(stamp) {
         return dir;
     }
     // Built beside, then renamed: an interrupted run never leaves a half fixture.
@@ -46,20 +80,25 @@ fn cached(key: &str, make: impl FnOnce(&Path)) -> PathBuf {
 
 /// A dataset of `scenario` rendered with `opts`; `key` names the options.
 pub fn rendered(key: &str, scenario: &str, opts: &RenderOptions) -> PathBuf {
-    cached(key, |out| {
-        render_dataset(&Scenario::load(scenario).unwrap(), opts, out, |_, _| {}).unwrap();
+    render_cached(key, &Scenario::load(scenario).unwrap(), opts)
+}
+
+/// `scenario` rendered with `opts` under `key`, stamped with the renderer's inputs and
+/// with the scenario and options themselves (a test that changes them renders again).
+fn render_cached(key: &str, scenario: &Scenario, opts: &RenderOptions) -> PathBuf {
+    let stamp = format!("{}\n{scenario:?}\n{opts:?}", renderer_stamp());
+    cached(key, &stamp, |out| {
+        render_dataset(scenario, opts, out, |_, _| {}).unwrap();
     })
 }
 
 /// A flight over the indoor floor at 0.5 m instead of 1 m (0.4-0.6 m with its swing), the
 /// heights a vehicle climbs and descends through, 320x240.
 pub fn low_indoor_flight(frames: usize) -> PathBuf {
-    cached(&format!("indoor-floor-flight-{frames}-320x240-at-0.5m"), |out| {
-        let mut scenario = Scenario::load("indoor-floor").unwrap();
-        scenario.mission.altitude_m = 0.5;
-        let opts = RenderOptions { frames: Some(frames), size: Some((320, 240)), ..Default::default() };
-        render_dataset(&scenario, &opts, out, |_, _| {}).unwrap();
-    })
+    let mut scenario = Scenario::load("indoor-floor").unwrap();
+    scenario.mission.altitude_m = 0.5;
+    let opts = RenderOptions { frames: Some(frames), size: Some((320, 240)), ..Default::default() };
+    render_cached(&format!("indoor-floor-flight-{frames}-320x240-at-0.5m"), &scenario, &opts)
 }
 
 /// 400 random views of the indoor floor at 320x240: the training set of the small model.
@@ -80,7 +119,7 @@ pub fn small_indoor_training() -> &'static (PathBuf, TrainReport) {
     static MODEL: OnceLock<(PathBuf, TrainReport)> = OnceLock::new();
     MODEL.get_or_init(|| {
         let views = indoor_views();
-        let dir = cached("indoor-floor-model-400", |out| {
+        let dir = cached("indoor-floor-model-400", &build_stamp(), |out| {
             std::fs::create_dir_all(out).unwrap();
             let opts = TrainOptions {
                 dataset: views,
@@ -115,21 +154,19 @@ pub fn python() -> std::path::PathBuf {
 /// video at 6 Hz, `frames` photos at 960x540, each photo's gimbal yaw and pitch 3 deg off
 /// on its own and GNSS-grade positions (0.3/0.3/0.5 m).
 pub fn coastline_photo_survey(frames: usize) -> PathBuf {
-    cached(&format!("coastline-photos-{frames}-960x540-3deg"), |out| {
-        let mut scenario = Scenario::load("coastline").unwrap();
-        scenario.mission.frame_rate_hz = 0.3;
-        let noise = mavloc_sim::scenario::NoiseSpec {
-            gimbal_yaw_sd_deg: 3.0,
-            gimbal_pitch_sd_deg: 3.0,
-            position_sd_m: [0.3, 0.3, 0.5],
-            ..Default::default()
-        };
-        let opts = RenderOptions {
-            frames: Some(frames),
-            size: Some((960, 540)),
-            noise: Some(noise),
-            ..Default::default()
-        };
-        render_dataset(&scenario, &opts, out, |_, _| {}).unwrap();
-    })
+    let mut scenario = Scenario::load("coastline").unwrap();
+    scenario.mission.frame_rate_hz = 0.3;
+    let noise = mavloc_sim::scenario::NoiseSpec {
+        gimbal_yaw_sd_deg: 3.0,
+        gimbal_pitch_sd_deg: 3.0,
+        position_sd_m: [0.3, 0.3, 0.5],
+        ..Default::default()
+    };
+    let opts = RenderOptions {
+        frames: Some(frames),
+        size: Some((960, 540)),
+        noise: Some(noise),
+        ..Default::default()
+    };
+    render_cached(&format!("coastline-photos-{frames}-960x540-3deg"), &scenario, &opts)
 }
