@@ -26,6 +26,7 @@ ROWS = [
     ("area: SIFT in the band, one box (before)", "area_sift_in_band_one_box"),
     ("area: UKF updates, 200 landmarks", "area_ukf_update_200_landmarks/local_yaw_pitch"),
     ("area: whole frame, steady state", "area_whole_frame_steady_state"),
+    ("area: bundle adjustment, 18 photos, 4000 tie points", "area_refine_18_photos_4000_tracks"),
 ]
 
 def median_us(path):
