@@ -1,13 +1,21 @@
 //! End-to-end tests of `mavloc run`: the real binary, driven over UDP loopback by
 //! pymavlink (`tests/e2e/daemon.py`, installed by `make deps`). Bounded in time.
 
+use std::os::unix::process::CommandExt;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+/// Runs the named tests of `daemon.py`. The script's folders (each daemon's state, key
+/// files) go under a temporary directory this test owns and removes, whatever the
+/// script does; the script and the daemons it starts form one process group, killed as
+/// a whole on timeout, so no daemon outlives its test.
 fn run_python(tests: &[&str], limit: Duration) {
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/e2e/daemon.py");
+    let tmp = tempfile::tempdir().unwrap();
     let mut child = Command::new(crate::fixtures::python())
         .arg(script)
+        .env("TMPDIR", tmp.path())
+        .process_group(0)
         .arg(env!("CARGO_BIN_EXE_mavloc"))
         .args(tests)
         .stdout(std::process::Stdio::piped())
@@ -24,7 +32,9 @@ fn run_python(tests: &[&str], limit: Duration) {
             return;
         }
         if start.elapsed() > limit {
-            let _ = child.kill();
+            // The group's id is the script's pid (process_group(0) above).
+            unsafe { libc::kill(-(child.id() as i32), libc::SIGKILL) };
+            let _ = child.wait();
             panic!("end-to-end tests did not finish within {limit:?}");
         }
         std::thread::sleep(Duration::from_millis(100));
