@@ -483,27 +483,9 @@ fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
     let ds = dir.path().join("ds");
     let r = import_photos(&photos, &ds, &ImportOptions::default()).unwrap();
     assert_eq!(r.imported.len(), 8);
-    let result = dir.path().join("r");
-    println!("{}", area(&ds, &result, &[]));
-    let s: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(result.join("summary.json")).unwrap()).unwrap();
-    let f = |k: &str| s[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}"));
-    assert_eq!(s["flight_lines"], 2, "{s}");
-    assert!(f("aligned_photos") >= 7.0 && f("tie_points") >= 500.0, "{s}");
-    assert!(f("align_median_before_px") > 50.0 && f("align_median_after_px") < 1.5, "{s}");
-    assert!(f("cross_line_tie_pairs") >= 20.0, "{s}");
-    let (tagged, aligned) = (f("cross_line_tie_median_m"), f("cross_line_tie_aligned_median_m"));
-    assert!(tagged > 10.0 && aligned < 0.3, "lines {tagged:.2} m apart as tagged, {aligned:.2} m aligned");
-    // Each photo's correction is in alignment.csv, with the tie points it rests on.
-    let csv = std::fs::read_to_string(result.join("alignment.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 9, "{csv}");
-    assert!(csv.starts_with("frame,tie_sightings,correction_deg,"), "{csv}");
-
-    // The landmark filters with a segmenter for its bare fields (bright, colourless in
-    // near infrared) and the matching guided by each landmark's prediction (rows of a
-    // field look alike): landmarks seen from both lines, each line's own triangulation
-    // tens of metres from the other's with the tags and within centimetres aligned. (Built
-    // from the matches the filters refused too, the measure once put one pair 135 m apart.)
+    // One run: the alignment, then the landmark filters with a segmenter for its bare
+    // fields (bright, colourless in near infrared) and the matching guided by each
+    // landmark's prediction (rows of a field look alike).
     let fields = dir.path().join("fields");
     println!(
         "{}",
@@ -527,6 +509,19 @@ fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
     let s: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(fields.join("summary.json")).unwrap()).unwrap();
     let f = |k: &str| s[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}"));
+    assert_eq!(s["flight_lines"], 2, "{s}");
+    assert!(f("aligned_photos") >= 7.0 && f("tie_points") >= 500.0, "{s}");
+    assert!(f("align_median_before_px") > 50.0 && f("align_median_after_px") < 1.5, "{s}");
+    assert!(f("cross_line_tie_pairs") >= 20.0, "{s}");
+    let (tagged, aligned) = (f("cross_line_tie_median_m"), f("cross_line_tie_aligned_median_m"));
+    assert!(tagged > 10.0 && aligned < 0.3, "lines {tagged:.2} m apart as tagged, {aligned:.2} m aligned");
+    // Each photo's correction is in alignment.csv, with the tie points it rests on.
+    let csv = std::fs::read_to_string(fields.join("alignment.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 9, "{csv}");
+    assert!(csv.starts_with("frame,tie_sightings,correction_deg,"), "{csv}");
+    // Landmarks seen from both lines: each line's own triangulation tens of metres from
+    // the other's with the tags and within centimetres aligned. (Built from the matches
+    // the filters refused too, the measure once put one pair 135 m apart.)
     assert!(f("landmarks") >= 100.0 && f("cross_line_pairs") >= 15.0, "{s}");
     let (tagged, aligned, refined) =
         (f("cross_line_tagged_median_m"), f("cross_line_median_m"), f("cross_line_refined_median_m"));
