@@ -140,90 +140,91 @@ pub fn plot(path: &Path, rows: &[TrajectoryRow], title: &str) -> Result<(), Stri
     use crate::output::plot::{err, font};
     use plotters::prelude::*;
     font()?;
-    let root = BitMapBackend::new(path, (1300, 620)).into_drawing_area();
-    root.fill(&WHITE).map_err(err)?;
-    let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
-    let (left, right) = root.split_horizontally(760);
-    let (top, bottom) = left.split_vertically(300);
-    let t_max = rows.last().map_or(1.0, |r| r.t).max(1e-3);
-    let t_min = rows.first().map_or(0.0, |r| r.t);
-    let lim = rows
-        .iter()
-        .flat_map(|r| [r.x.abs(), r.y.abs(), r.true_x.abs(), r.true_y.abs()])
-        .fold(1.0f64, f64::max)
-        * 1.1;
-    for (area, name, get) in [
-        (
-            &top,
-            "x (north), m",
-            (|r: &TrajectoryRow| (r.x, r.sigma_x, r.true_x)) as fn(&TrajectoryRow) -> (f64, f64, f64),
-        ),
-        (&bottom, "y (east), m", |r: &TrajectoryRow| (r.y, r.sigma_y, r.true_y)),
-    ] {
-        let mut chart = ChartBuilder::on(area)
+    crate::output::plot::png(path, (1300, 620), |root| {
+        root.fill(&WHITE).map_err(err)?;
+        let root = root.titled(title, ("sans-serif", 22)).map_err(err)?;
+        let (left, right) = root.split_horizontally(760);
+        let (top, bottom) = left.split_vertically(300);
+        let t_max = rows.last().map_or(1.0, |r| r.t).max(1e-3);
+        let t_min = rows.first().map_or(0.0, |r| r.t);
+        let lim = rows
+            .iter()
+            .flat_map(|r| [r.x.abs(), r.y.abs(), r.true_x.abs(), r.true_y.abs()])
+            .fold(1.0f64, f64::max)
+            * 1.1;
+        for (area, name, get) in [
+            (
+                &top,
+                "x (north), m",
+                (|r: &TrajectoryRow| (r.x, r.sigma_x, r.true_x)) as fn(&TrajectoryRow) -> (f64, f64, f64),
+            ),
+            (&bottom, "y (east), m", |r: &TrajectoryRow| (r.y, r.sigma_y, r.true_y)),
+        ] {
+            let mut chart = ChartBuilder::on(area)
+                .margin(10)
+                .x_label_area_size(35)
+                .y_label_area_size(50)
+                .build_cartesian_2d(t_min..t_max, -lim..lim)
+                .map_err(err)?;
+            chart
+                .configure_mesh()
+                .x_desc("t, s")
+                .y_desc(name)
+                .label_style(("sans-serif", 14))
+                .draw()
+                .map_err(err)?;
+            let band: Vec<(f64, f64)> = rows
+                .iter()
+                .map(|r| (r.t, get(r).0 + 2.0 * get(r).1))
+                .chain(rows.iter().rev().map(|r| (r.t, get(r).0 - 2.0 * get(r).1)))
+                .collect();
+            chart
+                .draw_series(std::iter::once(Polygon::new(band, RGBColor(255, 150, 80).mix(0.25))))
+                .map_err(err)?;
+            chart
+                .draw_series(LineSeries::new(rows.iter().map(|r| (r.t, get(r).2)), BLACK.stroke_width(2)))
+                .map_err(err)?
+                .label("truth")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], BLACK.stroke_width(2)));
+            chart
+                .draw_series(LineSeries::new(
+                    rows.iter().map(|r| (r.t, get(r).0)),
+                    RGBColor(220, 60, 20).stroke_width(2),
+                ))
+                .map_err(err)?
+                .label("estimate (MAP), band: 2 SD of particles")
+                .legend(|(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], RGBColor(220, 60, 20).stroke_width(2))
+                });
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .label_font(("sans-serif", 13))
+                .draw()
+                .map_err(err)?;
+        }
+        let mut chart = ChartBuilder::on(&right)
             .margin(10)
             .x_label_area_size(35)
             .y_label_area_size(50)
-            .build_cartesian_2d(t_min..t_max, -lim..lim)
+            .build_cartesian_2d(-lim..lim, -lim..lim)
             .map_err(err)?;
         chart
             .configure_mesh()
-            .x_desc("t, s")
-            .y_desc(name)
+            .x_desc("y (east), m")
+            .y_desc("x (north), m")
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(err)?;
-        let band: Vec<(f64, f64)> = rows
-            .iter()
-            .map(|r| (r.t, get(r).0 + 2.0 * get(r).1))
-            .chain(rows.iter().rev().map(|r| (r.t, get(r).0 - 2.0 * get(r).1)))
-            .collect();
         chart
-            .draw_series(std::iter::once(Polygon::new(band, RGBColor(255, 150, 80).mix(0.25))))
+            .draw_series(LineSeries::new(rows.iter().map(|r| (r.true_y, r.true_x)), BLACK.stroke_width(2)))
             .map_err(err)?;
         chart
-            .draw_series(LineSeries::new(rows.iter().map(|r| (r.t, get(r).2)), BLACK.stroke_width(2)))
-            .map_err(err)?
-            .label("truth")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], BLACK.stroke_width(2)));
-        chart
-            .draw_series(LineSeries::new(
-                rows.iter().map(|r| (r.t, get(r).0)),
-                RGBColor(220, 60, 20).stroke_width(2),
-            ))
-            .map_err(err)?
-            .label("estimate (MAP), band: 2 SD of particles")
-            .legend(|(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], RGBColor(220, 60, 20).stroke_width(2))
-            });
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 13))
-            .draw()
+            .draw_series(rows.iter().map(|r| Circle::new((r.y, r.x), 2, RGBColor(220, 60, 20).filled())))
             .map_err(err)?;
-    }
-    let mut chart = ChartBuilder::on(&right)
-        .margin(10)
-        .x_label_area_size(35)
-        .y_label_area_size(50)
-        .build_cartesian_2d(-lim..lim, -lim..lim)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc("y (east), m")
-        .y_desc("x (north), m")
-        .label_style(("sans-serif", 14))
-        .draw()
-        .map_err(err)?;
-    chart
-        .draw_series(LineSeries::new(rows.iter().map(|r| (r.true_y, r.true_x)), BLACK.stroke_width(2)))
-        .map_err(err)?;
-    chart
-        .draw_series(rows.iter().map(|r| Circle::new((r.y, r.x), 2, RGBColor(220, 60, 20).filled())))
-        .map_err(err)?;
-    root.present().map_err(err)
+        root.present().map_err(err)
+    })
 }
 
 #[cfg(test)]

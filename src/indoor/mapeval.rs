@@ -109,39 +109,40 @@ pub fn heatmap(path: &Path, e: &MapEvaluation, smooth_m: f64, title: &str) -> Re
         .iter()
         .filter(|g| g.2.is_finite())
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), g| (a.min(g.2), b.max(g.2)));
-    let root = BitMapBackend::new(path, (760, 700)).into_drawing_area();
-    root.fill(&WHITE).map_err(err)?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 18))
-        .margin(12)
-        .x_label_area_size(35)
-        .y_label_area_size(50)
-        .build_cartesian_2d(-hy..hy, -hx..hx)
-        .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc("y (east), m")
-        .y_desc("x (north), m")
-        .label_style(("sans-serif", 14))
-        .draw()
-        .map_err(err)?;
-    let (dy, dx) = (hy / cells as f64, hx / cells as f64);
-    chart
-        .draw_series(grid.iter().filter(|g| g.2.is_finite()).map(|(x, y, l)| {
-            // Blue (low loss, good) to red (high loss: looks like distant places).
-            let t = if hi > lo { ((l - lo) / (hi - lo)).clamp(0.0, 1.0) } else { 0.5 };
-            let colour = RGBColor(
-                (255.0 * t) as u8,
-                (80.0 * (1.0 - (2.0 * t - 1.0).abs())) as u8,
-                (255.0 * (1.0 - t)) as u8,
-            );
-            Rectangle::new([(y - dy, x - dx), (y + dy, x + dx)], colour.filled())
-        }))
-        .map_err(err)?;
-    chart
-        .draw_series(e.samples.iter().map(|(x, y, _)| Circle::new((*y, *x), 1, BLACK.mix(0.4).filled())))
-        .map_err(err)?;
-    root.present().map_err(err)
+    crate::output::plot::png(path, (760, 700), |root| {
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 18))
+            .margin(12)
+            .x_label_area_size(35)
+            .y_label_area_size(50)
+            .build_cartesian_2d(-hy..hy, -hx..hx)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("y (east), m")
+            .y_desc("x (north), m")
+            .label_style(("sans-serif", 14))
+            .draw()
+            .map_err(err)?;
+        let (dy, dx) = (hy / cells as f64, hx / cells as f64);
+        chart
+            .draw_series(grid.iter().filter(|g| g.2.is_finite()).map(|(x, y, l)| {
+                // Blue (low loss, good) to red (high loss: looks like distant places).
+                let t = if hi > lo { ((l - lo) / (hi - lo)).clamp(0.0, 1.0) } else { 0.5 };
+                let colour = RGBColor(
+                    (255.0 * t) as u8,
+                    (80.0 * (1.0 - (2.0 * t - 1.0).abs())) as u8,
+                    (255.0 * (1.0 - t)) as u8,
+                );
+                Rectangle::new([(y - dy, x - dx), (y + dy, x + dx)], colour.filled())
+            }))
+            .map_err(err)?;
+        chart
+            .draw_series(e.samples.iter().map(|(x, y, _)| Circle::new((*y, *x), 1, BLACK.mix(0.4).filled())))
+            .map_err(err)?;
+        root.present().map_err(err)
+    })
 }
 
 #[cfg(test)]
