@@ -45,6 +45,21 @@ fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded>
     Ok(settings::load(&Layers::from_process(file, overrides))?)
 }
 
+/// The plain progress line: `done` of `total`, and once the count has moved since the
+/// first report (`done_first`, `since_first` seconds ago) the rate and the time left.
+fn progress_line(what: &str, unit: &str, done: u64, total: u64, since_first: f64, done_first: u64) -> String {
+    let pct = 100.0 * done as f64 / total.max(1) as f64;
+    let mut line = format!("mavloc: {what}: {done}/{total} {unit} ({pct:.0} %)");
+    if done > done_first && since_first > 0.0 {
+        let rate = (done - done_first) as f64 / since_first;
+        line += &format!(", {rate:.1} {unit}/s");
+        if done < total {
+            line += &format!(", about {:.0} s left", (total - done) as f64 / rate);
+        }
+    }
+    line
+}
+
 /// Progress of a command that works through items (frames, views, trials): a bar on a
 /// terminal; otherwise a plain line at the first item, every [`PROGRESS_EVERY`] and at the
 /// end, so a long render under a pipe, a log file or CI is not minutes of silence.
@@ -53,7 +68,10 @@ pub(crate) struct Progress {
     what: String,
     unit: &'static str,
     terminal: bool,
-    start: std::time::Instant,
+    /// When the first report came, and how far it said: rates count from there, so work
+    /// done before the items start (a photo survey's alignment before its first frame)
+    /// does not pass for a slow first item.
+    first: std::sync::OnceLock<(std::time::Instant, u64)>,
     /// When the last line was written, and how far it said.
     last: std::sync::Mutex<Option<(std::time::Instant, u64, u64)>>,
 }
@@ -78,13 +96,14 @@ impl Progress {
             what: what.to_string(),
             unit,
             terminal,
-            start: std::time::Instant::now(),
+            first: std::sync::OnceLock::new(),
             last: std::sync::Mutex::new(None),
         }
     }
 
     /// `done` of `total` items finished (callable from worker threads).
     pub(crate) fn set(&self, done: u64, total: u64) {
+        self.first.get_or_init(|| (std::time::Instant::now(), done));
         self.bar.set_length(total);
         self.bar.set_position(done);
         if self.terminal {
@@ -103,20 +122,14 @@ impl Progress {
 
     fn line(&self, done: u64, total: u64) {
         use std::io::Write;
-        let secs = self.start.elapsed().as_secs_f64();
-        let rate = done as f64 / secs.max(1e-3);
-        let pct = 100.0 * done as f64 / total.max(1) as f64;
-        let eta = if done > 0 && done < total {
-            format!(", about {:.0} s left", (total - done) as f64 / rate)
-        } else {
-            String::new()
+        let (since, done_first) = match self.first.get() {
+            Some((at, d)) => (at.elapsed().as_secs_f64(), *d),
+            None => (0.0, done),
         };
         let _ = writeln!(
             crate::logging::stderr(),
-            "mavloc: {}: {done}/{total} {} ({pct:.0} %), {rate:.1} {}/s{eta}",
-            self.what,
-            self.unit,
-            self.unit
+            "{}",
+            progress_line(&self.what, self.unit, done, total, since, done_first)
         );
     }
 
@@ -130,5 +143,31 @@ impl Progress {
                 self.line(done, total);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::progress_line;
+
+    /// A photo survey reports its first frame only after aligning the photos (20 s on
+    /// Seneca): counted from the command's start, the line said "about 561 s left" for a
+    /// run that ended 46 s later. The rate counts from the first report instead.
+    #[test]
+    fn the_rate_and_time_left_count_from_the_first_report() {
+        assert_eq!(progress_line("area", "frames", 1, 27, 0.0, 1), "mavloc: area: 1/27 frames (4 %)");
+        assert_eq!(
+            progress_line("area", "frames", 11, 27, 10.0, 1),
+            "mavloc: area: 11/27 frames (41 %), 1.0 frames/s, about 16 s left"
+        );
+        assert_eq!(
+            progress_line("area", "frames", 27, 27, 26.0, 1),
+            "mavloc: area: 27/27 frames (100 %), 1.0 frames/s"
+        );
+        // A command that reports 0 before its first item counts from there.
+        assert_eq!(
+            progress_line("rendering coastline", "frames", 30, 60, 15.0, 0),
+            "mavloc: rendering coastline: 30/60 frames (50 %), 2.0 frames/s, about 15 s left"
+        );
     }
 }
