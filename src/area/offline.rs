@@ -374,13 +374,14 @@ fn align_photos(
     tracing::info!(
         photos = per_frame.len(),
         tie_points = a.ties.points.len(),
-        before_px = a.median_before_px,
-        after_px = a.median_after_px,
+        // Rounded: the full digits of a median or a timing say nothing a reader uses.
+        before_px = %format_args!("{:.1}", a.median_before_px),
+        after_px = %format_args!("{:.2}", a.median_after_px),
         dropped = a.dropped,
         dropped_pairs = a.dropped_pairs,
-        features_s = t_features,
-        matching_s = t_matching,
-        adjusting_s = t0.elapsed().as_secs_f64() - t_features - t_matching,
+        features_s = %format_args!("{t_features:.1}"),
+        matching_s = %format_args!("{t_matching:.1}"),
+        adjusting_s = %format_args!("{:.1}", t0.elapsed().as_secs_f64() - t_features - t_matching),
         "photos aligned by their tie points"
     );
     // Only the photos the tie points reached: the others keep their tags (and the
