@@ -360,16 +360,17 @@ mod tests {
 
     proptest::proptest! {
         #![proptest_config(proptest::prelude::ProptestConfig::with_cases(24))]
-        /// Frustum culling changes no pixel: any camera over the coastline, from straight
-        /// down to above the horizon, from just over the ground to high above, renders
-        /// byte for byte as with every block shown (each block's box widened to the whole
-        /// world's, which no frustum plane can leave out).
+        /// Frustum culling changes no pixel: any camera over the coastline or the cliff
+        /// (25 m of relief), from straight down to above the horizon, from just over the
+        /// ground to high above, renders byte for byte as with every block shown (each
+        /// block's box widened to the whole world's, which no frustum plane can leave out).
         #[test]
         fn culling_changes_no_pixel(
+            cliff in proptest::bool::ANY,
             n in -200.0..200.0f64, e in -200.0..200.0f64, up in 0.5..150.0f64,
             yaw in -180.0..180.0f64, pitch in -90.0..15.0f64, roll in -20.0..20.0f64,
         ) {
-            let world = shared_coastline();
+            let world = shared_world(if cliff { "cliff" } else { "coastline" });
             let culled = Renderer::new(world);
             let mut whole = Renderer::new(world);
             let all = whole.blocks.iter().fold(whole.blocks[0], |a, b| Bounds { lo: a.lo.inf(&b.lo), hi: a.hi.sup(&b.hi) });
@@ -383,10 +384,12 @@ mod tests {
         }
     }
 
-    /// The coastline world, built once for the property test's cases.
-    fn shared_coastline() -> &'static World {
-        static WORLD: std::sync::OnceLock<World> = std::sync::OnceLock::new();
-        WORLD.get_or_init(|| World::build(&Scenario::load("coastline").unwrap()).unwrap())
+    /// The outdoor worlds, each built once for the property test's cases.
+    fn shared_world(name: &str) -> &'static World {
+        static COASTLINE: std::sync::OnceLock<World> = std::sync::OnceLock::new();
+        static CLIFF: std::sync::OnceLock<World> = std::sync::OnceLock::new();
+        let cell = if name == "cliff" { &CLIFF } else { &COASTLINE };
+        cell.get_or_init(|| World::build(&Scenario::load(name).unwrap()).unwrap())
     }
 
     /// The projection-agreement test: a marked 3D point appears within 0.5 px of where
