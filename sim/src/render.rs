@@ -1,15 +1,16 @@
 //! The camera renderer: a z-buffered rasteriser of the world's surface mesh, then one
 //! shading pass per pixel from the world position it sees.
 //!
-//! Vertices go through `mavloc-geometry`'s own projection (`CameraPose::to_camera`,
-//! `Intrinsics::project_camera`), so rendered pixels and the pipeline's geometry agree by
-//! construction; a test checks it to a fraction of a pixel. Triangles are clipped against
-//! a near plane in camera space, interpolation is perspective-correct, and the image is
-//! split into row bands rendered in parallel. Cells are first culled in square blocks
-//! against the view frustum: a frame sees a small part of the terrain, and clipping and
-//! projecting every triangle of it was about half of the CPU a `mavloc run` with the
-//! simulated camera spent. Each pixel is shaded once (deferred), from
-//! the world's texture at a mip level matched to the pixel's ground footprint.
+//! Vertices go through `mavloc-geometry`'s own transform and projection (the rotation of
+//! `CameraPose::to_camera`, composed once a frame, and `Intrinsics::project_camera`), so
+//! rendered pixels and the pipeline's geometry agree by construction; a test checks it to
+//! a fraction of a pixel. Triangles are clipped against a near plane in camera space,
+//! interpolation is perspective-correct, and the image is split into row bands rendered in
+//! parallel. Cells are first culled in square blocks against the view frustum: a frame
+//! sees a small part of the terrain, and clipping and projecting every triangle of it was
+//! over a quarter of the CPU a `mavloc run` with the simulated camera spent at 480x270
+//! (`perf`). Each pixel is shaded once (deferred), from the world's texture at a mip level
+//! matched to the pixel's ground footprint.
 
 use mavloc_geometry::{CameraPose, Intrinsics, Vec3};
 use rayon::prelude::*;
