@@ -141,6 +141,31 @@ fn stages(c: &mut Criterion) {
         b.iter(|| mavloc::area::shadow::cast_shadows(&small).unwrap())
     });
 
+    // Matching two photos for the alignment (`area::align`, 4000 SIFT keypoints at 1600
+    // px, DJI_0030 and DJI_0031): FLANN's trees built for the pair and queried once, the
+    // trees alone, and a query against trees built beforehand
+    // (`FlannIndex`, built once per photo for all its pairs); exhaustive matching beside.
+    {
+        use mavloc::area::imageup::{features_sized, matched, FlannIndex};
+        let read = |name: &str| {
+            let path = format!("{}/tests/data/dji-sample/{name}", env!("CARGO_MANIFEST_DIR"));
+            let img = opencv::imgcodecs::imread(&path, opencv::imgcodecs::IMREAD_COLOR).unwrap();
+            features_sized(&img, 4000, 1600.0).unwrap()
+        };
+        let (a, b) = (read("DJI_0030.JPG"), read("DJI_0031.JPG"));
+        c.bench_function("area_align_match_flann_per_pair", |bench| {
+            bench.iter(|| FlannIndex::new(&b).unwrap().matched(&a).unwrap())
+        });
+        c.bench_function("area_align_match_flann_build_trees", |bench| {
+            bench.iter(|| FlannIndex::new(&b).unwrap())
+        });
+        let mut index = FlannIndex::new(&b).unwrap();
+        c.bench_function("area_align_match_flann_query_built_trees", |bench| {
+            bench.iter(|| index.matched(&a).unwrap())
+        });
+        c.bench_function("area_align_match_exhaustive", |bench| bench.iter(|| matched(&a, &b).unwrap()));
+    }
+
     // The photo runs' bundle adjustment (`area::refine`, which `area::align` runs twice on
     // the tie points): 18 nadir photos in three lines of six at 70 m, 4000 tie points over
     // their ground, each photo's attitude 2 deg off and every track starting 2 m off.

@@ -141,18 +141,20 @@ fn on_same_ground(
     }
 }
 
-/// Verified matches of two photos: ratio-test matches that the tagged poses put on the
-/// same ground within the gate (above), and that fit one fundamental matrix.
+/// Verified matches of two photos, from their ratio-test matches `matched` (keypoint
+/// indices in a, in b): those that the tagged poses put on the same ground within the
+/// gate (above), and that fit one fundamental matrix.
 fn verified(
     a: &Photo,
     b: &Photo,
+    matched: Vec<(usize, usize)>,
     k: &Intrinsics,
     down: f64,
     gate_tan: f64,
     threshold_px: f64,
 ) -> opencv::Result<Vec<(usize, usize)>> {
     let (fa, fb) = (&a.features, &b.features);
-    let m: Vec<(usize, usize)> = imageup::matched_fast(fa, fb)?
+    let m: Vec<(usize, usize)> = matched
         .into_iter()
         .filter(|&(i, j)| on_same_ground(&a.pose, &b.pose, k, down, gate_tan, fa.pixels()[i], fb.pixels()[j]))
         .collect();
@@ -231,24 +233,36 @@ pub fn match_pairs(
         }
     }
     let tried = wanted.len();
-    // Pairs in parallel, in a fixed order.
+    // The pairs grouped by their second photo, whose FLANN trees are built once for all
+    // its pairs (a third of the time per pair); the groups in parallel. FLANN's trees and
+    // MAGSAC draw from OpenCV's per-thread generator: seeded per photo and per pair, a
+    // pair's matches do not depend on which thread ran what before.
     use rayon::prelude::*;
-    let wanted: Vec<(usize, usize)> = wanted.into_iter().collect();
-    let verified: Vec<Vec<(usize, usize)>> = wanted
+    let mut by_second: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for &(i, j) in &wanted {
+        by_second.entry(j).or_default().push(i);
+    }
+    let groups: Vec<(usize, Vec<usize>)> = by_second.into_iter().collect();
+    let verified: Vec<Vec<PairMatches>> = groups
         .par_iter()
-        .map(|&(i, j)| {
-            // FLANN's trees and MAGSAC draw from OpenCV's per-thread generator: seeded per
-            // pair, a pair's matches do not depend on which thread ran the ones before.
-            opencv::core::set_rng_seed((i * 7919 + j) as i32 + 1)?;
-            verified(&photos[i], &photos[j], k, down, gate_tan, threshold)
+        .map(|(j, firsts)| {
+            let j = *j;
+            opencv::core::set_rng_seed(j as i32 * 7919 + 1)?;
+            let mut index = imageup::FlannIndex::new(&photos[j].features)?;
+            let mut out = Vec::new();
+            for &i in firsts {
+                opencv::core::set_rng_seed((i * 7919 + j) as i32 + 1)?;
+                let matched = index.matched(&photos[i].features)?;
+                let matches = verified(&photos[i], &photos[j], matched, k, down, gate_tan, threshold)?;
+                if !matches.is_empty() {
+                    out.push(PairMatches { a: i, b: j, matches });
+                }
+            }
+            Ok(out)
         })
         .collect::<opencv::Result<_>>()?;
-    let out = wanted
-        .into_iter()
-        .zip(verified)
-        .filter(|(_, m)| !m.is_empty())
-        .map(|((a, b), matches)| PairMatches { a, b, matches })
-        .collect();
+    let mut out: Vec<PairMatches> = verified.into_iter().flatten().collect();
+    out.sort_by_key(|p| (p.a, p.b));
     Ok((out, tried))
 }
 

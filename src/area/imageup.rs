@@ -83,17 +83,40 @@ pub fn matched(a: &PhotoFeatures, b: &PhotoFeatures) -> opencv::Result<Vec<(usiz
     ratio_test(&knn)
 }
 
-/// [`matched`] through FLANN's randomised k-d trees (OpenCV's defaults): approximate
-/// nearest neighbours, for matching every overlapping pair of a survey (4000 keypoints a
-/// photo: 47 ms a pair where exhaustive matching took 68 ms, 24 rendered photos).
-pub fn matched_fast(a: &PhotoFeatures, b: &PhotoFeatures) -> opencv::Result<Vec<(usize, usize)>> {
-    if a.pixels.len() < 2 || b.pixels.len() < 2 {
-        return Ok(Vec::new());
+/// One photo's descriptors in FLANN's randomised k-d trees (OpenCV's defaults), built once
+/// and matched against every overlapping photo ([`FlannIndex::matched`]): building the
+/// trees costs several times what querying them does (`benches/area.rs`, area_align_*),
+/// and a survey photo is in up to a dozen pairs.
+pub struct FlannIndex {
+    matcher: FlannBasedMatcher,
+    len: usize,
+}
+
+impl FlannIndex {
+    /// Indexes `f`'s descriptors. The trees draw from OpenCV's per-thread generator:
+    /// seed it first for the same trees on every run.
+    pub fn new(f: &PhotoFeatures) -> opencv::Result<FlannIndex> {
+        let mut matcher = FlannBasedMatcher::new_def()?;
+        if f.pixels.len() >= 2 {
+            use opencv::features2d::FlannBasedMatcherTrait;
+            FlannBasedMatcherTrait::add(&mut matcher, &Vector::<Mat>::from_iter([f.descriptors.clone()]))?;
+            FlannBasedMatcherTrait::train(&mut matcher)?;
+        }
+        Ok(FlannIndex { matcher, len: f.pixels.len() })
     }
-    let matcher = FlannBasedMatcher::new_def()?;
-    let mut knn = Vector::<Vector<core::DMatch>>::new();
-    matcher.knn_train_match(&a.descriptors, &b.descriptors, &mut knn, 2, &core::no_array(), false)?;
-    ratio_test(&knn)
+
+    /// Keypoint index pairs (in `a`, in the indexed photo) of ratio-test matches (Lowe's
+    /// 0.75), through the trees: approximate nearest neighbours, where [`matched`] is
+    /// exhaustive (4000 keypoints a photo: 47 against 68 ms a pair with the trees built for
+    /// each pair).
+    pub fn matched(&mut self, a: &PhotoFeatures) -> opencv::Result<Vec<(usize, usize)>> {
+        if a.pixels.len() < 2 || self.len < 2 {
+            return Ok(Vec::new());
+        }
+        let mut knn = Vector::<Vector<core::DMatch>>::new();
+        self.matcher.knn_match(&a.descriptors, &mut knn, 2, &core::no_array(), false)?;
+        ratio_test(&knn)
+    }
 }
 
 fn ratio_test(knn: &Vector<Vector<core::DMatch>>) -> opencv::Result<Vec<(usize, usize)>> {
