@@ -51,14 +51,10 @@ pub struct RenderSummary {
 }
 
 fn write_png(path: &Path, width: u32, height: u32, data: &[u8], colour: bool) -> Result<(), String> {
-    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-    use image::ImageEncoder;
-    let mut buf = Vec::new();
-    let kind = if colour { image::ExtendedColorType::Rgb8 } else { image::ExtendedColorType::L8 };
-    PngEncoder::new_with_quality(&mut buf, CompressionType::Fast, FilterType::Sub)
-        .write_image(data, width, height, kind)
-        .map_err(|e| format!("cannot encode {}: {e}", path.display()))?;
-    mavloc_data::write_atomic(path, &buf).map_err(|e| format!("cannot write {}: {e}", path.display()))
+    let channels =
+        if colour { mavloc_data::pngfile::Channels::Rgb } else { mavloc_data::pngfile::Channels::Grey };
+    mavloc_data::pngfile::write(path, width, height, data, channels)
+        .map_err(|e| format!("cannot write {}: {e}", path.display()))
 }
 
 /// Renders a scenario into a dataset folder. `progress(done, total)` is called after each

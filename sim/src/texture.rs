@@ -104,19 +104,27 @@ impl Texture {
 
     /// Loads an image file (PNG, JPEG).
     pub fn load(path: &Path, metres_per_texel: f64) -> Result<Texture, String> {
-        let img = image::open(path).map_err(|e| format!("cannot read texture {}: {e}", path.display()))?;
-        Texture::from_image(img, metres_per_texel)
+        let bytes =
+            std::fs::read(path).map_err(|e| format!("cannot read texture {}: {e}", path.display()))?;
+        Texture::decode(&bytes, metres_per_texel).map_err(|e| format!("texture {}: {e}", path.display()))
     }
 
-    /// From a decoded image. Orthomosaic renders mark no-data as transparent or pure white
-    /// (ODM's previews: white). No-data reached from the image border is cut away (the
-    /// texture is the largest rectangle free of it); enclosed no-data holes are filled from
-    /// their surroundings, so no-data never reaches the simulated ground.
-    pub fn from_image(img: image::DynamicImage, metres_per_texel: f64) -> Result<Texture, String> {
-        let rgba = img.to_rgba8();
-        let (w, h) = (rgba.width() as usize, rgba.height() as usize);
+    /// From a PNG or JPEG file's bytes.
+    pub fn decode(bytes: &[u8], metres_per_texel: f64) -> Result<Texture, String> {
+        let (w, h, rgba) = decode_rgba(bytes)?;
+        Texture::from_rgba(w, h, &rgba, metres_per_texel)
+    }
+
+    /// From RGBA pixels, row-major, `w x h`. Orthomosaic renders mark no-data as
+    /// transparent or pure white (ODM's previews: white). No-data reached from the image
+    /// border is cut away (the texture is the largest rectangle free of it); enclosed
+    /// no-data holes are filled from their surroundings, so no-data never reaches the
+    /// simulated ground.
+    pub fn from_rgba(w: usize, h: usize, rgba: &[u8], metres_per_texel: f64) -> Result<Texture, String> {
+        assert_eq!(rgba.len(), w * h * 4, "texture size mismatch");
+        let pixel = |x: usize, y: usize| &rgba[(y * w + x) * 4..(y * w + x) * 4 + 4];
         let nodata: Vec<bool> =
-            rgba.pixels().map(|p| p[3] < 255 || (p[0] == 255 && p[1] == 255 && p[2] == 255)).collect();
+            rgba.chunks_exact(4).map(|p| p[3] < 255 || (p[0] == 255 && p[1] == 255 && p[2] == 255)).collect();
         // Flood from the border through no-data.
         let mut outside = vec![false; w * h];
         let mut queue: Vec<usize> = (0..w * h)
@@ -155,7 +163,7 @@ impl Texture {
         let mut hole = Vec::with_capacity(cw * ch);
         for y in y0..y0 + ch {
             for x in x0..x0 + cw {
-                let p = rgba.get_pixel(x as u32, y as u32);
+                let p = pixel(x, y);
                 rgb.push([p[0] as f32, p[1] as f32, p[2] as f32]);
                 hole.push(nodata[y * w + x]);
             }
@@ -175,6 +183,43 @@ impl Texture {
         // (the indoor floor) covers it without a mirror line through its middle.
         let l = &self.levels[level];
         l.bilinear(east / scale + l.width as f64 / 2.0, -north / scale + l.height as f64 / 2.0)
+    }
+}
+
+/// Decodes a PNG or JPEG (told apart by their signatures) into RGBA, 8 bits a channel:
+/// `(width, height, pixels)`. Through the `png` and `zune-jpeg` crates themselves, which
+/// is what `image` does inside; `image` would add its colour-management stack (`moxcms`,
+/// `pxfm`) for two formats, about a minute of CPU in a fresh build.
+fn decode_rgba(bytes: &[u8]) -> Result<(usize, usize, Vec<u8>), String> {
+    if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+        let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+        // Palettes and low bit depths expanded, 16 bits cut to 8.
+        decoder.set_transformations(png::Transformations::normalize_to_color8());
+        let mut reader = decoder.read_info().map_err(|e| format!("PNG: {e}"))?;
+        let size = reader.output_buffer_size().ok_or("PNG: image too large")?;
+        let mut buf = vec![0u8; size];
+        let info = reader.next_frame(&mut buf).map_err(|e| format!("PNG: {e}"))?;
+        buf.truncate(info.buffer_size());
+        let (w, h) = (info.width as usize, info.height as usize);
+        let rgba: Vec<u8> = match info.color_type {
+            png::ColorType::Rgba => buf,
+            png::ColorType::Rgb => buf.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect(),
+            png::ColorType::Grayscale => buf.iter().flat_map(|&v| [v, v, v, 255]).collect(),
+            png::ColorType::GrayscaleAlpha => {
+                buf.chunks_exact(2).flat_map(|p| [p[0], p[0], p[0], p[1]]).collect()
+            }
+            png::ColorType::Indexed => return Err("PNG: palette not expanded".into()),
+        };
+        Ok((w, h, rgba))
+    } else if bytes.starts_with(&[0xff, 0xd8]) {
+        use zune_jpeg::zune_core::{bytestream::ZCursor, colorspace::ColorSpace, options::DecoderOptions};
+        let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGBA);
+        let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+        let rgba = decoder.decode().map_err(|e| format!("JPEG: {e:?}"))?;
+        let (w, h) = decoder.dimensions().ok_or("JPEG: no size")?;
+        Ok((w, h, rgba))
+    } else {
+        Err("neither PNG nor JPEG".into())
     }
 }
 
@@ -266,15 +311,43 @@ mod tests {
     #[test]
     fn no_data_border_is_cut_and_holes_are_filled() {
         // 8x8 grey with a white no-data corner and one enclosed white hole.
-        let mut img = image::RgbaImage::from_pixel(8, 8, image::Rgba([100, 100, 100, 255]));
-        for (x, y) in [(0, 0), (1, 0), (0, 1)] {
-            img.put_pixel(x, y, image::Rgba([255, 255, 255, 255]));
+        let mut img = [100u8, 100, 100, 255].repeat(64);
+        for (x, y) in [(0, 0), (1, 0), (0, 1), (5, 5)] {
+            img[(y * 8 + x) * 4..(y * 8 + x) * 4 + 3].fill(255);
         }
-        img.put_pixel(5, 5, image::Rgba([255, 255, 255, 255]));
-        let t = Texture::from_image(image::DynamicImage::ImageRgba8(img), 1.0).unwrap();
+        let t = Texture::from_rgba(8, 8, &img, 1.0).unwrap();
         let l = &t.levels[0];
         assert!(l.width * l.height >= 48 && l.width * l.height < 64, "{}x{}", l.width, l.height);
         assert!(l.rgb.iter().all(|p| p[0] == 100.0), "no white left");
+    }
+
+    /// Grey, RGB and RGBA PNGs all come out as the same RGBA; a JPEG (a DJI photo) with its
+    /// size and opaque; anything else is named.
+    #[test]
+    fn png_and_jpeg_decode_to_rgba() {
+        let encode = |colour: png::ColorType, pixels: &[u8]| {
+            let mut buf = Vec::new();
+            let mut e = png::Encoder::new(&mut buf, 2, 1);
+            e.set_color(colour);
+            e.set_depth(png::BitDepth::Eight);
+            e.write_header().unwrap().write_image_data(pixels).unwrap();
+            buf
+        };
+        let want = vec![10, 10, 10, 255, 200, 200, 200, 255];
+        assert_eq!(
+            decode_rgba(&encode(png::ColorType::Grayscale, &[10, 200])).unwrap(),
+            (2, 1, want.clone())
+        );
+        let rgb = encode(png::ColorType::Rgb, &[10, 10, 10, 200, 200, 200]);
+        assert_eq!(decode_rgba(&rgb).unwrap(), (2, 1, want.clone()));
+        assert_eq!(decode_rgba(&encode(png::ColorType::Rgba, &want)).unwrap(), (2, 1, want));
+        let photo = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/data/dji-sample/DJI_0030.JPG");
+        let (w, h, rgba) = decode_rgba(&std::fs::read(photo).unwrap()).unwrap();
+        assert_eq!((w, h, rgba.len()), (4000, 2250, 4000 * 2250 * 4));
+        assert!(rgba.chunks_exact(4).all(|p| p[3] == 255));
+        let mean = rgba.chunks_exact(4).map(|p| p[1] as f64).sum::<f64>() / (w * h) as f64;
+        assert!(mean > 30.0 && mean < 220.0, "a photo, not a blank: mean green {mean:.0}");
+        assert_eq!(decode_rgba(b"GIF89a").unwrap_err(), "neither PNG nor JPEG");
     }
 
     #[test]

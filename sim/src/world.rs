@@ -357,10 +357,7 @@ fn load_texture(scenario: &Scenario, name: &str) -> Result<Texture, String> {
     };
     let mpt = scenario.ground.metres_per_texel;
     match built_in {
-        Some(bytes) => {
-            let img = image::load_from_memory(bytes).map_err(|e| format!("built-in texture {name}: {e}"))?;
-            Texture::from_image(img, mpt).map_err(|e| format!("built-in texture {name}: {e}"))
-        }
+        Some(bytes) => Texture::decode(bytes, mpt).map_err(|e| format!("built-in texture {name}: {e}")),
         None => {
             let path = match &scenario.base_dir {
                 Some(dir) => dir.join(name),

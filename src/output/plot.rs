@@ -37,9 +37,8 @@ pub(crate) fn font() -> Result<(), String> {
         .clone()
 }
 
-/// Draws on an RGB canvas of `size` and writes it to `path` as a PNG. Encoded with the
-/// `image` crate mavloc has anyway: plotters' own encoder would build a second, older
-/// `image` (0.24) with its own PNG stack, about 25 s of CPU in a fresh build.
+/// Draws on an RGB canvas of `size` and writes it to `path` as a PNG, whole
+/// (`mavloc_data::pngfile`; plotters' own encoder would build `image` and its PNG stack).
 pub(crate) fn png(
     path: &Path,
     size: (u32, u32),
@@ -47,15 +46,8 @@ pub(crate) fn png(
 ) -> Result<(), String> {
     let mut buf = vec![0u8; size.0 as usize * size.1 as usize * 3];
     draw(BitMapBackend::with_buffer(&mut buf, size).into_drawing_area())?;
-    image::save_buffer_with_format(
-        path,
-        &buf,
-        size.0,
-        size.1,
-        image::ExtendedColorType::Rgb8,
-        image::ImageFormat::Png,
-    )
-    .map_err(|e| format!("{}: {e}", path.display()))
+    mavloc_data::pngfile::write(path, size.0, size.1, &buf, mavloc_data::pngfile::Channels::Rgb)
+        .map_err(|e| format!("{}: {e}", path.display()))
 }
 
 pub(crate) fn err<E: std::fmt::Display>(e: E) -> String {

@@ -17,7 +17,8 @@ fn homography_labels_match_the_true_positions() {
     let world = World::build(&scenario).unwrap();
     let (w, h, rgb) = world.orthophoto(4.0, 0.005);
     let map_path = dir.path().join("floor.png");
-    image::save_buffer(&map_path, &rgb, w as u32, h as u32, image::ColorType::Rgb8).unwrap();
+    mavloc_data::pngfile::write(&map_path, w as u32, h as u32, &rgb, mavloc_data::pngfile::Channels::Rgb)
+        .unwrap();
     let map = OrthoMap::load(&map_path, 0.005, None, 25).unwrap();
 
     let ds = Dataset::open(&views).unwrap();
