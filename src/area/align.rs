@@ -234,7 +234,7 @@ pub fn match_pairs(
     }
     let tried = wanted.len();
     // The pairs grouped by their second photo, whose FLANN trees are built once for all
-    // its pairs (a third of the time per pair); the groups in parallel. FLANN's trees and
+    // its pairs (building them is 40 % of a pair's matching); the groups in parallel. FLANN's trees and
     // MAGSAC draw from OpenCV's per-thread generator: seeded per photo and per pair, a
     // pair's matches do not depend on which thread ran what before.
     use rayon::prelude::*;
@@ -245,8 +245,7 @@ pub fn match_pairs(
     let groups: Vec<(usize, Vec<usize>)> = by_second.into_iter().collect();
     let verified: Vec<Vec<PairMatches>> = groups
         .par_iter()
-        .map(|(j, firsts)| {
-            let j = *j;
+        .map(|&(j, ref firsts)| {
             opencv::core::set_rng_seed(j as i32 * 7919 + 1)?;
             let mut index = imageup::FlannIndex::new(&photos[j].features)?;
             let mut out = Vec::new();
