@@ -14,9 +14,16 @@ pub enum Channels {
 }
 
 /// Writes `pixels` (row-major, `width x height`, 8 bits a channel) to `path` as a PNG,
-/// atomically. Fast compression with the Sub filter: the files are written once and
-/// read by OpenCV, and encoding is on the renderer's clock.
+/// atomically (see [`encode`]).
 pub fn write(path: &Path, width: u32, height: u32, pixels: &[u8], channels: Channels) -> io::Result<()> {
+    crate::write_atomic(path, &encode(width, height, pixels, channels)?)
+}
+
+/// `pixels` (row-major, `width x height`, 8 bits a channel) as a PNG file's bytes, for a
+/// file written inside a [`crate::staged::StagedDir`] (made durable as a whole when it is
+/// committed). Fast compression with the Sub filter: the files are written once and read
+/// by OpenCV, and encoding is on the renderer's clock.
+pub fn encode(width: u32, height: u32, pixels: &[u8], channels: Channels) -> io::Result<Vec<u8>> {
     let per_pixel = match channels {
         Channels::Grey => 1,
         Channels::Rgb => 3,
@@ -37,7 +44,7 @@ pub fn write(path: &Path, width: u32, height: u32, pixels: &[u8], channels: Chan
     encoder.set_compression(png::Compression::Fast);
     encoder.set_filter(png::Filter::Sub);
     encoder.write_header().and_then(|mut w| w.write_image_data(pixels)).map_err(io::Error::other)?;
-    crate::write_atomic(path, &buf)
+    Ok(buf)
 }
 
 #[cfg(test)]

@@ -203,9 +203,20 @@ impl<'w> Renderer<'w> {
     fn prepare(&self, pose: &CameraPose, k: &Intrinsics) -> Vec<Prepared> {
         let (w, h) = (k.width as i64, k.height as i64);
         let cols = self.cols;
-        // `CameraPose::to_camera` with the rotation composed once per frame, not per vertex.
-        let camera_from_local = pose.local_from_camera().inverse();
-        let to_camera = |p: &Vec3| camera_from_local * (p - pose.position);
+        // `CameraPose::to_camera` with the rotation composed once per frame, not per vertex,
+        // and the product written out: nalgebra's generic one was not inlined here, and with
+        // the vertices' repeated transforms it was a third of a small frame's time. The sums
+        // run in nalgebra's order (column by column), so the pixels are the same.
+        let m = *pose.local_from_camera().inverse().matrix();
+        let origin = pose.position;
+        let to_camera = move |p: &Vec3| {
+            let d = p - origin;
+            Vec3::new(
+                m[(0, 0)] * d.x + m[(0, 1)] * d.y + m[(0, 2)] * d.z,
+                m[(1, 0)] * d.x + m[(1, 1)] * d.y + m[(1, 2)] * d.z,
+                m[(2, 0)] * d.x + m[(2, 1)] * d.y + m[(2, 2)] * d.z,
+            )
+        };
         let shown: Vec<bool> = self.blocks.par_iter().map(|b| may_show(b, &to_camera, k)).collect();
         (0..self.rows - 1)
             .into_par_iter()
@@ -216,15 +227,39 @@ impl<'w> Renderer<'w> {
                 };
                 let blocks = &shown[(i / BLOCK) * self.block_cols..][..self.block_cols];
                 for (bj, _) in blocks.iter().enumerate().filter(|(_, shown)| **shown) {
-                    for j in bj * BLOCK..((bj + 1) * BLOCK).min(cols - 1) {
-                        let (a, b, c, d) =
-                            (corner(i, j), corner(i + 1, j), corner(i + 1, j + 1), corner(i, j + 1));
+                    // The block's two rows of corners, each transformed once (not once for
+                    // each of the four cells around it).
+                    let (j0, j1) = (bj * BLOCK, ((bj + 1) * BLOCK).min(cols - 1));
+                    // A corner in front of the near plane is projected once too: a triangle
+                    // wholly in front (nearly all) needs no clipping, and its setup reads the
+                    // projections (the same arithmetic as `setup`, so the same pixels).
+                    let mut top = [(ClipVert { cam: Vec3::zeros(), n: 0.0, e: 0.0 }, None); BLOCK + 1];
+                    let mut bottom = top;
+                    for j in j0..=j1 {
+                        for (row, slot) in [(i, &mut top[j - j0]), (i + 1, &mut bottom[j - j0])] {
+                            let c = corner(row, j);
+                            *slot = (c, (c.cam.z >= NEAR).then(|| screen(&c, k)).flatten());
+                        }
+                    }
+                    for j in j0..j1 {
+                        let q = j - j0;
+                        let (a, b, c, d) = (top[q], bottom[q], bottom[q + 1], top[q + 1]);
                         let cell = i * (cols - 1) + j;
                         for (t, tri) in [[a, b, c], [a, c, d]].into_iter().enumerate() {
+                            let light = self.light[2 * cell + t];
+                            if tri.iter().all(|v| v.0.cam.z >= NEAR) {
+                                // What clipping would return: the triangle itself.
+                                if let [(_, Some(sa)), (_, Some(sb)), (_, Some(sc))] = tri {
+                                    if let Some(p) = setup_screen([sa, sb, sc], light, w, h) {
+                                        out.push(p);
+                                    }
+                                }
+                                continue;
+                            }
+                            let tri = tri.map(|v| v.0);
                             if tri.iter().all(|v| v.cam.z < NEAR) {
                                 continue;
                             }
-                            let light = self.light[2 * cell + t];
                             let (poly, len) = clip_near(&tri);
                             for f in 1..len.saturating_sub(1) {
                                 if let Some(p) = setup([poly[0], poly[f], poly[f + 1]], light, k, w, h) {
@@ -297,13 +332,21 @@ fn clip_near(tri: &[ClipVert; 3]) -> ([ClipVert; 4], usize) {
     (out, len)
 }
 
+/// A vertex on the image plane, with what the rasteriser interpolates (`None` when it does
+/// not project: behind the camera or not finite).
+fn screen(c: &ClipVert, k: &Intrinsics) -> Option<ScreenVert> {
+    let px = k.project_camera(&c.cam)?;
+    let iz = 1.0 / c.cam.z;
+    Some(ScreenVert { u: px.u, v: px.v, inv_z: iz, n_z: c.n * iz, e_z: c.e * iz })
+}
+
 fn setup(tri: [ClipVert; 3], light: f32, k: &Intrinsics, w: i64, h: i64) -> Option<Prepared> {
-    let mut v = [ScreenVert { u: 0.0, v: 0.0, inv_z: 0.0, n_z: 0.0, e_z: 0.0 }; 3];
-    for (s, c) in v.iter_mut().zip(tri.iter()) {
-        let px = k.project_camera(&c.cam)?;
-        let iz = 1.0 / c.cam.z;
-        *s = ScreenVert { u: px.u, v: px.v, inv_z: iz, n_z: c.n * iz, e_z: c.e * iz };
-    }
+    let [a, b, c] = tri;
+    setup_screen([screen(&a, k)?, screen(&b, k)?, screen(&c, k)?], light, w, h)
+}
+
+/// A projected triangle's edge function and the pixel centres it may cover.
+fn setup_screen(v: [ScreenVert; 3], light: f32, w: i64, h: i64) -> Option<Prepared> {
     let area = edge(&v[0], &v[1], v[2].u, v[2].v);
     if area.abs() < 1e-12 {
         return None;

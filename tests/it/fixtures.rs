@@ -136,6 +136,25 @@ pub fn small_indoor_training() -> &'static (PathBuf, TrainReport) {
     })
 }
 
+/// A model trained on [`indoor_views`] without rescaling to a reference height
+/// (`height_ref_m` < 0): what the rescaled default is compared against. Cached like
+/// [`small_indoor_model`]: training is half of that comparison's time.
+pub fn plain_indoor_model() -> PathBuf {
+    let views = indoor_views();
+    let dir = cached("indoor-floor-model-400-plain", &build_stamp(), |out| {
+        std::fs::create_dir_all(out).unwrap();
+        let opts = TrainOptions {
+            dataset: views,
+            out: out.join("floor.model"),
+            labelling: Labelling::Telemetry,
+            seed: 1,
+        };
+        let settings = mavloc::settings::Indoor { height_ref_m: -1.0, ..Default::default() };
+        train(&opts, &settings, |_, _| {}).unwrap();
+    });
+    dir.join("floor.model")
+}
+
 /// The Python with pymavlink: `$MAVLOC_PYTHON` (the Makefile points it at the venv `make
 /// deps` creates), else that venv if it exists, else `python3` on PATH.
 pub fn python() -> std::path::PathBuf {

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 use mavloc::indoor::eval::evaluate;
 use mavloc::indoor::model::Model;
-use mavloc::indoor::offline::{run, train, Labelling, RunOptions, TrainOptions};
+use mavloc::indoor::offline::{run, RunOptions};
 use mavloc::settings::{Indoor, MotionModel};
 use mavloc_data::dataset::Appearance;
 use mavloc_data::results::read_trajectory;
@@ -108,7 +108,6 @@ fn trains_on_views_and_tracks_a_flight() {
 #[test]
 fn a_model_rescaled_to_a_reference_height_tracks_a_flight_below_its_views() {
     let dir = tempfile::tempdir().unwrap();
-    let views = crate::fixtures::indoor_views();
     let flight = crate::fixtures::low_indoor_flight(200);
     let median_error = |name: &str, model_path: PathBuf| {
         let out = dir.path().join(name);
@@ -127,10 +126,7 @@ fn a_model_rescaled_to_a_reference_height_tracks_a_flight_below_its_views() {
         median(rows.iter().filter(|r| r.t >= 2.0).map(|r| (r.x - r.true_x).hypot(r.y - r.true_y)).collect())
     };
     // Plain: trained without rescaling (`height_ref_m` < 0).
-    let plain_model = dir.path().join("plain.model");
-    let t =
-        TrainOptions { dataset: views, out: plain_model.clone(), labelling: Labelling::Telemetry, seed: 1 };
-    train(&t, &Indoor { height_ref_m: -1.0, ..Indoor::default() }, |_, _| {}).unwrap();
+    let plain_model = crate::fixtures::plain_indoor_model();
     assert_eq!(Model::load(&plain_model).unwrap().frame.height_ref_m, None);
     let plain = median_error("plain", plain_model);
     // Rescaled: the default, to the views' median height (the live flights' model, trained
