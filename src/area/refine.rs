@@ -132,8 +132,8 @@ fn jacobians(
         k.fx * iz, 0.0, -k.fx * pc.x * iz * iz,
         0.0, k.fy * iz, -k.fy * pc.y * iz * iz,
     );
-    let dx = pinhole * mt.matrix();
-    Some((dx, dx * d.cross_matrix() * left_jacobian(delta)))
+    let dx = small::m23(&pinhole, mt.matrix());
+    Some((dx, small::m23(&small::m23(&dx, &d.cross_matrix()), &left_jacobian(delta))))
 }
 
 /// The left Jacobian of SO(3) at the rotation vector `phi`: `exp(phi + e)` is
@@ -147,6 +147,62 @@ fn left_jacobian(phi: &Vec3) -> Matrix3<f64> {
         return Matrix3::identity() + k * 0.5 + k * k / 6.0;
     }
     Matrix3::identity() + k * ((1.0 - t.cos()) / (t * t)) + k * k * ((t - t.sin()) / (t * t * t))
+}
+
+/// Small fixed-size products, written out: nalgebra's generic product runs through its
+/// gemm loops, which were not inlined here and were a quarter of a photo survey's
+/// alignment (the rendered three-line survey, perf). Each sums over the inner index from
+/// first to last, as nalgebra does, so the results are the same to the bit.
+mod small {
+    use nalgebra::{Matrix2x3, Matrix3, Vector2, Vector3};
+
+    /// `a^T b`.
+    pub fn tn(a: &Matrix2x3<f64>, b: &Matrix2x3<f64>) -> Matrix3<f64> {
+        Matrix3::from_fn(|i, j| a[(0, i)] * b[(0, j)] + a[(1, i)] * b[(1, j)])
+    }
+
+    /// `a^T r`.
+    pub fn tv2(a: &Matrix2x3<f64>, r: &Vector2<f64>) -> Vector3<f64> {
+        Vector3::from_fn(|i, _| a[(0, i)] * r[0] + a[(1, i)] * r[1])
+    }
+
+    /// `a b`, 2x3 by 3x3.
+    pub fn m23(a: &Matrix2x3<f64>, b: &Matrix3<f64>) -> Matrix2x3<f64> {
+        Matrix2x3::from_fn(|i, j| a[(i, 0)] * b[(0, j)] + a[(i, 1)] * b[(1, j)] + a[(i, 2)] * b[(2, j)])
+    }
+
+    /// `a b`.
+    pub fn mm(a: &Matrix3<f64>, b: &Matrix3<f64>) -> Matrix3<f64> {
+        Matrix3::from_fn(|i, j| a[(i, 0)] * b[(0, j)] + a[(i, 1)] * b[(1, j)] + a[(i, 2)] * b[(2, j)])
+    }
+
+    /// `a b^T`.
+    pub fn mnt(a: &Matrix3<f64>, b: &Matrix3<f64>) -> Matrix3<f64> {
+        Matrix3::from_fn(|i, j| a[(i, 0)] * b[(j, 0)] + a[(i, 1)] * b[(j, 1)] + a[(i, 2)] * b[(j, 2)])
+    }
+
+    /// `a v`.
+    pub fn mv(a: &Matrix3<f64>, v: &Vector3<f64>) -> Vector3<f64> {
+        Vector3::from_fn(|i, _| a[(i, 0)] * v[0] + a[(i, 1)] * v[1] + a[(i, 2)] * v[2])
+    }
+
+    /// `a^T v`.
+    pub fn tv(a: &Matrix3<f64>, v: &Vector3<f64>) -> Vector3<f64> {
+        Vector3::from_fn(|i, _| a[(0, i)] * v[0] + a[(1, i)] * v[1] + a[(2, i)] * v[2])
+    }
+}
+
+/// The entry for `key` in a small map kept as a vector sorted by key (a landmark's few
+/// blocks: iterated in key order as a `BTreeMap` would be, without its nodes).
+fn entry(map: &mut Vec<(usize, Matrix3<f64>)>, key: usize) -> &mut Matrix3<f64> {
+    let i = match map.binary_search_by_key(&key, |e| e.0) {
+        Ok(i) => i,
+        Err(i) => {
+            map.insert(i, (key, Matrix3::zeros()));
+            i
+        }
+    };
+    &mut map[i].1
 }
 
 /// Huber weight of a residual of `r` SDs.
@@ -501,7 +557,7 @@ impl Problem<'_> {
                 theta.iter().enumerate().map(|(b, d)| d / prior(b).powi(2)).collect();
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
             let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
-            let mut w: Vec<BTreeMap<usize, Matrix3<f64>>> = vec![BTreeMap::new(); xs.len()];
+            let mut w: Vec<Vec<(usize, Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
             for (j, obs) in per_landmark.iter().enumerate() {
                 for s in obs {
                     let pose = pose_of(&theta, s);
@@ -543,17 +599,17 @@ impl Problem<'_> {
                     let r = nalgebra::Vector2::new(r0[0], r0[1]);
                     for (i1, b1) in blocks() {
                         let a1 = &a[i1];
-                        eu[b1] += a1.transpose() * r * wt;
+                        eu[b1] += small::tv2(a1, &r) * wt;
                         for (i2, b2) in blocks() {
-                            *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += a1.transpose() * a[i2] * wt;
+                            *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += small::tn(a1, &a[i2]) * wt;
                         }
                         if !is_fixed[j] {
-                            *w[j].entry(b1).or_insert_with(Matrix3::zeros) += a1.transpose() * bj * wt;
+                            *entry(&mut w[j], b1) += small::tn(a1, &bj) * wt;
                         }
                     }
                     if !is_fixed[j] {
-                        v[j] += bj.transpose() * bj * wt;
-                        ev[j] += bj.transpose() * r * wt;
+                        v[j] += small::tn(&bj, &bj) * wt;
+                        ev[j] += small::tv2(&bj, &r) * wt;
                     }
                 }
             }
@@ -577,11 +633,11 @@ impl Problem<'_> {
                     let vd =
                         v[j] + Matrix3::from_diagonal(&v[j].diagonal()) * lambda + Matrix3::identity() * 1e-9;
                     let Some(vi) = vd.try_inverse() else { continue };
-                    for (&b1, w1) in &w[j] {
-                        let wv = w1 * vi;
-                        rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&(wv * ev[j]));
-                        for (&b2, w2) in &w[j] {
-                            *s.entry((b1, b2)).or_insert_with(Matrix3::zeros) -= wv * w2.transpose();
+                    for (b1, w1) in &w[j] {
+                        let wv = small::mm(w1, &vi);
+                        rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&small::mv(&wv, &ev[j]));
+                        for (b2, w2) in &w[j] {
+                            *s.entry((*b1, *b2)).or_insert_with(Matrix3::zeros) -= small::mnt(&wv, w2);
                         }
                     }
                     vinv[j] = Some(vi);
@@ -604,10 +660,10 @@ impl Problem<'_> {
                     .map(|j| match vinv[j] {
                         Some(vi) => {
                             let mut acc = -ev[j];
-                            for (&bi, wbj) in &w[j] {
-                                acc -= wbj.transpose() * step(bi);
+                            for (bi, wbj) in &w[j] {
+                                acc -= small::tv(wbj, &step(*bi));
                             }
-                            xs[j] + vi * acc
+                            xs[j] + small::mv(&vi, &acc)
                         }
                         None => xs[j],
                     })
