@@ -477,10 +477,34 @@ def test_corrupt_state_files_are_moved_aside():
     assert aside, f"params.json was not moved aside: {os.listdir(d.state)}"
 
 
+class BlockingReceive:
+    """A connection whose `recv_match` waits for its timeout instead of returning at once.
+    pymavlink's FTP client polls `recv_match(type=..., timeout=0.1)` without
+    `blocking=True`, so the timeout is ignored and the client spins a core for the whole
+    transfer (90 % of this test's CPU, which the suite's other tests wait for). Waiting is
+    what the timeout asks for; what the client sends and accepts is unchanged."""
+
+    def __init__(self, c):
+        self._c = c
+
+    def __getattr__(self, name):
+        return getattr(self._c, name)
+
+    def recv_match(self, *args, **kwargs):
+        if kwargs.get("timeout") is not None:
+            kwargs.setdefault("blocking", True)
+        return self._c.recv_match(*args, **kwargs)
+
+
+def ftp_client(c):
+    """pymavlink's own MAVLink FTP client, talking to mavloc."""
+    from pymavlink import mavftp
+    return mavftp.MAVFTP(BlockingReceive(c), 1, MAVLOC_COMP)
+
+
 def ftp_get(c, path, local):
     """Downloads `path` from mavloc's MAVLink FTP server with pymavlink's own client."""
-    from pymavlink import mavftp
-    ftp = mavftp.MAVFTP(c, 1, MAVLOC_COMP)
+    ftp = ftp_client(c)
     ftp.cmd_get([path, local])
     ret = ftp.process_ftp_reply("OpenFileRO", timeout=10)
     assert ret.error_code == 0, f"FTP get {path}: error {ret.error_code}"
@@ -533,8 +557,7 @@ def test_component_metadata_over_mavlink_ftp():
         assert r["units"] == "m" and r["min"] == 0.05 and r["max"] == 100 and r["default"] == 0.6, r
         assert "landing zone radius" in r["shortDesc"], r
         # Read-only: a write is refused, and the files are unchanged.
-        from pymavlink import mavftp
-        ftp = mavftp.MAVFTP(c, 1, MAVLOC_COMP)
+        ftp = ftp_client(c)
         ftp.cmd_rm(["/mavloc/parameters.json"])
         ret = ftp.process_ftp_reply("RemoveFile", timeout=5)
         assert ret.error_code != 0, "a remove must be refused"
