@@ -25,17 +25,13 @@ fn closed_loop(mode: &str, seconds: f64, state: &Path, args: &[&str]) -> serde_j
         .spawn()
         .expect("python runs (make deps creates .venv with pymavlink)");
     // Read while it runs: what it prints (every estimate it saw, as JSON) can pass a pipe's
-    // 64 KB, and a writer blocked on a full pipe never exits (an indoor run hung so).
-    let mut stdout = child.stdout.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut out = String::new();
-        std::io::Read::read_to_string(&mut stdout, &mut out).map(|_| out)
-    });
+    // 64 KB.
+    let reader = crate::fixtures::read_in_background(child.stdout.take().unwrap());
     let limit = Duration::from_secs_f64(seconds + 30.0);
     let start = Instant::now();
     loop {
         if let Some(status) = child.try_wait().unwrap() {
-            let out = reader.join().unwrap().unwrap();
+            let out = reader.join().unwrap();
             assert!(status.success(), "relay failed: {out}");
             return serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"));
         }

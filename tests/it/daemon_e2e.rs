@@ -22,11 +22,11 @@ fn run_python(tests: &[&str], limit: Duration) {
         .stderr(std::process::Stdio::inherit())
         .spawn()
         .expect("python runs (make deps creates .venv with pymavlink)");
+    let reader = crate::fixtures::read_in_background(child.stdout.take().unwrap());
     let start = Instant::now();
     loop {
         if let Some(status) = child.try_wait().unwrap() {
-            let mut out = String::new();
-            std::io::Read::read_to_string(child.stdout.as_mut().unwrap(), &mut out).unwrap();
+            let out = reader.join().unwrap();
             print!("{out}");
             assert!(status.success(), "end-to-end tests failed:\n{out}");
             return;

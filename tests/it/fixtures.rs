@@ -155,6 +155,17 @@ pub fn plain_indoor_model() -> PathBuf {
     dir.join("floor.model")
 }
 
+/// Reads a child's output to its end on a thread of its own, so the child never blocks on
+/// a full pipe (64 KB) while the test waits for it to exit: a relay that printed more
+/// than that hung until the test's time limit.
+pub fn read_in_background(mut from: impl std::io::Read + Send + 'static) -> std::thread::JoinHandle<String> {
+    std::thread::spawn(move || {
+        let mut out = String::new();
+        from.read_to_string(&mut out).expect("the child's output is UTF-8");
+        out
+    })
+}
+
 /// The Python with pymavlink: `$MAVLOC_PYTHON` (the Makefile points it at the venv `make
 /// deps` creates), else that venv if it exists, else `python3` on PATH.
 pub fn python() -> std::path::PathBuf {
