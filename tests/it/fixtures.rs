@@ -118,18 +118,7 @@ pub fn small_indoor_model() -> &'static Path {
 pub fn small_indoor_training() -> &'static (PathBuf, TrainReport) {
     static MODEL: OnceLock<(PathBuf, TrainReport)> = OnceLock::new();
     MODEL.get_or_init(|| {
-        let views = indoor_views();
-        let dir = cached("indoor-floor-model-400", &build_stamp(), |out| {
-            std::fs::create_dir_all(out).unwrap();
-            let opts = TrainOptions {
-                dataset: views,
-                out: out.join("floor.model"),
-                labelling: Labelling::Telemetry,
-                seed: 1,
-            };
-            let report = train(&opts, &mavloc::settings::Indoor::default(), |_, _| {}).unwrap();
-            std::fs::write(out.join("report.json"), serde_json::to_string(&report).unwrap()).unwrap();
-        });
+        let dir = trained_on_views("indoor-floor-model-400", &mavloc::settings::Indoor::default());
         let report =
             serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
         (dir.join("floor.model"), report)
@@ -140,8 +129,15 @@ pub fn small_indoor_training() -> &'static (PathBuf, TrainReport) {
 /// (`height_ref_m` < 0): what the rescaled default is compared against. Cached like
 /// [`small_indoor_model`]: training is half of that comparison's time.
 pub fn plain_indoor_model() -> PathBuf {
+    let settings = mavloc::settings::Indoor { height_ref_m: -1.0, ..Default::default() };
+    trained_on_views("indoor-floor-model-400-plain", &settings).join("floor.model")
+}
+
+/// A folder with `floor.model`, trained on [`indoor_views`] with `settings`, and its
+/// training's `report.json`: built once per build of the tests under `key`.
+fn trained_on_views(key: &str, settings: &mavloc::settings::Indoor) -> PathBuf {
     let views = indoor_views();
-    let dir = cached("indoor-floor-model-400-plain", &build_stamp(), |out| {
+    cached(key, &build_stamp(), |out| {
         std::fs::create_dir_all(out).unwrap();
         let opts = TrainOptions {
             dataset: views,
@@ -149,10 +145,9 @@ pub fn plain_indoor_model() -> PathBuf {
             labelling: Labelling::Telemetry,
             seed: 1,
         };
-        let settings = mavloc::settings::Indoor { height_ref_m: -1.0, ..Default::default() };
-        train(&opts, &settings, |_, _| {}).unwrap();
-    });
-    dir.join("floor.model")
+        let report = train(&opts, settings, |_, _| {}).unwrap();
+        std::fs::write(out.join("report.json"), serde_json::to_string(&report).unwrap()).unwrap();
+    })
 }
 
 /// Reads a child's output to its end on a thread of its own, so the child never blocks on
