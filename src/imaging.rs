@@ -33,6 +33,9 @@ pub fn jpeg_truncated(bytes: &[u8]) -> bool {
 /// or not an image.
 pub fn read_image(path: &std::path::Path, flags: i32) -> Result<Mat, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: cannot read it ({e})", path.display()))?;
+    if let Some(img) = plain_png(&bytes, flags) {
+        return img.map_err(|e| format!("{}: {e}", path.display()));
+    }
     let is_jpeg = bytes.starts_with(&[0xFF, 0xD8]);
     if is_jpeg && jpeg_truncated(&bytes) {
         return Err(format!("{}: truncated JPEG (the image data ends early)", path.display()));
@@ -45,9 +48,81 @@ pub fn read_image(path: &std::path::Path, flags: i32) -> Result<Mat, String> {
     Ok(img)
 }
 
+/// A plain 8-bit PNG (every rendered frame and mask) decoded by [`mavloc_data::pngfile`]
+/// into what `imdecode` gives for `flags`, pixel for pixel; `None` when that decoder
+/// declines the file, or for a colour file read as grey (libpng's own RGB-to-grey
+/// weights), which `imdecode` then reads.
+fn plain_png(bytes: &[u8], flags: i32) -> Option<opencv::Result<Mat>> {
+    use mavloc_data::pngfile::Channels;
+    const SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
+    if !bytes.starts_with(SIGNATURE) {
+        return None;
+    }
+    let colour = match flags {
+        opencv::imgcodecs::IMREAD_COLOR => true,
+        opencv::imgcodecs::IMREAD_GRAYSCALE => false,
+        _ => return None,
+    };
+    let d = mavloc_data::pngfile::decode(bytes)?;
+    let convert = |code| -> opencv::Result<Mat> {
+        let n = if d.channels == Channels::Rgb { 3 } else { 1 };
+        let flat = Mat::from_slice(&d.pixels)?;
+        let m = flat.reshape(n, d.height as i32)?;
+        let mut out = Mat::default();
+        match code {
+            Some(code) => imgproc::cvt_color(&m, &mut out, code, 0)?,
+            None => m.copy_to(&mut out)?,
+        }
+        Ok(out)
+    };
+    match (d.channels, colour) {
+        (Channels::Rgb, true) => Some(convert(Some(imgproc::COLOR_RGB2BGR))),
+        (Channels::Grey, true) => Some(convert(Some(imgproc::COLOR_GRAY2BGR))),
+        (Channels::Grey, false) => Some(convert(None)),
+        (Channels::Rgb, false) => None,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Frames and masks as the simulator writes them, and kinds the `png` crate path
+    /// declines (alpha, 16 bits, colour read as grey), read exactly as OpenCV reads them.
+    #[test]
+    fn pngs_read_as_opencv_reads_them() {
+        use mavloc_data::pngfile::{encode, Channels};
+        use opencv::imgcodecs::{imdecode, IMREAD_COLOR, IMREAD_GRAYSCALE};
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (61u32, 23u32);
+        let noise = |n: u32| -> Vec<u8> {
+            (0..w * h * n).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect()
+        };
+        let rgba = {
+            let img = Mat::from_slice(&noise(4)).unwrap().reshape(4, h as i32).unwrap().try_clone().unwrap();
+            let mut buf = opencv::core::Vector::<u8>::new();
+            opencv::imgcodecs::imencode(".png", &img, &mut buf, &opencv::core::Vector::new()).unwrap();
+            buf.to_vec()
+        };
+        let files = [
+            ("rgb", encode(w, h, &noise(3), Channels::Rgb).unwrap()),
+            ("grey", encode(w, h, &noise(1), Channels::Grey).unwrap()),
+            ("rgba", rgba),
+        ];
+        for (name, bytes) in files {
+            let p = dir.path().join(format!("{name}.png"));
+            std::fs::write(&p, &bytes).unwrap();
+            for flags in [IMREAD_COLOR, IMREAD_GRAYSCALE] {
+                let ours = read_image(&p, flags).unwrap();
+                let theirs = imdecode(&opencv::core::Vector::<u8>::from_slice(&bytes), flags).unwrap();
+                assert_eq!(
+                    (ours.typ(), ours.cols(), ours.rows()),
+                    (theirs.typ(), theirs.cols(), theirs.rows())
+                );
+                assert_eq!(ours.data_bytes().unwrap(), theirs.data_bytes().unwrap(), "{name} {flags}");
+            }
+        }
+    }
 
     fn jpeg(w: i32, h: i32) -> Vec<u8> {
         let img =

@@ -1,5 +1,5 @@
 //! 8-bit PNG files, written whole through [`crate::atomic`]: the simulator's frames and
-//! masks, and mavloc's plots. The `png` crate itself, which is what `image` uses inside:
+//! masks, and mavloc's plots; and read back ([`decode`]) faster than OpenCV's libpng. The `png` crate itself, which is what `image` uses inside:
 //! `image` would add a colour-management stack (`moxcms`, `pxfm`) to encode one format,
 //! about a minute of CPU in a fresh build.
 
@@ -47,6 +47,45 @@ pub fn encode(width: u32, height: u32, pixels: &[u8], channels: Channels) -> io:
     Ok(buf)
 }
 
+/// A PNG's pixels, row-major, 8 bits a channel.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Decoded {
+    pub width: u32,
+    pub height: u32,
+    pub channels: Channels,
+    pub pixels: Vec<u8>,
+}
+
+/// Decodes a plain 8-bit grey or RGB PNG: the kind [`encode`] writes, which is every frame
+/// and mask of a rendered dataset. `None` for any other kind (palette, alpha or
+/// transparency, 16 or fewer than 8 bits, interlaced, an EXIF block whose orientation a
+/// reader may apply) and for a file this decoder refuses: the caller decodes those
+/// otherwise. Why not only OpenCV: the `png` crate (fdeflate) decodes these files 2.4-2.8
+/// times as fast as OpenCV's libpng and zlib (1.8 against 4.3 ms a 480x270 frame, 3.8
+/// against 10.6 ms at 960x540, session 27), and the frames are read on the pipeline's
+/// clock.
+pub fn decode(bytes: &[u8]) -> Option<Decoded> {
+    // No allocation limit of its own: the caller has the whole file in memory already,
+    // and a frame of a 24 Mpx photo survey is 72 MB, over the crate's 64 MB default.
+    let limits = png::Limits { bytes: usize::MAX };
+    let mut decoder = png::Decoder::new_with_limits(io::Cursor::new(bytes), limits);
+    decoder.set_transformations(png::Transformations::IDENTITY);
+    let mut reader = decoder.read_info().ok()?;
+    let info = reader.info();
+    let channels = match (info.color_type, info.bit_depth) {
+        (png::ColorType::Grayscale, png::BitDepth::Eight) => Channels::Grey,
+        (png::ColorType::Rgb, png::BitDepth::Eight) => Channels::Rgb,
+        _ => return None,
+    };
+    if info.interlaced || info.trns.is_some() || info.exif_metadata.is_some() {
+        return None;
+    }
+    let mut pixels = vec![0; reader.output_buffer_size()?];
+    let out = reader.next_frame(&mut pixels).ok()?;
+    pixels.truncate(out.buffer_size());
+    Some(Decoded { width: out.width, height: out.height, channels, pixels })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -69,6 +108,31 @@ mod tests {
             assert_eq!((info.width, info.height, info.color_type), (w, h, colour));
             assert_eq!(&out[..info.buffer_size()], &pixels[..]);
         }
+    }
+
+    /// What [`encode`] writes, [`decode`] reads back; other kinds are left to the caller.
+    #[test]
+    fn decode_reads_what_encode_writes_and_declines_other_kinds() {
+        for (channels, n) in [(Channels::Grey, 1), (Channels::Rgb, 3)] {
+            let (w, h) = (33u32, 17u32);
+            let pixels: Vec<u8> = (0..w * h * n).map(|i| (i * 91 % 253) as u8).collect();
+            let d = decode(&encode(w, h, &pixels, channels).unwrap()).unwrap();
+            assert_eq!(d, Decoded { width: w, height: h, channels, pixels });
+        }
+        let other = |colour, depth, bytes: usize| {
+            let mut buf = Vec::new();
+            let mut e = png::Encoder::new(&mut buf, 4, 4);
+            e.set_color(colour);
+            e.set_depth(depth);
+            e.write_header().and_then(|mut w| w.write_image_data(&vec![7; bytes])).unwrap();
+            buf
+        };
+        assert_eq!(decode(&other(png::ColorType::Rgba, png::BitDepth::Eight, 64)), None);
+        assert_eq!(decode(&other(png::ColorType::Grayscale, png::BitDepth::Sixteen, 32)), None);
+        assert_eq!(decode(&other(png::ColorType::Grayscale, png::BitDepth::Four, 8)), None);
+        let whole = encode(8, 8, &[9; 64], Channels::Grey).unwrap();
+        assert_eq!(decode(&whole[..whole.len() - 20]), None, "a cut file");
+        assert_eq!(decode(b"not a png"), None);
     }
 
     #[test]

@@ -46,16 +46,16 @@ impl FrameSource for Replay {
                 return Ok(None);
             }
             let (fp, mp) = (self.ds.frame_path(r), self.ds.mask_path(r));
-            let image = imgcodecs::imread(&fp, imgcodecs::IMREAD_COLOR)?;
+            let image = crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR).ok();
             let k = self.ds.camera.intrinsics();
-            if image.empty() || (image.cols(), image.rows()) != (k.width as i32, k.height as i32) {
+            let Some(image) = image.filter(|i| (i.cols(), i.rows()) == (k.width as i32, k.height as i32))
+            else {
                 // As `mavloc area` does: a bad frame is skipped with a warning, not fatal.
                 tracing::warn!(frame = r.frame, path = %fp.display(), "unreadable or wrongly sized frame, skipped");
                 continue;
-            }
+            };
             let mask = if mp.exists() {
-                let m = imgcodecs::imread(&mp, imgcodecs::IMREAD_GRAYSCALE)?;
-                (!m.empty()).then_some(m)
+                crate::imaging::read_image(&mp, imgcodecs::IMREAD_GRAYSCALE).ok()
             } else {
                 None
             };
