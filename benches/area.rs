@@ -2,7 +2,8 @@
 //! band 25 px, L_max 200): band (distance transform vs the seed's dilation), SIFT in the
 //! band, match-and-estimate against a full library, the UKF updates alone, purge, and a
 //! whole frame at steady state. Frames come from the coastline mission. Beside them, the
-//! water segmenter on a real photo and its shadow check alone.
+//! water segmenter on a real photo and its shadow check alone, and reading a rendered
+//! frame's PNG through mavloc's reader against OpenCV's.
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use mavloc::area::features::{prepare, FeatureExtractor, Pieces};
@@ -46,8 +47,34 @@ fn frames(count: usize) -> (Vec<Frame>, mavloc::geometry::Intrinsics) {
     (out, k)
 }
 
+/// One coastline frame at the working resolution as the simulator writes it (fast
+/// deflate, Sub filter).
+fn png_frame() -> Vec<u8> {
+    let scenario = Scenario::load("coastline").unwrap();
+    let world = World::build(&scenario).unwrap();
+    let mission = Mission::plan(&world).unwrap();
+    let k = scenario.intrinsics().downscaled(2);
+    let f = Renderer::new(&world).render(&mission.camera_pose(&mission.state(20.0)), &k);
+    mavloc_data::pngfile::encode(f.width, f.height, &f.rgb, mavloc_data::pngfile::Channels::Rgb).unwrap()
+}
+
 fn stages(c: &mut Criterion) {
     let s = Settings::default();
+    {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frame.png");
+        std::fs::write(&path, png_frame()).unwrap();
+        let colour = opencv::imgcodecs::IMREAD_COLOR;
+        c.bench_function("area_read_frame_png_960x540", |b| {
+            b.iter(|| mavloc::imaging::read_image(&path, colour).unwrap())
+        });
+        c.bench_function("area_read_frame_png_960x540_opencv", |b| {
+            b.iter(|| {
+                let bytes = opencv::core::Vector::<u8>::from_slice(&std::fs::read(&path).unwrap());
+                opencv::imgcodecs::imdecode(&bytes, colour).unwrap()
+            })
+        });
+    }
     let (frames, k) = frames(40);
     let band_px = (s.area.band_px / s.area.downscale) as i32;
     let mut ex =

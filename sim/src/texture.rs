@@ -51,8 +51,10 @@ impl Level {
         }
     }
 
+    /// The first `N` channels, bilinearly interpolated (`N = 1` for a grey texture, whose
+    /// three channels are equal: a third of the arithmetic, the same values).
     #[inline]
-    fn bilinear(&self, x: f64, y: f64) -> [f32; 3] {
+    fn bilinear<const N: usize>(&self, x: f64, y: f64) -> [f32; N] {
         let (x, y) = (x - 0.5, y - 0.5); // texel centres at +0.5
         let (x0, y0) = (floor(x), floor(y));
         let (fx, fy) = ((x - x0) as f32, (y - y0) as f32);
@@ -60,7 +62,7 @@ impl Level {
         let xs = [Self::wrap(x0, self.width), Self::wrap(x0 + 1, self.width)];
         let ys = [Self::wrap(y0, self.height), Self::wrap(y0 + 1, self.height)];
         let p = |xi: usize, yi: usize| self.rgb[ys[yi] * self.width + xs[xi]];
-        let mut out = [0.0f32; 3];
+        let mut out = [0.0f32; N];
         for (c, o) in out.iter_mut().enumerate() {
             let top = p(0, 0)[c] * (1.0 - fx) + p(1, 0)[c] * fx;
             let bottom = p(0, 1)[c] * (1.0 - fx) + p(1, 1)[c] * fx;
@@ -175,6 +177,17 @@ impl Texture {
     /// Colour at ground position (north, east) for a pixel footprint of `footprint`
     /// metres: picks the mip level whose texels are about that size.
     pub fn sample(&self, north: f64, east: f64, footprint: f64) -> [f32; 3] {
+        self.sample_channels(north, east, footprint)
+    }
+
+    /// [`Texture::sample`]'s first channel alone: the value of a grey texture (the
+    /// simulator's detail noise), with a third of the arithmetic.
+    pub fn sample_grey(&self, north: f64, east: f64, footprint: f64) -> f32 {
+        self.sample_channels::<1>(north, east, footprint)[0]
+    }
+
+    #[inline]
+    fn sample_channels<const N: usize>(&self, north: f64, east: f64, footprint: f64) -> [f32; N] {
         let ratio = footprint / self.metres_per_texel;
         // log2 only when the footprint spans two texels or more (level 0 otherwise).
         let level = if ratio < 2.0 { 0 } else { (ratio.log2().floor() as usize).min(self.levels.len() - 1) };

@@ -201,7 +201,7 @@ impl World {
             Target::Water { level } => {
                 if self.terrain.height(n, e) < *level {
                     // Nearly uniform water with faint, large ripples: little for SIFT to hold.
-                    let r = self.detail.sample(n * 0.05, e * 0.05, footprint * 0.05)[0] / 255.0 - 0.5;
+                    let r = self.detail.sample_grey(n * 0.05, e * 0.05, footprint * 0.05) / 255.0 - 0.5;
                     let k = 1.0 + 0.04 * r;
                     return ([WATER_RGB[0] * k, WATER_RGB[1] * k, WATER_RGB[2] * k], true);
                 }
@@ -216,8 +216,7 @@ impl World {
             return ([118.0, 116.0, 112.0], false); // plain margin around the printed floor
         }
         let base = self.ground().sample(n, e, footprint);
-        let d = self.detail.sample(n, e, footprint);
-        let detail = 0.85 + 0.3 * d[0] / 255.0;
+        let detail = 0.85 + 0.3 * self.detail.sample_grey(n, e, footprint) / 255.0;
         let darken = if target { REGION_DARKEN } else { 1.0 };
         let k = detail * light * darken;
         ([(base[0] * k).min(255.0), (base[1] * k).min(255.0), (base[2] * k).min(255.0)], target)
