@@ -28,7 +28,8 @@
 //! * [`demo`]: the end-to-end demonstration `make demo` runs (vehicle + daemon, live).
 //! * [`simulated`]: pipelines run against the simulator (landing approaches, map
 //!   evaluation from rendered views).
-//! * [`imaging`]: OpenCV image helpers below the pipelines and the frame sources.
+//! * [`imaging`]: OpenCV image helpers below the pipelines and the frame sources, and the
+//!   one image reader (plain PNGs through [`data::pngfile`], the rest through OpenCV).
 //! * [`logging`]: tracing set-up (plain lines for journald, colour on a terminal).
 //! * [`cli`]: command-line definitions.
 //! * [`commands`]: one module per subcommand, each a function from the parsed arguments

@@ -11,7 +11,7 @@
 //!   name file and line, fixed-decimal number formats, append-and-flush tables.
 //! * [`dataset`]: the dataset format (frames, masks, `telemetry.jsonl`, `camera.toml`,
 //!   ground truth): its records, [`Dataset::open`] and the writers.
-//! * [`pngfile`]: 8-bit PNG files written whole (frames, masks, plots).
+//! * [`pngfile`]: 8-bit PNG files written whole (frames, masks, plots) and read back.
 //! * [`results`]: result files of the pipelines: landmarks (CSV, PLY, GeoJSON, KML),
 //!   border lines, indoor trajectories and landing trials.
 //! * [`sets`]: result folders replaced as a unit (`results/area` a symlink to the newest

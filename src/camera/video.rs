@@ -186,13 +186,14 @@ impl Video {
             Input::Images { files, next } => loop {
                 let Some(p) = files.get(*next).cloned() else { return Ok(None) };
                 *next += 1;
-                let why = match imgcodecs::imread(&p, imgcodecs::IMREAD_COLOR) {
-                    Ok(img) if !img.empty() => return Ok(Some((img, self.ctx.now()))),
-                    Ok(_) => "not an image OpenCV can read".to_string(),
-                    Err(e) => e.to_string(),
+                // `read_image`, not `imread`: OpenCV decodes a JPEG cut inside its image
+                // data without an error, grey below the cut.
+                let why = match crate::imaging::read_image(&p, imgcodecs::IMREAD_COLOR) {
+                    Ok(img) => return Ok(Some((img, self.ctx.now()))),
+                    Err(e) => e,
                 };
                 self.skipped += 1;
-                tracing::warn!("{}: {why}; skipped ({} skipped in all)", p.display(), self.skipped);
+                tracing::warn!("{why}; skipped ({} skipped in all)", self.skipped);
             },
         }
     }
@@ -316,18 +317,21 @@ mod tests {
             |v: f64| Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
         imgcodecs::imwrite(dir.path().join("1.png"), &shade(10.0), &core::Vector::new()).unwrap();
         imgcodecs::imwrite(dir.path().join("3.jpg"), &shade(200.0), &core::Vector::new()).unwrap();
-        // The middle one: a JPEG cut off after its first bytes, as a full card leaves it.
+        // Between them, JPEGs cut off as a full card leaves them: after their first bytes,
+        // and just before their end (which OpenCV alone decodes without an error).
         let mut jpeg = core::Vector::<u8>::new();
         imgcodecs::imencode(".jpg", &shade(100.0), &mut jpeg, &core::Vector::new()).unwrap();
-        std::fs::write(dir.path().join("2.jpg"), &jpeg.to_vec()[..20]).unwrap();
+        let jpeg = jpeg.to_vec();
+        std::fs::write(dir.path().join("2.jpg"), &jpeg[..20]).unwrap();
+        std::fs::write(dir.path().join("2a.jpg"), &jpeg[..jpeg.len() - 2]).unwrap();
         let mut v = folder_camera(dir.path());
         let shade_of = |f: &Captured| f.image.at_2d::<core::Vec3b>(0, 0).unwrap()[0];
         let first = v.next().unwrap().unwrap();
         assert_eq!(shade_of(&first), 10);
         let third = v.next().expect("the camera goes on").unwrap();
         assert!((shade_of(&third) as i32 - 200).abs() <= 2, "frame 3 follows frame 1");
-        assert_eq!(v.skipped(), 1);
-        assert!(v.describe().contains("1 unreadable skipped"), "{}", v.describe());
+        assert_eq!(v.skipped(), 2);
+        assert!(v.describe().contains("2 unreadable skipped"), "{}", v.describe());
         assert!(v.next().unwrap().is_none());
     }
 }
