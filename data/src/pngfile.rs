@@ -65,9 +65,11 @@ pub struct Decoded {
 /// against 10.6 ms at 960x540, session 27), and the frames are read on the pipeline's
 /// clock.
 pub fn decode(bytes: &[u8]) -> Option<Decoded> {
-    // No allocation limit of its own: the caller has the whole file in memory already,
-    // and a frame of a 24 Mpx photo survey is 72 MB, over the crate's 64 MB default.
-    let limits = png::Limits { bytes: usize::MAX };
+    // 1 GiB: a 24 Mpx photo is 72 MB, over the crate's 64 MB default; a header that
+    // claims more (a hostile or broken file) is declined before anything is allocated.
+    // The crate's limit covers only its own buffers, so the output's is checked below.
+    const LIMIT: usize = 1 << 30;
+    let limits = png::Limits { bytes: LIMIT };
     let mut decoder = png::Decoder::new_with_limits(io::Cursor::new(bytes), limits);
     decoder.set_transformations(png::Transformations::IDENTITY);
     let mut reader = decoder.read_info().ok()?;
@@ -80,7 +82,7 @@ pub fn decode(bytes: &[u8]) -> Option<Decoded> {
     if info.interlaced || info.trns.is_some() || info.exif_metadata.is_some() {
         return None;
     }
-    let mut pixels = vec![0; reader.output_buffer_size()?];
+    let mut pixels = vec![0; reader.output_buffer_size().filter(|&n| n <= LIMIT)?];
     let out = reader.next_frame(&mut pixels).ok()?;
     pixels.truncate(out.buffer_size());
     Some(Decoded { width: out.width, height: out.height, channels, pixels })
@@ -133,6 +135,24 @@ mod tests {
         let whole = encode(8, 8, &[9; 64], Channels::Grey).unwrap();
         assert_eq!(decode(&whole[..whole.len() - 20]), None, "a cut file");
         assert_eq!(decode(b"not a png"), None);
+        // A header claiming 2^20 x 2^20 grey pixels (1 TiB) over a few bytes of data.
+        let mut huge = whole.clone();
+        huge[16..24].copy_from_slice(&[0, 16, 0, 0, 0, 16, 0, 0]);
+        let crc = crc32(&huge[12..29]);
+        huge[29..33].copy_from_slice(&crc.to_be_bytes());
+        assert_eq!(decode(&huge), None);
+    }
+
+    /// The PNG chunk checksum (CRC-32, ISO 3309), for the test's forged header.
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut c = !0u32;
+        for &b in bytes {
+            c ^= b as u32;
+            for _ in 0..8 {
+                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            }
+        }
+        !c
     }
 
     #[test]
