@@ -1,6 +1,6 @@
 //! 8-bit PNG files, written whole through [`crate::atomic`]: the simulator's frames and
-//! masks, and mavloc's plots; and read back ([`decode`]) faster than OpenCV's libpng. The `png` crate itself, which is what `image` uses inside:
-//! `image` would add a colour-management stack (`moxcms`, `pxfm`) to encode one format,
+//! masks, and mavloc's plots; and read back ([`decode`]) faster than OpenCV's libpng.
+//! The `png` crate itself, which is what `image` uses inside: `image` would add a colour-management stack (`moxcms`, `pxfm`) to encode one format,
 //! about a minute of CPU in a fresh build.
 
 use std::io;
@@ -60,10 +60,9 @@ pub struct Decoded {
 /// and mask of a rendered dataset. `None` for any other kind (palette, alpha or
 /// transparency, 16 or fewer than 8 bits, interlaced, an EXIF block whose orientation a
 /// reader may apply) and for a file this decoder refuses: the caller decodes those
-/// otherwise. Why not only OpenCV: the `png` crate (fdeflate) decodes these files 2.4-2.8
-/// times as fast as OpenCV's libpng and zlib (1.8 against 4.3 ms a 480x270 frame, 3.8
-/// against 10.6 ms at 960x540, session 27), and the frames are read on the pipeline's
-/// clock.
+/// otherwise. Why not only OpenCV: the frames are read on the pipeline's clock, and the
+/// `png` crate (fdeflate) reads a 960x540 frame in 3.05 ms where OpenCV's libpng and zlib
+/// take 11.2 ms (`cargo bench --bench area -- area_read_frame`, session 27).
 pub fn decode(bytes: &[u8]) -> Option<Decoded> {
     // 1 GiB: a 24 Mpx photo is 72 MB, over the crate's 64 MB default; a header that
     // claims more (a hostile or broken file) is declined before anything is allocated.
