@@ -1,7 +1,8 @@
 //! 8-bit PNG files, written whole through [`crate::atomic`]: the simulator's frames and
 //! masks, and mavloc's plots; and read back ([`decode`]) faster than OpenCV's libpng.
-//! The `png` crate itself, which is what `image` uses inside: `image` would add a colour-management stack (`moxcms`, `pxfm`) to encode one format,
-//! about a minute of CPU in a fresh build.
+//! The `png` crate itself, which is what `image` uses inside: `image` would add a
+//! colour-management stack (`moxcms`, `pxfm`) to encode one format, about a minute of CPU
+//! in a fresh build.
 
 use std::io;
 use std::path::Path;
