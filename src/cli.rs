@@ -274,6 +274,11 @@ pub struct RenderArgs {
     /// Box-blur kernel for every frame of the flight, pixels (odd).
     #[arg(long)]
     pub blur_px: Option<u32>,
+    /// Take the frames and masks from this dataset, rendered from the same scenario, seed
+    /// and size, and draw only the telemetry anew with this render's noise (a noise study
+    /// renders its flight once).
+    #[arg(long, value_name = "DATASET")]
+    pub frames_from: Option<std::path::PathBuf>,
     /// Overwrite a non-empty output folder.
     #[arg(long)]
     pub force: bool,

@@ -40,6 +40,87 @@ pub struct RenderOptions {
     pub views: Option<usize>,
     /// Photometric change for every frame of a flight (brightness, contrast, blur).
     pub appearance: Option<Appearance>,
+    /// Take the frames and masks from this dataset instead of rendering them: only the
+    /// telemetry is drawn anew, with this render's noise. The dataset must have been
+    /// rendered from the same scenario (noise aside), seed and size, and hold every shot
+    /// ([`FramesFrom`]). A noise study renders its flight once.
+    pub frames_from: Option<PathBuf>,
+}
+
+/// Frames and masks taken from an earlier render ([`RenderOptions::frames_from`]), each
+/// checked to be the same shot: the same frame number, true pose and appearance.
+struct FramesFrom {
+    ds: mavloc_data::Dataset,
+}
+
+impl FramesFrom {
+    /// Opens `dir` and checks that it was rendered from `scenario` (its noise aside).
+    fn open(dir: &Path, scenario: &Scenario) -> Result<FramesFrom, String> {
+        let ds = mavloc_data::Dataset::open(dir).map_err(|e| format!("--frames-from: {e}"))?;
+        let path = dir.join("scenario.toml");
+        let text =
+            std::fs::read_to_string(&path).map_err(|e| format!("--frames-from: {}: {e}", path.display()))?;
+        let mut theirs: Scenario =
+            toml::from_str(&text).map_err(|e| format!("--frames-from: {}: {e}", path.display()))?;
+        let mut ours = scenario.clone();
+        theirs.noise = ours.noise.clone();
+        (theirs.base_dir, ours.base_dir) = (None, None);
+        if theirs != ours {
+            let what = if theirs.seed != ours.seed {
+                format!("seed {} (this render: {})", theirs.seed, ours.seed)
+            } else if (theirs.camera.width, theirs.camera.height) != (ours.camera.width, ours.camera.height) {
+                format!(
+                    "size {}x{} (this render: {}x{})",
+                    theirs.camera.width, theirs.camera.height, ours.camera.width, ours.camera.height
+                )
+            } else {
+                format!(
+                    "scenario {:?}, not this render's {:?} (or another setting than noise differs)",
+                    theirs.name, ours.name
+                )
+            };
+            return Err(format!(
+                "--frames-from {}: rendered with {what}; render the frames anew",
+                dir.display()
+            ));
+        }
+        Ok(FramesFrom { ds })
+    }
+
+    /// Copies shot `i`'s frame and mask into `out` (copies, not links: a mask edited by
+    /// hand in one dataset must not change in the other).
+    fn copy(
+        &self,
+        i: usize,
+        truth: &PoseRecord,
+        appearance: Option<Appearance>,
+        out: &Path,
+    ) -> Result<(), String> {
+        let dir = self.ds.dir.display();
+        let r = self.ds.records.iter().find(|r| r.frame == i as u64).ok_or_else(|| {
+            format!("--frames-from {dir}: it has no frame {i} (dropped when it was rendered); render the frames anew")
+        })?;
+        // A tolerance, though serde_json's float_roundtrip gives the numbers back exactly:
+        // the check must not hang on a feature flag.
+        let close =
+            |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-9 * x.abs().max(1.0));
+        let same_pose = close(&r.truth.position, &truth.position)
+            && close(&r.truth.attitude_deg, &truth.attitude_deg)
+            && close(&r.truth.gimbal_deg, &truth.gimbal_deg);
+        if !same_pose || r.appearance != appearance {
+            return Err(format!(
+                "--frames-from {dir}: its frame {i} is another shot; render the frames anew"
+            ));
+        }
+        let name = format!("{i:06}.png");
+        for (from, sub) in [(self.ds.frame_path(r), "frames"), (self.ds.mask_path(r), "masks")] {
+            let to = out.join(sub).join(&name);
+            std::fs::copy(&from, &to).map_err(|e| {
+                format!("--frames-from: cannot copy {} to {}: {e}", from.display(), to.display())
+            })?;
+        }
+        Ok(())
+    }
 }
 
 /// What a render produced.
@@ -88,6 +169,7 @@ pub fn render_dataset(
     let out = staged.path();
     dataset::prepare(out)?;
 
+    let frames_from = opts.frames_from.as_deref().map(|dir| FramesFrom::open(dir, &scenario)).transpose()?;
     let world = World::build(&scenario)?;
     let mission = Mission::plan(&world)?;
     let renderer = Renderer::new(&world);
@@ -151,14 +233,18 @@ pub fn render_dataset(
             progress(i + 1, total);
             continue;
         }
-        let mut frame = renderer.render(&mission.camera_pose(truth), &k);
         let appearance = appearance.filter(|a| !a.is_identity());
-        if let Some(a) = appearance {
-            crate::views::apply(&a, frame.width as usize, frame.height as usize, &mut frame.rgb);
+        if let Some(from) = &frames_from {
+            from.copy(i, &pose_record(truth), appearance, out)?;
+        } else {
+            let mut frame = renderer.render(&mission.camera_pose(truth), &k);
+            if let Some(a) = appearance {
+                crate::views::apply(&a, frame.width as usize, frame.height as usize, &mut frame.rgb);
+            }
+            let name = format!("{i:06}.png");
+            write_png(&out.join("frames").join(&name), frame.width, frame.height, &frame.rgb, true)?;
+            write_png(&out.join("masks").join(&name), frame.width, frame.height, &frame.mask, false)?;
         }
-        let name = format!("{i:06}.png");
-        write_png(&out.join("frames").join(&name), frame.width, frame.height, &frame.rgb, true)?;
-        write_png(&out.join("masks").join(&name), frame.width, frame.height, &frame.mask, false)?;
         let mut measured = measure(&mission, truth, noise, opts.views.is_none(), &mut rng, &unit);
         for (g, w) in measured.gimbal_deg.iter_mut().zip(wander) {
             *g += w;

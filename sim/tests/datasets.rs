@@ -149,3 +149,49 @@ fn indoor_views_are_labelled_and_varied() {
         .unwrap_err();
     assert!(err.contains("indoor"), "{err}");
 }
+
+/// `frames_from`: the frames and masks of an earlier render, byte for byte what rendering
+/// them again gives, under telemetry drawn with the new noise; a render of another seed,
+/// size or scenario, or one that dropped a shot, is refused with the reason.
+#[test]
+fn frames_from_an_earlier_render_are_the_frames_a_new_render_gives() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenario = Scenario::load("coastline").unwrap();
+    let render = |name: &str, noise: NoiseSpec, size: (u32, u32), seed: Option<u64>, from: Option<&str>| {
+        let opts = RenderOptions {
+            frames: Some(4),
+            size: Some(size),
+            seed,
+            noise: Some(noise),
+            frames_from: from.map(|f| dir.path().join(f)),
+            ..RenderOptions::default()
+        };
+        render_dataset(&scenario, &opts, &dir.path().join(name), |_, _| {})
+            .map(|_| Dataset::open(&dir.path().join(name)).unwrap())
+    };
+    let quiet = NoiseSpec::default();
+    let offset =
+        NoiseSpec { gimbal_offset_deg: [1.5, -2.0, 0.5], gimbal_yaw_sd_deg: 1.0, ..NoiseSpec::default() };
+    render("base", quiet.clone(), (96, 54), None, None).unwrap();
+    let reused = render("reused", offset.clone(), (96, 54), None, Some("base")).unwrap();
+    let fresh = render("fresh", offset.clone(), (96, 54), None, None).unwrap();
+    assert_eq!(reused.records, fresh.records, "the telemetry of the new noise");
+    assert_eq!(reused.records.len(), 4);
+    for r in &fresh.records {
+        for (a, b) in [(fresh.frame_path(r), reused.frame_path(r)), (fresh.mask_path(r), reused.mask_path(r))]
+        {
+            assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap(), "{}", b.display());
+        }
+    }
+    let err = |r: Result<Dataset, String>| r.map(|_| ()).unwrap_err();
+    let e = err(render("bigger", offset.clone(), (128, 72), None, Some("base")));
+    assert!(e.contains("size 96x54 (this render: 128x72)") && e.contains("render the frames anew"), "{e}");
+    let e = err(render("reseeded", offset.clone(), (96, 54), Some(7), Some("base")));
+    assert!(e.contains("seed 1 (this render: 7)"), "{e}");
+    assert!(!dir.path().join("reseeded").exists(), "a refused render leaves nothing");
+    let dropping = NoiseSpec { drop_rate: 0.5, ..NoiseSpec::default() };
+    let sparse = render("sparse", dropping, (96, 54), None, None).unwrap();
+    assert!(sparse.records.len() < 4, "the seed's draws drop a frame of four");
+    let e = err(render("from-sparse", offset, (96, 54), None, Some("sparse")));
+    assert!(e.contains("has no frame") && e.contains("dropped"), "{e}");
+}

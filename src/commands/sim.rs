@@ -98,6 +98,7 @@ fn render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
         seed: args.seed,
         noise: Some(noise),
         force: args.force,
+        frames_from: args.frames_from.clone(),
     };
     let bar = Progress::new(&format!("rendering {}", scenario.name), "frames");
     let start = std::time::Instant::now();

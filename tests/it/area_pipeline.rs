@@ -126,15 +126,7 @@ fn ukf_against_truth(
 #[test]
 fn attitude_refinement_recovers_photo_like_attitude_errors() {
     let dir = tempfile::tempdir().unwrap();
-    let noise = mavloc_sim::scenario::NoiseSpec {
-        gimbal_yaw_sd_deg: 3.0,
-        gimbal_pitch_sd_deg: 3.0,
-        position_sd_m: [0.3, 0.3, 0.5],
-        ..Default::default()
-    };
-    let opts =
-        RenderOptions { frames: Some(100), size: Some((960, 540)), noise: Some(noise), ..Default::default() };
-    let ds = crate::fixtures::rendered("coastline-100-960x540-photo-noise", "coastline", &opts);
+    let ds = crate::fixtures::coastline_photo_noise_flight();
     let eval = |prior: f64, name: &str| {
         let out = dir.path().join(name);
         let mut s = Settings::default();

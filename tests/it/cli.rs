@@ -548,7 +548,9 @@ fn offset_flight() -> std::path::PathBuf {
         noise: Some(noise),
         ..Default::default()
     };
-    crate::fixtures::rendered("coastline-100-960x540-gimbal-offset", "coastline", &opts)
+    // The photo-noise flight's frames (area_pipeline.rs), under this noise's telemetry.
+    let frames = crate::fixtures::coastline_photo_noise_flight();
+    crate::fixtures::renoised("coastline-100-960x540-gimbal-offset", &frames, "coastline", &opts)
 }
 
 /// The value and the SD of `gimbal.KEY` in `calibrate gimbal`'s output.

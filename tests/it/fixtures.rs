@@ -92,6 +92,34 @@ fn render_cached(key: &str, scenario: &Scenario, opts: &RenderOptions) -> PathBu
     })
 }
 
+/// `scenario` with `opts` under `key`, its frames and masks copied from the fixture
+/// `frames` (rendered from the same scenario, seed and size: `RenderOptions::frames_from`),
+/// only the telemetry drawn: another noise over the same flight costs no rendering.
+pub fn renoised(key: &str, frames: &Path, scenario: &str, opts: &RenderOptions) -> PathBuf {
+    let scenario = Scenario::load(scenario).unwrap();
+    let opts = RenderOptions { frames_from: Some(frames.to_path_buf()), ..opts.clone() };
+    let name = frames.file_name().unwrap().to_string_lossy();
+    let of_frames = std::fs::read_to_string(frames.with_file_name(format!("{name}.stamp"))).unwrap();
+    let stamp = format!("{}\n{scenario:?}\n{opts:?}\nframes: {of_frames}", renderer_stamp());
+    cached(key, &stamp, |out| {
+        render_dataset(&scenario, &opts, out, |_, _| {}).unwrap();
+    })
+}
+
+/// The coastline's first 100 frames at 960x540 as photos: every frame's gimbal yaw and
+/// pitch 3 deg off on its own, GNSS-grade positions (0.3/0.3/0.5 m).
+pub fn coastline_photo_noise_flight() -> PathBuf {
+    let noise = mavloc_sim::scenario::NoiseSpec {
+        gimbal_yaw_sd_deg: 3.0,
+        gimbal_pitch_sd_deg: 3.0,
+        position_sd_m: [0.3, 0.3, 0.5],
+        ..Default::default()
+    };
+    let opts =
+        RenderOptions { frames: Some(100), size: Some((960, 540)), noise: Some(noise), ..Default::default() };
+    rendered("coastline-100-960x540-photo-noise", "coastline", &opts)
+}
+
 /// A flight over the indoor floor at 0.5 m instead of 1 m (0.4-0.6 m with its swing), the
 /// heights a vehicle climbs and descends through, 320x240.
 pub fn low_indoor_flight(frames: usize) -> PathBuf {
