@@ -21,6 +21,8 @@ ROWS = [
     ("indoor: k-NN over 1000 views (brute force)", "indoor_knn/brute_force_k5/1000"),
     ("indoor: particle estimate, O(M) mode, 500", "indoor_estimate/mode_500"),
     ("indoor: particle estimate, seed's O(M^2) MAP, 500", "indoor_estimate/map_500"),
+    ("area: read a 960x540 frame (png crate)", "area_read_frame_png_960x540"),
+    ("area: read a 960x540 frame (OpenCV imdecode, before)", "area_read_frame_png_960x540_opencv"),
     ("area: band (distance transform)", "area_band_distance_transform"),
     ("area: SIFT in the band, pieces", "area_sift_in_band_2000"),
     ("area: SIFT in the band, one box (before)", "area_sift_in_band_one_box"),
