@@ -54,16 +54,12 @@ pub fn read_image(path: &std::path::Path, flags: i32) -> Result<Mat, String> {
 /// weights), which `imdecode` then reads.
 fn plain_png(bytes: &[u8], flags: i32) -> Option<opencv::Result<Mat>> {
     use mavloc_data::pngfile::Channels;
-    const SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
-    if !bytes.starts_with(SIGNATURE) {
-        return None;
-    }
-    let colour = match flags {
-        opencv::imgcodecs::IMREAD_COLOR => true,
-        opencv::imgcodecs::IMREAD_GRAYSCALE => false,
+    let (colour, accept): (bool, &[Channels]) = match flags {
+        opencv::imgcodecs::IMREAD_COLOR => (true, &[Channels::Grey, Channels::Rgb]),
+        opencv::imgcodecs::IMREAD_GRAYSCALE => (false, &[Channels::Grey]),
         _ => return None,
     };
-    let d = mavloc_data::pngfile::decode(bytes)?;
+    let d = mavloc_data::pngfile::decode(bytes, accept)?;
     let convert = |code| -> opencv::Result<Mat> {
         let n = if d.channels == Channels::Rgb { 3 } else { 1 };
         let flat = Mat::from_slice(&d.pixels)?;
@@ -75,12 +71,12 @@ fn plain_png(bytes: &[u8], flags: i32) -> Option<opencv::Result<Mat>> {
         }
         Ok(out)
     };
-    match (d.channels, colour) {
-        (Channels::Rgb, true) => Some(convert(Some(imgproc::COLOR_RGB2BGR))),
-        (Channels::Grey, true) => Some(convert(Some(imgproc::COLOR_GRAY2BGR))),
-        (Channels::Grey, false) => Some(convert(None)),
-        (Channels::Rgb, false) => None,
-    }
+    Some(match (d.channels, colour) {
+        // A grey read accepts grey files only, so an RGB file here is read as colour.
+        (Channels::Rgb, _) => convert(Some(imgproc::COLOR_RGB2BGR)),
+        (Channels::Grey, true) => convert(Some(imgproc::COLOR_GRAY2BGR)),
+        (Channels::Grey, false) => convert(None),
+    })
 }
 
 #[cfg(test)]

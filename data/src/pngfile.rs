@@ -57,14 +57,15 @@ pub struct Decoded {
     pub pixels: Vec<u8>,
 }
 
-/// Decodes a plain 8-bit grey or RGB PNG: the kind [`encode`] writes, which is every frame
-/// and mask of a rendered dataset. `None` for any other kind (palette, alpha or
+/// Decodes a plain 8-bit grey or RGB PNG whose channels are among `accept`: the kind
+/// [`encode`] writes, which is every frame and mask of a rendered dataset. `None`, told
+/// from the header before any pixel is decoded, for any other kind (palette, alpha or
 /// transparency, 16 or fewer than 8 bits, interlaced, an EXIF block whose orientation a
-/// reader may apply) and for a file this decoder refuses: the caller decodes those
-/// otherwise. Why not only OpenCV: the frames are read on the pipeline's clock, and the
+/// reader may apply, channels not accepted), and for a file this decoder refuses: the
+/// caller decodes those otherwise. Why not only OpenCV: the frames are read on the pipeline's clock, and the
 /// `png` crate (fdeflate) reads a 960x540 frame in 3.05 ms where OpenCV's libpng and zlib
 /// take 11.2 ms (`cargo bench --bench area -- area_read_frame`, session 27).
-pub fn decode(bytes: &[u8]) -> Option<Decoded> {
+pub fn decode(bytes: &[u8], accept: &[Channels]) -> Option<Decoded> {
     // 1 GiB: a 24 Mpx photo is 72 MB, over the crate's 64 MB default; a header that
     // claims more (a hostile or broken file) is declined before anything is allocated.
     // The crate's limit covers only its own buffers, so the output's is checked below.
@@ -79,7 +80,7 @@ pub fn decode(bytes: &[u8]) -> Option<Decoded> {
         (png::ColorType::Rgb, png::BitDepth::Eight) => Channels::Rgb,
         _ => return None,
     };
-    if info.interlaced || info.trns.is_some() || info.exif_metadata.is_some() {
+    if !accept.contains(&channels) || info.interlaced || info.trns.is_some() || info.exif_metadata.is_some() {
         return None;
     }
     let mut pixels = vec![0; reader.output_buffer_size().filter(|&n| n <= LIMIT)?];
@@ -118,8 +119,11 @@ mod tests {
         for (channels, n) in [(Channels::Grey, 1), (Channels::Rgb, 3)] {
             let (w, h) = (33u32, 17u32);
             let pixels: Vec<u8> = (0..w * h * n).map(|i| (i * 91 % 253) as u8).collect();
-            let d = decode(&encode(w, h, &pixels, channels).unwrap()).unwrap();
+            let bytes = encode(w, h, &pixels, channels).unwrap();
+            let d = decode(&bytes, &[channels]).unwrap();
             assert_eq!(d, Decoded { width: w, height: h, channels, pixels });
+            let other = if channels == Channels::Grey { Channels::Rgb } else { Channels::Grey };
+            assert_eq!(decode(&bytes, &[other]), None, "{channels:?} not accepted");
         }
         let other = |colour, depth, bytes: usize| {
             let mut buf = Vec::new();
@@ -129,30 +133,19 @@ mod tests {
             e.write_header().and_then(|mut w| w.write_image_data(&vec![7; bytes])).unwrap();
             buf
         };
-        assert_eq!(decode(&other(png::ColorType::Rgba, png::BitDepth::Eight, 64)), None);
-        assert_eq!(decode(&other(png::ColorType::Grayscale, png::BitDepth::Sixteen, 32)), None);
-        assert_eq!(decode(&other(png::ColorType::Grayscale, png::BitDepth::Four, 8)), None);
+        let both = [Channels::Grey, Channels::Rgb];
+        assert_eq!(decode(&other(png::ColorType::Rgba, png::BitDepth::Eight, 64), &both), None);
+        assert_eq!(decode(&other(png::ColorType::Grayscale, png::BitDepth::Sixteen, 32), &both), None);
+        assert_eq!(decode(&other(png::ColorType::Grayscale, png::BitDepth::Four, 8), &both), None);
         let whole = encode(8, 8, &[9; 64], Channels::Grey).unwrap();
-        assert_eq!(decode(&whole[..whole.len() - 20]), None, "a cut file");
-        assert_eq!(decode(b"not a png"), None);
+        assert_eq!(decode(&whole[..whole.len() - 20], &both), None, "a cut file");
+        assert_eq!(decode(b"not a png", &both), None);
         // A header claiming 2^20 x 2^20 grey pixels (1 TiB) over a few bytes of data.
         let mut huge = whole.clone();
         huge[16..24].copy_from_slice(&[0, 16, 0, 0, 0, 16, 0, 0]);
-        let crc = crc32(&huge[12..29]);
+        let crc = crc32fast::hash(&huge[12..29]);
         huge[29..33].copy_from_slice(&crc.to_be_bytes());
-        assert_eq!(decode(&huge), None);
-    }
-
-    /// The PNG chunk checksum (CRC-32, ISO 3309), for the test's forged header.
-    fn crc32(bytes: &[u8]) -> u32 {
-        let mut c = !0u32;
-        for &b in bytes {
-            c ^= b as u32;
-            for _ in 0..8 {
-                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
-            }
-        }
-        !c
+        assert_eq!(decode(&huge, &both), None);
     }
 
     #[test]
