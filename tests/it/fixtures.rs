@@ -62,7 +62,7 @@ fn cached(key: &str, stamp: &str, make: impl FnOnce(&Path)) -> PathBuf {
     let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("fixtures");
     let dir = root.join(key);
-    let stamp_file = root.join(format!("{key}.stamp"));
+    let stamp_file = stamp_of(&dir);
     if dir.is_dir() && std::fs::read_to_string(&stamp_file).ok().as_deref() == Some(stamp) {
         return dir;
     }
@@ -76,6 +76,11 @@ fn cached(key: &str, stamp: &str, make: impl FnOnce(&Path)) -> PathBuf {
     std::fs::rename(&partial, &dir).unwrap();
     std::fs::write(&stamp_file, stamp).unwrap();
     dir
+}
+
+/// Where the stamp of the fixture in `dir` is kept: beside it.
+fn stamp_of(dir: &Path) -> PathBuf {
+    dir.with_file_name(format!("{}.stamp", dir.file_name().unwrap().to_string_lossy()))
 }
 
 /// A dataset of `scenario` rendered with `opts`; `key` names the options.
@@ -98,8 +103,7 @@ fn render_cached(key: &str, scenario: &Scenario, opts: &RenderOptions) -> PathBu
 pub fn renoised(key: &str, frames: &Path, scenario: &str, opts: &RenderOptions) -> PathBuf {
     let scenario = Scenario::load(scenario).unwrap();
     let opts = RenderOptions { frames_from: Some(frames.to_path_buf()), ..opts.clone() };
-    let name = frames.file_name().unwrap().to_string_lossy();
-    let of_frames = std::fs::read_to_string(frames.with_file_name(format!("{name}.stamp"))).unwrap();
+    let of_frames = std::fs::read_to_string(stamp_of(frames)).unwrap();
     let stamp = format!("{}\n{scenario:?}\n{opts:?}\nframes: {of_frames}", renderer_stamp());
     cached(key, &stamp, |out| {
         render_dataset(&scenario, &opts, out, |_, _| {}).unwrap();
