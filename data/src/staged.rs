@@ -22,7 +22,11 @@ pub struct StagedDir {
 
 impl StagedDir {
     /// Starts writing `target`. It must be absent or empty unless `replace` (`--force`).
+    /// A `target` that is a symbolic link is followed: the folder it points to is
+    /// replaced and the link stays (on a drone `data -> /mnt/sd/data` would otherwise
+    /// become a real folder on the root file system).
     pub fn begin(target: &Path, replace: bool) -> Result<Self, String> {
+        let target = &followed(target)?;
         if target.exists() {
             if !target.is_dir() {
                 return Err(format!("{} exists and is not a folder", target.display()));
@@ -99,6 +103,25 @@ impl Drop for StagedDir {
             let _ = fs::remove_dir_all(&self.stage);
         }
     }
+}
+
+/// `path` with the symbolic links at its end followed (to a target that need not exist).
+fn followed(path: &Path) -> Result<PathBuf, String> {
+    let mut p = path.to_path_buf();
+    // As the kernel does, give up after 40 links (a loop).
+    for _ in 0..40 {
+        match fs::symlink_metadata(&p) {
+            Ok(m) if m.file_type().is_symlink() => {
+                let to = fs::read_link(&p).map_err(|e| format!("cannot read the link {}: {e}", p.display()))?;
+                p = match p.parent() {
+                    Some(dir) if to.is_relative() => dir.join(to),
+                    _ => to,
+                };
+            }
+            _ => return Ok(p),
+        }
+    }
+    Err(format!("{}: too many levels of symbolic links", path.display()))
 }
 
 /// Flushes a folder's files and the folder itself to disk: on Linux by one `syncfs` of
@@ -246,6 +269,28 @@ mod tests {
         let s = StagedDir::begin(&out, false).unwrap();
         s.commit().unwrap();
         assert_eq!(names(root.path()), ["d"]);
+    }
+
+    #[test]
+    fn a_target_that_is_a_link_keeps_the_link_and_fills_the_folder_it_points_to() {
+        let root = tempfile::tempdir().unwrap();
+        let real = root.path().join("sd/data");
+        fs::create_dir_all(&real).unwrap();
+        fs::write(real.join("old"), "x").unwrap();
+        let link = root.path().join("data");
+        std::os::unix::fs::symlink("sd/data", &link).unwrap();
+        let s = StagedDir::begin(&link, true).unwrap();
+        assert!(s.path().starts_with(root.path().join("sd")), "staged beside the real folder: {:?}", s.path());
+        fs::write(s.path().join("new"), "y").unwrap();
+        s.commit().unwrap();
+        assert!(fs::symlink_metadata(&link).unwrap().file_type().is_symlink(), "the link stays a link");
+        assert_eq!(names(&real), ["new"]);
+        assert_eq!(names(&root.path().join("sd")), ["data"], "no hidden folder left");
+        // A link to a folder not made yet: made where the link points.
+        let later = root.path().join("later");
+        std::os::unix::fs::symlink(root.path().join("sd/later"), &later).unwrap();
+        StagedDir::begin(&later, false).unwrap().commit().unwrap();
+        assert!(root.path().join("sd/later").is_dir() && fs::symlink_metadata(&later).unwrap().file_type().is_symlink());
     }
 
     #[test]

@@ -1,13 +1,20 @@
 //! `mavloc area`: the area pipeline (or the ground-plane baseline) over a recorded dataset,
 //! with results written as the run goes.
 //!
-//! Results (`landmarks.csv`, `.ply`, `area.geojson`, `area.kml`, `summary.json`) are
-//! rewritten atomically every `CHECKPOINT_FRAMES` frames and at the end, so a crash leaves
-//! the last complete set readable. `trace.csv` (with `--trace`) is appended and flushed
-//! every frame.
+//! The results (`landmarks.csv`, `.ply`, `area.geojson`, `area.kml`, `border.csv`,
+//! `summary.json`, and the reports and plots beside them) belong together, so they are
+//! replaced as a set: written into a hidden folder beside `--out` and put in its place in
+//! one step when the run ends ([`mavloc_data::staged::StagedDir`]). A run that fails or is
+//! killed leaves the previous results whole, with none of its own files among them (each
+//! file written atomically was not enough: a run interrupted half way left a new
+//! `landmarks.csv` beside the earlier run's `summary.json`, and files only one run wrote,
+//! such as `trace.csv`, stayed beside another run's results). A run stopped on request
+//! ([`run_stoppable`], Ctrl-C in `mavloc area`) ends early and puts in place what it has,
+//! with `complete: false` in `summary.json`.
 
 use std::fs;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use opencv::imgcodecs;
@@ -22,9 +29,9 @@ use crate::output::{self, LandmarkRecord};
 use crate::settings::{AreaMethod, Settings};
 use mavloc_data::dataset::Dataset;
 use mavloc_data::results::border_csv;
+use mavloc_data::staged::StagedDir;
 use mavloc_data::table::{fixed, Appender, Row};
 
-const CHECKPOINT_FRAMES: u64 = 100;
 /// Datasets this short (photo surveys) get the residual report without `--trace`.
 pub const RESIDUAL_MAX_FRAMES: usize = 100;
 /// The baseline keeps one border pixel in this many along each contour.
@@ -157,7 +164,7 @@ pub struct RunOptions {
 }
 
 /// Writes the result files of a run (each atomically), `summary.json` last; returns the
-/// border lines it fitted.
+/// border lines it fitted. `out` is the run's staging folder ([`run`]) or the daemon's.
 pub fn write_results(
     out: &Path,
     frame: &LocalFrame,
@@ -391,7 +398,34 @@ fn align_photos(
 
 /// Runs the configured method over a dataset. `progress(done, total)` after each frame.
 pub fn run(opts: &RunOptions, s: &Settings, progress: impl FnMut(u64, u64)) -> anyhow::Result<RunSummary> {
-    Ok(run_observed(opts, s, progress, false)?.0)
+    Ok(run_observed(opts, s, progress, false, None)?.0)
+}
+
+/// [`run`], ending after the frame in hand once `stop` is set: the results of the frames
+/// before are put in place as a set, `complete: false` in their summary.
+pub fn run_stoppable(
+    opts: &RunOptions,
+    s: &Settings,
+    progress: impl FnMut(u64, u64),
+    stop: &AtomicBool,
+) -> anyhow::Result<RunSummary> {
+    Ok(run_observed(opts, s, progress, false, Some(stop))?.0)
+}
+
+/// The staging folder of a run's results, put in place of `out` at the end. `out` must be
+/// absent, empty, or an earlier run's results (it holds `summary.json`): a folder of other
+/// files given as `--out` by mistake is refused, not replaced.
+fn begin_results(out: &Path) -> anyhow::Result<StagedDir> {
+    let other_files = out.is_dir()
+        && !out.join("summary.json").is_file()
+        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
+    if other_files {
+        anyhow::bail!(
+            "{} holds files that are not mavloc area results (no summary.json): give a new or empty folder as --out",
+            out.display()
+        );
+    }
+    StagedDir::begin(out, true).map_err(|e| anyhow::anyhow!(e))
 }
 
 /// What a run saw, for estimating things that hold for the whole flight (the gimbal's
@@ -412,9 +446,11 @@ pub fn run_observed(
     s: &Settings,
     mut progress: impl FnMut(u64, u64),
     observe: bool,
+    stop: Option<&AtomicBool>,
 ) -> anyhow::Result<(RunSummary, Observations)> {
     let ds = Dataset::open(&opts.dataset).map_err(|e| anyhow::anyhow!(e))?;
-    fs::create_dir_all(&opts.out)?;
+    let staged = begin_results(&opts.out)?;
+    let out = staged.path().to_path_buf();
     let k_full = ds.camera.intrinsics();
     let downscale = s.area.downscale.max(1);
     let k = k_full.downscaled(downscale);
@@ -435,12 +471,14 @@ pub fn run_observed(
         AreaMethod::Ukf => Some(AreaPipeline::new(&s.area, k)?.with_trace(residuals)),
         AreaMethod::GroundPlane => None,
     };
-    // Appended and flushed every frame, so a crash keeps the trace up to the last frame.
+    // Appended and flushed every frame: after a crash the staging folder (removed by the
+    // next run into the same --out) holds the trace up to the last frame.
     let mut trace_file =
-        if opts.trace { Some(Appender::<TraceRow>::create(&opts.out.join("trace.csv"))?) } else { None };
+        if opts.trace { Some(Appender::<TraceRow>::create(&out.join("trace.csv"))?) } else { None };
 
     let total = opts.max_frames.unwrap_or(usize::MAX).min(ds.records.len()) as u64;
     let mut results: Vec<LandmarkRecord> = Vec::new();
+    let mut stopped = false;
     let mut summary = RunSummary { method: method.into(), ..RunSummary::default() };
     let mut timing = StageTiming::default();
     let mut frame_ms = Vec::new();
@@ -450,7 +488,7 @@ pub fn run_observed(
     let start = Instant::now();
     let aligning = s.area.align_prior_deg > 0.0 && pipeline.is_some();
     let alignment = if aligning && (total as usize) <= ALIGN_MAX_FRAMES {
-        align_photos(&ds, s, &ds.records[..total as usize], &opts.out, &mut summary)?
+        align_photos(&ds, s, &ds.records[..total as usize], &out, &mut summary)?
     } else {
         if aligning {
             tracing::warn!("photo alignment is for surveys of up to {ALIGN_MAX_FRAMES} photos; not aligned");
@@ -636,12 +674,11 @@ pub fn run_observed(
             }
         }
         summary.frames += 1;
-        if summary.frames.is_multiple_of(CHECKPOINT_FRAMES) {
-            summary.elapsed_s = start.elapsed().as_secs_f64();
-            summary.frames_per_s = summary.frames as f64 / summary.elapsed_s;
-            write_results(&opts.out, &frame, &name, &results, &mut summary)?;
-        }
         progress(i as u64 + 1, total);
+        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+            stopped = true;
+            break;
+        }
     }
     if let Some(p) = pipeline.as_ref() {
         results.extend(p.converged_now());
@@ -677,7 +714,7 @@ pub fn run_observed(
             summary.residual_p90_px = Some(super::residuals::quantile(&mut all, 0.9));
         }
         summary.yaw_off_180_frames = rows.iter().filter(|r| r.yaw_off_180).map(|r| r.frame).collect();
-        output::write_atomic(&opts.out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
+        output::write_atomic(&out.join("residuals.csv"), super::residuals::csv(&rows).as_bytes())?;
         // Cross-line agreement with the recorded poses (and below, refined).
         // Lines from the recorded positions: the aligned ones move by metres, enough to
         // split a line where the recorded track runs straight.
@@ -752,7 +789,7 @@ pub fn run_observed(
                 let g = d.map(f64::to_degrees);
                 csv.push_str(&format!("{f},{:.4},{:.4},{:.4},{:.4}\n", g.norm(), g.x, g.y, g.z));
             }
-            output::write_atomic(&opts.out.join("attitude.csv"), csv.as_bytes())?;
+            output::write_atomic(&out.join("attitude.csv"), csv.as_bytes())?;
             results = r.landmarks;
             let refined: std::collections::BTreeMap<u64, crate::geometry::CameraPose> = frames
                 .iter()
@@ -767,8 +804,8 @@ pub fn run_observed(
             marks = super::residuals::marks(&seen, &results, &refined, &k, scale);
         }
     }
-    summary.complete = true;
-    let borders = write_results(&opts.out, &frame, &name, &results, &mut summary)?;
+    summary.complete = !stopped;
+    let borders = write_results(&out, &frame, &name, &results, &mut summary)?;
     if !results.is_empty() {
         // Top and side view of what was found (`mavloc eval area` redraws it over the
         // ground truth when there is one). A figure is a convenience: failing to draw one
@@ -776,13 +813,17 @@ pub fn run_observed(
         let points: Vec<_> = results.iter().map(|l| l.position).collect();
         let title = format!("{} landmarks, local NED around the dataset origin", points.len());
         if let Err(e) =
-            output::plot::landmark_views(&opts.out.join("views.png"), &points, &[], &borders, &title)
+            output::plot::landmark_views(&out.join("views.png"), &points, &[], &borders, &title)
         {
             tracing::warn!("views.png not drawn: {e}");
         }
     }
     if opts.debug_masks {
-        super::segment::contact_sheets(&opts.out, &sheet, &marks)?;
+        super::segment::contact_sheets(&out, &sheet, &marks)?;
+    }
+    // A run that could use no frame has nothing to stand for: the earlier results stay.
+    if summary.frames > 0 {
+        staged.commit().map_err(|e| anyhow::anyhow!(e))?;
     }
     let observations = if observe {
         Observations { sightings: seen, landmarks: results, k: Some(k), downscale }

@@ -25,7 +25,7 @@ pub fn run(args: AreaArgs, global: Global) -> anyhow::Result<ExitCode> {
 
 /// The pipeline run with the settings in force, then its summary.
 fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Result<ExitCode> {
-    use crate::area::offline::{run, RunOptions};
+    use crate::area::offline::{run_stoppable, RunOptions};
     use crate::settings::AreaMethod;
     let method = match args.method.as_deref() {
         Some("ground-plane") => AreaMethod::GroundPlane,
@@ -55,18 +55,25 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         max_frames: args.frames,
         debug_masks: args.debug_masks,
     };
+    let stop = stop_on_ctrl_c()?;
     let bar = Progress::new("area", "frames");
-    let summary = run(&opts, settings, |done, total| {
-        bar.set(done, total);
-    })?;
+    let summary = run_stoppable(
+        &opts,
+        settings,
+        |done, total| {
+            bar.set(done, total);
+        },
+        &stop,
+    )?;
     bar.finish();
     if summary.frames == 0 {
         // Exit non-zero: a run that looked at nothing has no result to stand for.
         anyhow::bail!(
-            "no frame of {} could be used ({} skipped){}",
+            "no frame of {} could be used ({} skipped){}; {} left as it was",
             opts.dataset.display(),
             summary.skipped_frames,
-            summary.first_skip_reason.as_deref().map(|r| format!("; the first: {r}")).unwrap_or_default()
+            summary.first_skip_reason.as_deref().map(|r| format!("; the first: {r}")).unwrap_or_default(),
+            opts.out.display()
         );
     }
     println!(
@@ -156,7 +163,33 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
     for f in &summary.yaw_off_180_frames {
         println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
     }
+    if !summary.complete {
+        eprintln!(
+            "mavloc area: stopped by Ctrl-C after {} frames; their results are in {} (summary.json: \"complete\": false)",
+            summary.frames + summary.skipped_frames,
+            opts.out.display()
+        );
+        return Ok(ExitCode::from(130));
+    }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Ctrl-C ends the run after the frame in hand and puts the results so far in place; a
+/// second Ctrl-C ends the process at once (the earlier results then stay, whole).
+fn stop_on_ctrl_c() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    // SAFETY: the action only swaps an atomic and calls `_exit`, both async-signal-safe.
+    unsafe {
+        signal_hook_registry::register(libc::SIGINT, move || {
+            if flag.swap(true, Ordering::SeqCst) {
+                libc::_exit(130);
+            }
+        })
+    }
+    .map_err(|e| anyhow::anyhow!("cannot handle Ctrl-C: {e}"))?;
+    Ok(stop)
 }
 
 /// Whether a folder has JPEG photos directly in it (raw photos, not a dataset).

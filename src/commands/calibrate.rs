@@ -70,7 +70,7 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
         debug_masks: false,
     };
     let bar = Progress::new("area", "frames");
-    let (summary, obs) = run_observed(&opts, &settings, |d, t| bar.set(d, t), true)?;
+    let (summary, obs) = run_observed(&opts, &settings, |d, t| bar.set(d, t), true, None)?;
     bar.finish();
     drop(temp);
     let k = obs.k.ok_or_else(|| anyhow!("no frame of {} could be used", a.dataset.display()))?;

@@ -13,8 +13,7 @@ use mavloc_sim::RenderOptions;
 
 /// The flight, rendered once per build of the tests (see `fixtures`).
 fn render(name: &str, frames: usize) -> std::path::PathBuf {
-    let opts = RenderOptions { frames: Some(frames), size: Some((480, 270)), ..RenderOptions::default() };
-    crate::fixtures::rendered(&format!("{name}-{frames}-480x270"), name, &opts)
+    crate::fixtures::small_flight(name, frames)
 }
 
 fn settings() -> Settings {

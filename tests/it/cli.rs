@@ -627,3 +627,113 @@ fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
         assert!((v - want).abs() < 0.2, "with the marker, {key}: {v} (want {want})\n{out}");
     }
 }
+
+/// The names in a folder, sorted.
+fn names_in(dir: &std::path::Path) -> Vec<String> {
+    let mut v: Vec<String> =
+        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    v.sort();
+    v
+}
+
+/// Waits (at most 60 s) until `child` has made its staging folder `.NAME.partial-PID` in
+/// `parent`.
+fn wait_for_stage(parent: &std::path::Path, name: &str, child: &mut std::process::Child) {
+    let start = std::time::Instant::now();
+    while !names_in(parent).iter().any(|n| n.starts_with(&format!(".{name}.partial-"))) {
+        assert!(child.try_wait().unwrap().is_none(), "the run ended before it began writing");
+        assert!(start.elapsed().as_secs() < 60, "no staging folder after 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
+/// `mavloc area --out R` replaces R's results as a set. A later run leaves no file of an
+/// earlier one beside its own (the earlier run's trace and contact sheets); a run killed
+/// part way leaves the earlier set exactly as it was (each file written atomically was
+/// not enough: such a run left a new `landmarks.csv` beside the old `summary.json`);
+/// Ctrl-C ends a run after its frame in hand with the frames so far put in place
+/// (`complete: false`, exit 130); a folder of other files is refused, not replaced.
+#[test]
+fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one() {
+    let short = crate::fixtures::small_flight("coastline", 30);
+    let long = crate::fixtures::small_flight("coastline", 240);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("r");
+    let small = ["--set", "area.downscale=1", "--set", "area.band_px=13"];
+    let area = |ds: &std::path::Path| {
+        let mut c = mavloc();
+        c.args(["area", "--dataset"]).arg(ds).arg("--out").arg(&out).args(small);
+        c
+    };
+    stdout_of(area(&short).args(["--trace", "--debug-masks"]));
+    let first = names_in(&out);
+    assert!(first.contains(&"trace.csv".to_string()) && first.iter().any(|n| n.starts_with("masks")), "{first:?}");
+    stdout_of(area(&short).args(["--method", "ground-plane"]));
+    let second = names_in(&out);
+    assert!(
+        !second.iter().any(|n| n == "trace.csv" || n.starts_with("masks")),
+        "the ground-plane run's folder holds the earlier run's files: {second:?}"
+    );
+    let summary = |p: &std::path::Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p.join("summary.json")).unwrap()).unwrap()
+    };
+    assert_eq!(summary(&out)["method"], "ground-plane");
+    let snapshot = |p: &std::path::Path| -> Vec<(String, Vec<u8>)> {
+        names_in(p).into_iter().map(|n| (n.clone(), std::fs::read(p.join(&n)).unwrap())).collect()
+    };
+    let before = snapshot(&out);
+
+    // Killed part way through a longer run.
+    let spawn = || {
+        std::process::Command::new(crate::fixtures::BIN)
+            .args(["area", "--dataset"])
+            .arg(&long)
+            .arg("--out")
+            .arg(&out)
+            .args(small)
+            .env_remove("MAVLOC_CONFIG")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let mut child = spawn();
+    wait_for_stage(dir.path(), "r", &mut child);
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(snapshot(&out) == before, "a killed run changed the earlier results: {:?}", names_in(&out));
+
+    // Ctrl-C: the frames so far, put in place.
+    let mut child = spawn();
+    wait_for_stage(dir.path(), "r", &mut child);
+    std::thread::sleep(std::time::Duration::from_millis(1000));
+    // SAFETY: a plain kill(2) of our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    let stderr = crate::fixtures::read_in_background(child.stderr.take().unwrap());
+    let start = std::time::Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(start.elapsed().as_secs() < 60, "Ctrl-C did not end the run within 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let stderr = stderr.join().unwrap();
+    assert_eq!(status.code(), Some(130), "{stderr}");
+    assert!(stderr.contains("stopped by Ctrl-C"), "{stderr}");
+    let s = summary(&out);
+    assert_eq!((s["method"].as_str(), s["complete"].as_bool()), (Some("ukf"), Some(false)), "{s}");
+    let frames = s["frames"].as_u64().unwrap();
+    assert!(frames > 0 && frames < 240, "{frames} frames");
+    assert_eq!(names_in(dir.path()), ["r"], "no staging folder left");
+
+    // A folder that holds something else.
+    let other = dir.path().join("notes");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("a.txt"), "mine").unwrap();
+    let a = mavloc().args(["area", "--dataset"]).arg(&short).arg("--out").arg(&other).assert().failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("not mavloc area results"), "{err}");
+    assert_eq!(names_in(&other), ["a.txt"]);
+}

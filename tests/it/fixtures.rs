@@ -110,6 +110,12 @@ pub fn renoised(key: &str, frames: &Path, scenario: &str, opts: &RenderOptions) 
     })
 }
 
+/// `frames` frames of `scenario`'s flight with the seed's noise at 480x270.
+pub fn small_flight(scenario: &str, frames: usize) -> PathBuf {
+    let opts = RenderOptions { frames: Some(frames), size: Some((480, 270)), ..RenderOptions::default() };
+    rendered(&format!("{scenario}-{frames}-480x270"), scenario, &opts)
+}
+
 /// The coastline's first 100 frames at 960x540 as photos: every frame's gimbal yaw and
 /// pitch 3 deg off on its own, GNSS-grade positions (0.3/0.3/0.5 m).
 pub fn coastline_photo_noise_flight() -> PathBuf {
