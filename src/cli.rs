@@ -98,8 +98,12 @@ pub struct CalibrateGimbalArgs {
     #[arg(long, requires = "marker")]
     pub marker_pixels: Option<PathBuf>,
     /// SD of the prior on each offset, degrees (it only keeps an unobservable one at 0).
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, value_parser = positive, default_value_t = 10.0)]
     pub prior_deg: f64,
+    /// The largest SD (degrees, over groups of frames) an offset may have to be reported as
+    /// calibrated and written; above it the command exits 2 and writes nothing.
+    #[arg(long, value_parser = positive, default_value_t = 0.5)]
+    pub max_sd_deg: f64,
     /// Write the offsets into this configuration file's [gimbal] section (other lines and
     /// comments kept).
     #[arg(long)]
@@ -132,7 +136,7 @@ pub enum ImportCommand {
         /// ground's altitude in the photos' GPS altitude (m). Photos with no attitude tags
         /// at all are taken as from a camera fixed to a level airframe heading along its
         /// track.
-        #[arg(long, allow_hyphen_values = true, value_name = "METRES")]
+        #[arg(long, value_parser = number, allow_hyphen_values = true, value_name = "METRES")]
         ground_alt_m: Option<f64>,
     },
 }
@@ -151,10 +155,10 @@ pub struct DemoArgs {
     #[arg(long, default_value = "out/demo")]
     pub out: PathBuf,
     /// Seconds of coastline flight before the vehicle lands.
-    #[arg(long, default_value_t = 90.0)]
+    #[arg(long, value_parser = positive, default_value_t = 90.0)]
     pub coast_s: f64,
     /// Longest indoor flight, seconds (mavloc's landing normally ends it sooner).
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, value_parser = positive, default_value_t = 60.0)]
     pub indoor_s: f64,
     /// Views of the floor rendered to train the indoor model.
     #[arg(long, default_value_t = 1000)]
@@ -185,10 +189,10 @@ pub enum SimCommand {
         #[arg(long)]
         out: PathBuf,
         /// Half the side of the square, metres.
-        #[arg(long, default_value_t = 4.0)]
+        #[arg(long, value_parser = positive, default_value_t = 4.0)]
         half_extent_m: f64,
         /// Ground size of one pixel, metres.
-        #[arg(long, default_value_t = 0.01)]
+        #[arg(long, value_parser = positive, default_value_t = 0.01)]
         metres_per_px: f64,
     },
     /// Run a simulated MAVLink vehicle (PX4-like autopilot with a gimbal) that flies a
@@ -205,10 +209,10 @@ pub enum SimCommand {
         #[arg(long, default_value_t = 1)]
         system_id: u8,
         /// Land after this many seconds of mission and exit once on the ground (default: fly until stopped).
-        #[arg(long)]
+        #[arg(long, value_parser = positive)]
         duration: Option<f64>,
         /// Start this many seconds into the mission.
-        #[arg(long, default_value_t = 0.0)]
+        #[arg(long, value_parser = non_negative, default_value_t = 0.0)]
         start: f64,
         /// Write the true state (t, north, east, down, roll, pitch, yaw, phase) to this CSV at 10 Hz.
         #[arg(long)]
@@ -240,36 +244,36 @@ pub struct RenderArgs {
     #[arg(long, conflicts_with_all = ["gimbal_sd_deg", "position_sd_m", "gimbal_offset_deg", "gimbal_lag_s", "drop_rate", "gimbal_drift_deg"])]
     pub no_noise: bool,
     /// Gimbal yaw and pitch noise SD, degrees (seed table 6.2: 0.5).
-    #[arg(long)]
+    #[arg(long, value_parser = non_negative)]
     pub gimbal_sd_deg: Option<f64>,
     /// Position noise SD north,east,down in metres (seed table 6.2: 0.5,0.5,2).
-    #[arg(long, value_parser = parse_triple, value_name = "N,E,D")]
+    #[arg(long, value_parser = parse_sd_triple, value_name = "N,E,D")]
     pub position_sd_m: Option<[f64; 3]>,
     /// Static gimbal offsets yaw,pitch,roll in degrees (seed sec. 6.10).
     #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
     pub gimbal_offset_deg: Option<[f64; 3]>,
     /// Gimbal telemetry lags the frames by this many seconds (seed sec. 5.6.1).
-    #[arg(long)]
+    #[arg(long, value_parser = number)]
     pub gimbal_lag_s: Option<f64>,
     /// SD of a slowly varying gimbal error yaw,pitch,roll in degrees (an autopilot's
     /// attitude estimate wanders; PX4 SIH's heading: 3 SD).
-    #[arg(long, value_parser = parse_triple, value_name = "YAW,PITCH,ROLL")]
+    #[arg(long, value_parser = parse_sd_triple, value_name = "YAW,PITCH,ROLL")]
     pub gimbal_drift_deg: Option<[f64; 3]>,
     /// Correlation time of that error, seconds (default 20).
-    #[arg(long, requires = "gimbal_drift_deg")]
+    #[arg(long, value_parser = positive, requires = "gimbal_drift_deg")]
     pub gimbal_drift_tau_s: Option<f64>,
     /// Fraction of frames dropped, 0..1.
-    #[arg(long)]
+    #[arg(long, value_parser = fraction)]
     pub drop_rate: Option<f64>,
     /// Render this many random labelled views instead of the flight (indoor-floor only;
     /// indoor seed sec. 3.4.2).
     #[arg(long)]
     pub views: Option<usize>,
     /// Brightness offset for every frame of the flight, grey levels.
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long, value_parser = number, allow_hyphen_values = true)]
     pub brightness: Option<f64>,
     /// Contrast factor for every frame of the flight.
-    #[arg(long)]
+    #[arg(long, value_parser = non_negative)]
     pub contrast: Option<f64>,
     /// Box-blur kernel for every frame of the flight, pixels (odd).
     #[arg(long)]
@@ -338,7 +342,7 @@ pub struct IndoorTrainArgs {
     #[arg(long, requires = "map_metres_per_px")]
     pub orthomap: Option<PathBuf>,
     /// The orthomap's scale, metres per pixel.
-    #[arg(long)]
+    #[arg(long, value_parser = positive)]
     pub map_metres_per_px: Option<f64>,
     /// North, east of the orthomap's top-left pixel, metres (default: map centred on the
     /// origin).
@@ -391,7 +395,7 @@ pub struct LandingsArgs {
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
     /// Give up a trial after this long, seconds.
-    #[arg(long, default_value_t = 60.0)]
+    #[arg(long, value_parser = positive, default_value_t = 60.0)]
     pub max_s: f64,
     /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
@@ -404,7 +408,7 @@ pub struct MapEvalArgs {
     #[arg(long)]
     pub map: PathBuf,
     /// Its scale, metres per pixel.
-    #[arg(long, default_value_t = 0.005)]
+    #[arg(long, value_parser = positive, default_value_t = 0.005)]
     pub metres_per_px: f64,
     /// Synthetic views to generate.
     #[arg(long, default_value_t = 400)]
@@ -413,7 +417,7 @@ pub struct MapEvalArgs {
     #[arg(long, default_value = "map-eval.png")]
     pub out: PathBuf,
     /// SD of the ideal similarity, metres (sigma_x = sigma_y, sec. 3.4.1).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, value_parser = positive, default_value_t = 0.5)]
     pub sigma_m: f64,
     /// Print one JSON object.
     #[arg(long)]
@@ -483,26 +487,88 @@ pub enum ParamsCommand {
 
 /// Parses `a,b` into two numbers.
 fn parse_pair(s: &str) -> Result<[f64; 2], String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>().map_err(|_| format!("`{p}` is not a number")))
-        .collect::<Result<_, _>>()?;
+    let v = numbers(s, number)?;
     <[f64; 2]>::try_from(v).map_err(|v| format!("expected two comma-separated numbers, got {}", v.len()))
 }
 
 /// Parses `a,b,c` into three numbers.
 fn parse_triple(s: &str) -> Result<[f64; 3], String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>().map_err(|_| format!("`{p}` is not a number")))
-        .collect::<Result<_, _>>()?;
+    let v = numbers(s, number)?;
     <[f64; 3]>::try_from(v).map_err(|v| format!("expected three comma-separated numbers, got {}", v.len()))
+}
+
+/// Parses `a,b,c` into three numbers of 0 or more (standard deviations).
+fn parse_sd_triple(s: &str) -> Result<[f64; 3], String> {
+    let v = numbers(s, non_negative)?;
+    <[f64; 3]>::try_from(v).map_err(|v| format!("expected three comma-separated numbers, got {}", v.len()))
+}
+
+fn numbers(s: &str, each: fn(&str) -> Result<f64, String>) -> Result<Vec<f64>, String> {
+    s.split(',').map(|p| each(p.trim())).collect()
+}
+
+/// A finite number: Rust's parser also takes `nan` and `inf`, which would reach datasets
+/// and reports as `null` (a NaN mount angle made a dataset mavloc itself could not read).
+fn number(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        Ok(_) => Err(format!("`{s}` is not a finite number")),
+        Err(_) => Err(format!("`{s}` is not a number")),
+    }
+}
+
+/// A finite number above 0 (a scale, a duration, a standard deviation that divides).
+fn positive(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| if v > 0.0 { Ok(v) } else { Err(format!("`{s}` must be above 0")) })
+}
+
+/// A finite number of 0 or more (a standard deviation, a factor).
+fn non_negative(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| if v >= 0.0 { Ok(v) } else { Err(format!("`{s}` must be 0 or more")) })
+}
+
+/// A fraction, 0 to 1.
+fn fraction(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| {
+        if (0.0..=1.0).contains(&v) {
+            Ok(v)
+        } else {
+            Err(format!("`{s}` must be between 0 and 1"))
+        }
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use clap::CommandFactory;
+
+    /// `nan` and `inf` parse as f64 but are not values: refused by every number argument,
+    /// as are negative SDs and scales.
+    #[test]
+    fn number_arguments_refuse_what_is_not_a_value() {
+        let parse =
+            |args: &[&str]| Cli::try_parse_from(args.iter().copied()).map(|_| ()).map_err(|e| e.to_string());
+        let render = ["mavloc", "sim", "render", "--scenario", "coastline", "--out", "x"];
+        assert!(parse(&[&render[..], &["--gimbal-offset-deg", "1,-2,0.5"]].concat()).is_ok());
+        for (bad, says) in [
+            (&["--gimbal-offset-deg", "nan,0,0"][..], "`nan` is not a finite number"),
+            (&["--gimbal-sd-deg", "nan"], "`nan` is not a finite number"),
+            (&["--gimbal-sd-deg=-1"], "`-1` must be 0 or more"),
+            (&["--position-sd-m", "0.5,inf,2"], "`inf` is not a finite number"),
+            (&["--drop-rate", "1.5"], "`1.5` must be between 0 and 1"),
+        ] {
+            let e = parse(&[&render[..], bad].concat()).unwrap_err();
+            assert!(e.contains(says), "{bad:?}: {e}");
+        }
+        let e = parse(&["mavloc", "import", "photos", "d", "--out", "o", "--mount-deg", "nan,-90,0"])
+            .unwrap_err();
+        assert!(e.contains("not a finite number"), "{e}");
+        let e = parse(&["mavloc", "indoor", "map-eval", "--map", "m.png", "--sigma-m", "0"]).unwrap_err();
+        assert!(e.contains("must be above 0"), "{e}");
+        let e = parse(&["mavloc", "calibrate", "gimbal", "--dataset", "d", "--prior-deg", "0"]).unwrap_err();
+        assert!(e.contains("must be above 0"), "{e}");
+    }
 
     #[test]
     fn cli_definition_is_consistent() {

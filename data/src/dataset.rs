@@ -291,6 +291,9 @@ impl Dataset {
         let camera: CameraFile = toml::from_str(&read(CAMERA_FILE)?)
             .map_err(|e| format!("{}: {e}", dir.join(CAMERA_FILE).display()))?;
         camera.intrinsics().validate().map_err(|e| format!("{}: {e}", dir.join(CAMERA_FILE).display()))?;
+        // An origin off the globe would put every result somewhere else (lat 95 came out
+        // as 85 N, 170 W in the KML).
+        camera.origin.validate().map_err(|e| format!("{}: origin: {e}", dir.join(CAMERA_FILE).display()))?;
 
         let tpath = dir.join(TELEMETRY_FILE);
         let f = fs::File::open(&tpath)
@@ -384,6 +387,11 @@ mod tests {
         let ds = Dataset::open(d).unwrap();
         assert_eq!(ds.camera, camera());
         assert_eq!(ds.records, recs);
+        // An origin off the globe is refused by name.
+        write_camera(d, &CameraFile { origin: Geodetic::new(95.0, 10.0, 20.0), ..camera() }).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("camera.toml: origin: latitude 95"), "{e}");
+        write_camera(d, &camera()).unwrap();
         assert_eq!(ds.ground_truth, lines);
         let csv = fs::read_to_string(d.join(GROUND_TRUTH_CSV)).unwrap();
         assert!(

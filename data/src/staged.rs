@@ -112,7 +112,8 @@ fn followed(path: &Path) -> Result<PathBuf, String> {
     for _ in 0..40 {
         match fs::symlink_metadata(&p) {
             Ok(m) if m.file_type().is_symlink() => {
-                let to = fs::read_link(&p).map_err(|e| format!("cannot read the link {}: {e}", p.display()))?;
+                let to =
+                    fs::read_link(&p).map_err(|e| format!("cannot read the link {}: {e}", p.display()))?;
                 p = match p.parent() {
                     Some(dir) if to.is_relative() => dir.join(to),
                     _ => to,
@@ -280,7 +281,11 @@ mod tests {
         let link = root.path().join("data");
         std::os::unix::fs::symlink("sd/data", &link).unwrap();
         let s = StagedDir::begin(&link, true).unwrap();
-        assert!(s.path().starts_with(root.path().join("sd")), "staged beside the real folder: {:?}", s.path());
+        assert!(
+            s.path().starts_with(root.path().join("sd")),
+            "staged beside the real folder: {:?}",
+            s.path()
+        );
         fs::write(s.path().join("new"), "y").unwrap();
         s.commit().unwrap();
         assert!(fs::symlink_metadata(&link).unwrap().file_type().is_symlink(), "the link stays a link");
@@ -290,7 +295,10 @@ mod tests {
         let later = root.path().join("later");
         std::os::unix::fs::symlink(root.path().join("sd/later"), &later).unwrap();
         StagedDir::begin(&later, false).unwrap().commit().unwrap();
-        assert!(root.path().join("sd/later").is_dir() && fs::symlink_metadata(&later).unwrap().file_type().is_symlink());
+        assert!(
+            root.path().join("sd/later").is_dir()
+                && fs::symlink_metadata(&later).unwrap().file_type().is_symlink()
+        );
     }
 
     #[test]

@@ -18,6 +18,11 @@ pub enum WorldKind {
     IndoorFloor,
 }
 
+/// The largest frame side the renderer takes, pixels (an 8K sensor is 7680 wide).
+pub const MAX_SIDE_PX: u32 = 16384;
+/// The most pixels a rendered frame may have (about 800 MB to render).
+pub const MAX_PIXELS: u64 = 40_000_000;
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Scenario {
@@ -265,6 +270,16 @@ impl Scenario {
                 c.width, c.height, c.hfov_deg
             ));
         }
+        // A frame takes about 20 bytes a pixel to render (depth buffer, colour, mask): a
+        // size the machine cannot hold is refused here, not by an allocation abort.
+        if c.width > MAX_SIDE_PX || c.height > MAX_SIDE_PX || c.width as u64 * c.height as u64 > MAX_PIXELS {
+            return Err(format!(
+                "camera: {}x{} px is larger than the renderer takes (at most {MAX_SIDE_PX} px a side and {} megapixels)",
+                c.width,
+                c.height,
+                MAX_PIXELS / 1_000_000
+            ));
+        }
         let m = &self.mission;
         if !(m.speed_m_s > 0.0 && m.frame_rate_hz > 0.0 && m.waypoint_spacing_m > 0.0 && m.altitude_m > 0.0) {
             return Err("mission: speed, frame rate, waypoint spacing and altitude must be positive".into());
@@ -309,6 +324,27 @@ mod tests {
     fn unknown_scenario_lists_the_built_in_ones() {
         let e = Scenario::load("moon").unwrap_err();
         assert!(e.contains("coastline") && e.contains("indoor-floor"), "{e}");
+    }
+
+    /// Sizes the renderer cannot hold are refused by name (100000x100000 aborted the
+    /// process allocating 160 GB); an 8K frame and the small ones pass.
+    #[test]
+    fn camera_sizes_are_checked_both_ways() {
+        let mut s = Scenario::load("coastline").unwrap();
+        for (w, h, ok) in [
+            (16, 16, true),
+            (7680, 4320, true),
+            (8, 90, false),
+            (100_000, 100_000, false),
+            (16384, 4096, false),
+        ] {
+            (s.camera.width, s.camera.height) = (w, h);
+            let r = s.validate();
+            assert_eq!(r.is_ok(), ok, "{w}x{h}: {r:?}");
+            if let Err(e) = r {
+                assert!(e.contains(&format!("{w}x{h} px")), "{e}");
+            }
+        }
     }
 
     #[test]

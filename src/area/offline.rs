@@ -812,9 +812,7 @@ pub fn run_observed(
         // is reported, not fatal, since the results are already written.
         let points: Vec<_> = results.iter().map(|l| l.position).collect();
         let title = format!("{} landmarks, local NED around the dataset origin", points.len());
-        if let Err(e) =
-            output::plot::landmark_views(&out.join("views.png"), &points, &[], &borders, &title)
-        {
+        if let Err(e) = output::plot::landmark_views(&out.join("views.png"), &points, &[], &borders, &title) {
             tracing::warn!("views.png not drawn: {e}");
         }
     }

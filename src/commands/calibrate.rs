@@ -84,9 +84,22 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
     if let (Some(m), Some(path)) = (a.marker, &a.marker_pixels) {
         const MARKER: u64 = u64::MAX;
         let scale = obs.downscale.max(1) as f64;
-        for (f, u, v) in marker_pixels(path)? {
+        let full = ds.camera.intrinsics();
+        let pixels = marker_pixels(path)?;
+        if pixels.is_empty() {
+            bail!("{}: no marker pixel (`frame,u,v` per line)", path.display());
+        }
+        for (f, u, v) in pixels {
             if !records.contains_key(&f) {
                 bail!("{}: frame {f} is not in the dataset", path.display());
+            }
+            if !full.contains(Pixel::new(u, v)) {
+                bail!(
+                    "{}: frame {f}: the marker at ({u}, {v}) is not on the {}x{} image",
+                    path.display(),
+                    full.width,
+                    full.height
+                );
             }
             sightings.push((f, MARKER, Pixel::new((u + 0.5) / scale - 0.5, (v + 0.5) / scale - 0.5)));
         }
@@ -99,6 +112,16 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
         );
     }
     let c = crate::area::refine::calibrate(&sightings, &obs.landmarks, &fixed, &pose, &k, a.prior_deg);
+    if c.sightings == 0 {
+        bail!(
+            "{} landmarks converged over {} frames ({} sightings), but every one had a sighting far off the first fit and was left out \
+             (per-frame telemetry noise that one shared offset cannot explain): nothing to calibrate against; calibrate on a flight \
+             with better positions and attitude, or over a surveyed marker (--marker)",
+            obs.landmarks.len(),
+            summary.frames,
+            obs.sightings.len()
+        );
+    }
     // The solver's SD counts each sighting as independent; a frame's position and gimbal
     // errors are shared by all its sightings, which it does not see (2 m of height noise
     // per frame moved the pitch by 2.3 deg where it claimed 0.03). The SD reported is a
@@ -137,6 +160,21 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
             names[i], total[i], jack_sd[i], c.sd_deg[i], base[i]
         );
     }
+    // An estimate the flight does not determine is not a calibration: written into a
+    // configuration it would turn every later map (50 deg SDs from 50 video frames).
+    let unsure: Vec<String> = (0..3)
+        .filter(|&i| !(total[i].is_finite() && jack_sd[i] <= a.max_sd_deg))
+        .map(|i| format!("{} (SD {:.2} deg)", names[i], jack_sd[i]))
+        .collect();
+    if !unsure.is_empty() {
+        eprintln!(
+            "mavloc calibrate gimbal: {} not determined within --max-sd-deg {}: {}; fly longer, over several lines or a turn, or over a surveyed marker",
+            unsure.join(", "),
+            a.max_sd_deg,
+            a.write.as_ref().map_or("not to be used".to_string(), |p| format!("{} left unchanged", p.display()))
+        );
+        return Ok(ExitCode::from(2));
+    }
     if let Some(path) = &a.write {
         let text = std::fs::read_to_string(path).unwrap_or_default();
         let mut doc: toml_edit::DocumentMut =
@@ -145,7 +183,16 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
             doc["gimbal"] = toml_edit::table();
         }
         for i in 0..3 {
-            doc["gimbal"][names[i]] = toml_edit::value((total[i] * 1000.0).round() / 1000.0);
+            let v = (total[i] * 1000.0).round() / 1000.0;
+            match doc["gimbal"].get_mut(names[i]) {
+                // The value replaced, its comments (`# deg`) and spacing kept.
+                Some(toml_edit::Item::Value(old)) => {
+                    let decor = old.decor().clone();
+                    *old = v.into();
+                    *old.decor_mut() = decor;
+                }
+                _ => doc["gimbal"][names[i]] = toml_edit::value(v),
+            }
         }
         crate::data::write_atomic(path, doc.to_string().as_bytes())
             .with_context(|| format!("cannot write {}", path.display()))?;

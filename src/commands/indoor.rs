@@ -3,7 +3,7 @@
 
 use std::process::ExitCode;
 
-use anyhow::anyhow;
+use anyhow::{anyhow, bail};
 
 use super::{Global, Progress};
 use crate::cli::IndoorCommand;
@@ -119,6 +119,13 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         IndoorCommand::MapEval(a) => {
+            // Checked before minutes of rendering, not after.
+            if a.out.is_dir() {
+                bail!("--out {} is a folder: give the heat map's file name (.png)", a.out.display());
+            }
+            if let Some(parent) = a.out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
+                bail!("--out {}: the folder {} does not exist", a.out.display(), parent.display());
+            }
             let bar = Progress::new("rendering views", "views");
             let e = crate::simulated::mapeval::evaluate(
                 &a.map,
@@ -133,13 +140,11 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             bar.finish();
             let title = format!("{}: L(D) = {:.4} over {} views", a.map.display(), e.global_loss, e.views);
             let drawn = crate::indoor::mapeval::heatmap(&a.out, &e, 0.25, &title);
-            if let Err(why) = &drawn {
-                tracing::warn!("heat map not written: {why}");
-            }
             if a.json {
+                let heatmap = drawn.is_ok().then_some(&a.out);
                 println!(
                     "{}",
-                    serde_json::json!({"global_loss": e.global_loss, "views": e.views, "heatmap": a.out})
+                    serde_json::json!({"global_loss": e.global_loss, "views": e.views, "heatmap": heatmap})
                 );
             } else {
                 println!("global loss L(D) = {:.4} over {} views (lower is better)", e.global_loss, e.views);
@@ -147,6 +152,8 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                     println!("heat map: {}", a.out.display());
                 }
             }
+            // The loss is printed; the run still failed at what it was asked for.
+            drawn.map_err(|why| anyhow!("heat map not written to {}: {why}", a.out.display()))?;
             Ok(ExitCode::SUCCESS)
         }
     }

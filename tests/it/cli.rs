@@ -180,6 +180,18 @@ fn indoor_map_eval_prints_the_global_loss_and_writes_the_heat_map() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("no-such.png"));
+    // An --out it cannot write is refused before the views are rendered, naming it.
+    for (out, says) in
+        [(dir.path().to_path_buf(), "is a folder"), (dir.path().join("no/x.png"), "does not exist")]
+    {
+        let a = mavloc()
+            .args(["indoor", "map-eval", "--map", "sim/assets/aukerman.png", "--out"])
+            .arg(&out)
+            .assert()
+            .failure();
+        let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+        assert!(err.contains(says) && err.contains(&out.display().to_string()), "{err}");
+    }
 }
 
 /// A value tuned over MAVLink is a visible layer: `config show` names it, `--set` beats
@@ -571,7 +583,11 @@ fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
     let dir = tempfile::tempdir().unwrap();
     let ds = offset_flight();
     let config = dir.path().join("mavloc.toml");
-    std::fs::write(&config, "# my drone\n[gimbal]\nchain = \"yaw-pitch-roll\" # kept\n").unwrap();
+    std::fs::write(
+        &config,
+        "# my drone\n[gimbal]\nchain = \"yaw-pitch-roll\" # kept\npitch_offset_deg = 0.0 # deg, from the bench\n",
+    )
+    .unwrap();
     let out =
         stdout_of(mavloc().args(["calibrate", "gimbal", "--dataset"]).arg(&ds).arg("--write").arg(&config));
     // The reported angles carry the offset; the correction is its opposite.
@@ -583,7 +599,9 @@ fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
     }
     let written = std::fs::read_to_string(&config).unwrap();
     assert!(
-        written.starts_with("# my drone\n") && written.contains("chain = \"yaw-pitch-roll\" # kept"),
+        written.starts_with("# my drone\n")
+            && written.contains("chain = \"yaw-pitch-roll\" # kept")
+            && written.contains(" # deg, from the bench"),
         "{written}"
     );
     let check = stdout_of(mavloc().args(["config", "check"]).arg(&config));
@@ -613,14 +631,26 @@ fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
         .collect();
     let pixels = dir.path().join("marker.csv");
     std::fs::write(&pixels, csv).unwrap();
-    let out = stdout_of(
-        mavloc()
-            .args(["calibrate", "gimbal", "--dataset"])
-            .arg(&ds)
-            .arg(format!("--marker={},{},{}", marker.x, marker.y, marker.z))
-            .arg("--marker-pixels")
-            .arg(&pixels),
+    // With the marker, and an SD bound no flight meets: the offsets are printed, nothing
+    // is written, exit 2.
+    let before = std::fs::read_to_string(&config).unwrap();
+    let a = mavloc()
+        .args(["calibrate", "gimbal", "--dataset"])
+        .arg(&ds)
+        .arg(format!("--marker={},{},{}", marker.x, marker.y, marker.z))
+        .arg("--marker-pixels")
+        .arg(&pixels)
+        .args(["--max-sd-deg", "0.001", "--write"])
+        .arg(&config)
+        .assert()
+        .code(2);
+    let out = String::from_utf8_lossy(&a.get_output().stdout).to_string();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(
+        err.contains("not determined within --max-sd-deg 0.001") && err.contains("left unchanged"),
+        "{err}"
     );
+    assert_eq!(std::fs::read_to_string(&config).unwrap(), before, "an unsure calibration is not written");
     assert!(out.contains("and the marker"), "{out}");
     for (key, want) in want {
         let (v, _) = calibrated(&out, key);
@@ -630,8 +660,10 @@ fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
 
 /// The names in a folder, sorted.
 fn names_in(dir: &std::path::Path) -> Vec<String> {
-    let mut v: Vec<String> =
-        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
     v.sort();
     v
 }
@@ -667,7 +699,10 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
     };
     stdout_of(area(&short).args(["--trace", "--debug-masks"]));
     let first = names_in(&out);
-    assert!(first.contains(&"trace.csv".to_string()) && first.iter().any(|n| n.starts_with("masks")), "{first:?}");
+    assert!(
+        first.contains(&"trace.csv".to_string()) && first.iter().any(|n| n.starts_with("masks")),
+        "{first:?}"
+    );
     stdout_of(area(&short).args(["--method", "ground-plane"]));
     let second = names_in(&out);
     assert!(
