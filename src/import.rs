@@ -564,6 +564,14 @@ fn track_headings(photos: &mut [(f64, PathBuf, PhotoTags)]) {
         });
         photos[i].2.flight_deg[2] = c.unwrap_or(0.0);
     }
+    if courses.iter().all(Option::is_none) {
+        tracing::warn!(
+            "no track to take a heading from ({} photo{} less than 0.5 m apart): heading 0 (north) assumed; \
+             the alignment by tie points cannot correct a heading without overlapping photos",
+            n,
+            if n == 1 { "" } else { "s" }
+        );
+    }
 }
 
 /// Nadir within this: turning the image about the optical axis is then a yaw of 180 deg.
@@ -635,17 +643,35 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             dir.display()
         ));
     }
-    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+    let entries: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| format!("{}: {e}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    let mut paths: Vec<PathBuf> = entries
+        .iter()
         .filter(|p| {
             let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
-            ext == "jpg" || ext == "jpeg"
+            p.is_file() && (ext == "jpg" || ext == "jpeg")
         })
+        .cloned()
         .collect();
     paths.sort();
+    // One folder, not a tree: said, so photos in a subfolder are not missed unnoticed.
+    let subfolders = entries.iter().filter(|p| p.is_dir()).count();
+    if subfolders > 0 {
+        tracing::warn!(
+            "{} subfolder{} of {} not searched: import each folder of photos on its own",
+            subfolders,
+            if subfolders == 1 { "" } else { "s" },
+            dir.display()
+        );
+    }
     if paths.is_empty() {
-        return Err(format!("{} holds no JPEG photos", dir.display()));
+        return Err(format!(
+            "{} holds no JPEG photos{}",
+            dir.display(),
+            if subfolders > 0 { " (its subfolders are not searched)" } else { "" }
+        ));
     }
     let mut report = ImportReport::default();
     let mut photos = Vec::new();
@@ -660,10 +686,33 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             Err(e) => {
                 let name = p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
                 tracing::warn!("skipped {e}");
-                report.skipped.push((name, e));
+                // The reason without the name `read_tags` puts first (the report names it).
+                let why = e.strip_prefix(&format!("{name}: ")).unwrap_or(&e).to_string();
+                report.skipped.push((name, why));
             }
         }
     }
+    // The same photo twice (a copy beside the original): one shot, not two views from one
+    // place, which would make the overlap checks and the alignment agree with themselves.
+    let mut seen: std::collections::BTreeMap<String, String> = std::collections::BTreeMap::new();
+    photos.retain(|(_, _, t)| {
+        let key = format!(
+            "{} {} {} {} {:?} {:?} {}x{}",
+            t.time, t.lat_deg, t.lon_deg, t.gps_alt_m, t.gimbal_deg, t.flight_deg, t.width, t.height
+        );
+        match seen.get(&key) {
+            Some(first) => {
+                let why = format!("the same shot as {first} (time, position and attitude)");
+                tracing::warn!("skipped {}: {why}", t.name);
+                report.skipped.push((t.name.clone(), why));
+                false
+            }
+            None => {
+                seen.insert(key, t.name.clone());
+                true
+            }
+        }
+    });
     if photos.is_empty() {
         let (first, why) = &report.skipped[0];
         let more = match report.skipped.len() {

@@ -66,7 +66,11 @@ impl FramesFrom {
         theirs.noise = ours.noise.clone();
         (theirs.base_dir, ours.base_dir) = (None, None);
         if theirs != ours {
-            let what = if theirs.seed != ours.seed {
+            // The scenario first: another scenario has another seed too, and naming the
+            // seed would hide what differs.
+            let what = if theirs.name != ours.name {
+                format!("scenario {:?} (this render: {:?})", theirs.name, ours.name)
+            } else if theirs.seed != ours.seed {
                 format!("seed {} (this render: {})", theirs.seed, ours.seed)
             } else if (theirs.camera.width, theirs.camera.height) != (ours.camera.width, ours.camera.height) {
                 format!(
@@ -74,10 +78,7 @@ impl FramesFrom {
                     theirs.camera.width, theirs.camera.height, ours.camera.width, ours.camera.height
                 )
             } else {
-                format!(
-                    "scenario {:?}, not this render's {:?} (or another setting than noise differs)",
-                    theirs.name, ours.name
-                )
+                format!("another setting of scenario {:?} than its noise", theirs.name)
             };
             return Err(format!(
                 "--frames-from {}: rendered with {what}; render the frames anew",

@@ -189,6 +189,17 @@ fn frames_from_an_earlier_render_are_the_frames_a_new_render_gives() {
     let e = err(render("reseeded", offset.clone(), (96, 54), Some(7), Some("base")));
     assert!(e.contains("seed 1 (this render: 7)"), "{e}");
     assert!(!dir.path().join("reseeded").exists(), "a refused render leaves nothing");
+    // Another scenario is named as such (its seed differs too).
+    let opts = RenderOptions {
+        frames: Some(4),
+        size: Some((96, 54)),
+        frames_from: Some(dir.path().join("base")),
+        ..RenderOptions::default()
+    };
+    let e = render_dataset(&Scenario::load("cliff").unwrap(), &opts, &dir.path().join("cliff"), |_, _| {})
+        .map(|_| ())
+        .unwrap_err();
+    assert!(e.contains("scenario \"coastline\" (this render: \"cliff\")"), "{e}");
     let dropping = NoiseSpec { drop_rate: 0.5, ..NoiseSpec::default() };
     let sparse = render("sparse", dropping, (96, 54), None, None).unwrap();
     assert!(sparse.records.len() < 4, "the seed's draws drop a frame of four");

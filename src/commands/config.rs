@@ -11,19 +11,32 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
     match command {
         ConfigCommand::Check { file } => {
             // FILE, else --config (or MAVLOC_CONFIG), else the system file: one file, named.
+            // MAVLOC_CONFIG is a standing default (a shell profile, a unit's environment):
+            // the file named on the command line wins over it; two files named on the
+            // command line are refused.
+            let from_env = global.config.as_ref().is_some_and(|c| {
+                std::env::var_os("MAVLOC_CONFIG").is_some_and(|e| std::path::Path::new(&e) == c.as_path())
+            });
             let file = match (file, &global.config) {
-                (Some(f), Some(c)) if !same_file(&f, c) => anyhow::bail!(
-                    "two files to check: {} (the argument) and {} (--config or MAVLOC_CONFIG); give one",
+                (Some(f), Some(c)) if !from_env && !same_file(&f, c) => anyhow::bail!(
+                    "two files to check: {} (the argument) and {} (--config); give one",
                     f.display(),
                     c.display()
                 ),
                 (Some(f), _) => f,
-                (None, _) => global.config_file().ok_or_else(|| {
-                    anyhow::anyhow!(
-                        "no configuration file: give one (`mavloc config check FILE`) or install {}",
-                        settings::SYSTEM_CONFIG
-                    )
-                })?,
+                (None, _) => match global.config_file() {
+                    Some(f) => f,
+                    None => {
+                        use std::io::Write;
+                        let _ = writeln!(
+                            crate::logging::stderr(),
+                            "mavloc: no configuration file: give one (`mavloc config check FILE`) or install {}",
+                            settings::SYSTEM_CONFIG
+                        );
+                        // What `config check` promises for a configuration `run` cannot use.
+                        return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
+                    }
+                },
             };
             let layers = settings::Layers::from_process(Some(file.clone()), global.overrides);
             let loaded = match settings::check(&layers) {

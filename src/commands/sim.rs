@@ -36,6 +36,7 @@ pub fn run(command: SimCommand) -> anyhow::Result<ExitCode> {
                     "--half-extent-m and --metres-per-px must be positive, at most 16000 px a side"
                 );
             }
+            writable_image(&out)?;
             let scenario = mavloc_sim::Scenario::load(&scenario).map_err(|e| anyhow!(e))?;
             let world = mavloc_sim::World::build(&scenario).map_err(|e| anyhow!(e))?;
             let (w, h, rgb) = world.orthophoto(half_extent_m, metres_per_px);
@@ -139,8 +140,25 @@ fn image_write(path: &Path, w: usize, h: usize, rgb: &[u8]) -> anyhow::Result<()
     use opencv::prelude::*;
     let bgr = crate::imaging::bgr_from_rgb(rgb, h as u32)?;
     anyhow::ensure!(bgr.cols() as usize == w, "image width mismatch");
-    if !opencv::imgcodecs::imwrite(path, &bgr, &opencv::core::Vector::new())? {
+    let written = opencv::imgcodecs::imwrite(path, &bgr, &opencv::core::Vector::new())
+        .map_err(|e| anyhow!("cannot write {}: {}", path.display(), e.message))?;
+    if !written {
         anyhow::bail!("cannot write {}", path.display());
+    }
+    Ok(())
+}
+
+/// An image file `imwrite` can write at `path`, checked before the work that makes it.
+fn writable_image(path: &Path) -> anyhow::Result<()> {
+    if path.is_dir() {
+        anyhow::bail!("--out {} is a folder: give the image's file name (.png or .jpg)", path.display());
+    }
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    if !matches!(ext.as_str(), "png" | "jpg" | "jpeg" | "tif" | "tiff" | "bmp") {
+        anyhow::bail!("--out {}: name the image .png, .jpg, .tif or .bmp", path.display());
+    }
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
+        anyhow::bail!("--out {}: the folder {} does not exist", path.display(), parent.display());
     }
     Ok(())
 }

@@ -529,13 +529,15 @@ pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
     let origin =
         |key: &str| loaded.origins.get(key).cloned().unwrap_or_else(|| "the built-in default".into());
     let mut problems = Vec::new();
-    let mut need_file = |key: &str, path: &str, what: &str| {
+    // `usable` looks inside what exists: a path to the wrong kind of file passed the check
+    // and `run` then stayed up without a pipeline.
+    let mut need_file = |key: &str, path: &str, what: &str, usable: &dyn Fn(&Path) -> Result<(), String>| {
         let p = Path::new(path);
         let why = if path.is_empty() {
             Some(format!("{what} is needed and none is set"))
         } else {
             match std::fs::metadata(p) {
-                Ok(_) => None,
+                Ok(_) => usable(p).err().map(|e| format!("{what}: {e}")),
                 Err(e) => Some(format!("{what}: cannot read {}: {e}", p.display())),
             }
         };
@@ -553,14 +555,28 @@ pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
             "indoor.model",
             &s.indoor.model,
             "a floor model (mavloc indoor train) for daemon.pipeline = \"indoor\"",
+            &|p| crate::indoor::model::Model::load(p).map(|_| ()),
         );
     }
-    if matches!(s.camera.source, CameraSource::File | CameraSource::Dataset) {
-        need_file("camera.path", &s.camera.path, "a video, image folder or dataset for this camera source");
+    match s.camera.source {
+        CameraSource::Dataset => {
+            need_file("camera.path", &s.camera.path, "a dataset for this camera source", &|p| {
+                mavloc_data::Dataset::open(p).map(|_| ())
+            })
+        }
+        CameraSource::File => {
+            need_file("camera.path", &s.camera.path, "a video or image folder for this camera source", &|p| {
+                match std::fs::metadata(p) {
+                    Ok(m) if m.is_file() && m.len() == 0 => Err(format!("{} is empty", p.display())),
+                    _ => Ok(()),
+                }
+            })
+        }
+        _ => {}
     }
     let key = &s.mavlink.signing_key;
     if !key.is_empty() && !key.starts_with("credential:") {
-        need_file("mavlink.signing_key", key, "the signing key file");
+        need_file("mavlink.signing_key", key, "the signing key file", &|_| Ok(()));
     }
     // A live camera gives frames only: with `masks` or `learned` (which trains on a
     // dataset's masks, `mavloc area` only) the area pipeline would skip every frame.

@@ -47,6 +47,35 @@ fn documented_config_checks() {
     assert!(out.contains("valid"), "{out}");
 }
 
+/// The file named on the command line is the one checked, whatever MAVLOC_CONFIG says;
+/// `--config` and an argument that differ are refused; with no file at all the exit is 78,
+/// as for a configuration `run` cannot use.
+#[test]
+fn config_check_checks_the_file_it_is_given() {
+    let good = temp_config("[area]\nukf_alpha = 0.7\n");
+    let bad = temp_config("[area]\nukf_alfa = 0.7\n");
+    let a = mavloc()
+        .env("MAVLOC_CONFIG", good.path())
+        .args(["config", "check"])
+        .arg(bad.path())
+        .assert()
+        .code(78);
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("area.ukf_alfa") && err.contains(&bad.path().display().to_string()), "{err}");
+    let a = mavloc()
+        .arg("--config")
+        .arg(good.path())
+        .args(["config", "check"])
+        .arg(bad.path())
+        .assert()
+        .failure();
+    assert!(String::from_utf8_lossy(&a.get_output().stderr).contains("two files to check"));
+    if !std::path::Path::new("/etc/mavloc/mavloc.toml").exists() {
+        let a = mavloc().args(["config", "check"]).assert().code(78);
+        assert!(String::from_utf8_lossy(&a.get_output().stderr).contains("no configuration file"));
+    }
+}
+
 #[test]
 fn misspelt_key_fails_naming_key_and_file() {
     let f = temp_config("[area]\nukf_alfa = 0.7\n");
@@ -286,7 +315,20 @@ fn config_check_and_run_refuse_the_files_run_needs() {
         "run",
     ]);
     assert_eq!(run.status.code(), Some(78), "{}", String::from_utf8_lossy(&run.stderr));
+    // Files that exist but are not what they should be: refused the same way (before,
+    // `check` said valid and `run` stayed up without a pipeline).
     std::fs::write(dir.path().join("floor.model"), b"").unwrap();
+    std::fs::write(dir.path().join("empty.mp4"), b"").unwrap();
+    let video = format!("camera.path={}", dir.path().join("empty.mp4").display());
+    let check = mavloc(&["config", "check", "--set", &video, file.to_str().unwrap()]);
+    let said = String::from_utf8_lossy(&check.stderr);
+    assert!(
+        said.contains("2 problems")
+            && said.contains("not a mavloc model")
+            && said.contains("empty.mp4 is empty"),
+        "{said}"
+    );
+    std::fs::copy(crate::fixtures::small_indoor_model(), dir.path().join("floor.model")).unwrap();
     let check = mavloc(&["config", "check", file.to_str().unwrap()]);
     let said = String::from_utf8_lossy(&check.stderr);
     assert!(said.contains("1 problem") && !said.contains("indoor.model"), "{said}");
