@@ -145,6 +145,11 @@ impl Model {
         mavloc_data::write_atomic(path, &json).map_err(|e| format!("cannot write {}: {e}", path.display()))
     }
 
+    /// Whether `path` holds a model this mavloc reads (`settings::check` before a run).
+    pub fn check_file(path: &Path) -> Result<(), String> {
+        Model::load(path).map(|_| ())
+    }
+
     /// Reads a model, refusing other formats and versions with a clear message.
     pub fn load(path: &Path) -> Result<Model, String> {
         let bytes = std::fs::read(path).map_err(|e| format!("cannot read model {}: {e}", path.display()))?;

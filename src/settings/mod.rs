@@ -281,13 +281,16 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
 /// What `mavloc run` would refuse, all in one pass: every problem of every layer (unknown
 /// keys, wrong types, values out of range) and the files the values name, together.
 /// `config check` and `run` both call it.
-pub fn check(layers: &Layers) -> Result<Loaded, SettingsError> {
+///
+/// `model` reads a floor model as the indoor pipeline would (`indoor::model::check_file`;
+/// given by the caller, since the settings cannot depend on the modules they configure).
+pub fn check(layers: &Layers, model: &dyn Fn(&Path) -> Result<(), String>) -> Result<Loaded, SettingsError> {
     let (loaded, mut problems) = load_lenient(layers)?;
     // The files are checked on what is valid, so a missing model is named beside a
     // misspelt key rather than after it is fixed.
     let bad: std::collections::BTreeSet<&str> = problems.iter().map(|p| p.key.as_str()).collect();
     let more: Vec<Problem> =
-        preflight(&loaded).into_iter().filter(|p| !bad.contains(p.key.as_str())).collect();
+        preflight(&loaded, model).into_iter().filter(|p| !bad.contains(p.key.as_str())).collect();
     problems.extend(more);
     if !problems.is_empty() {
         return Err(SettingsError::Invalid(problems));
@@ -524,7 +527,7 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
 /// `config check` and `run` both call it, so `run` refuses to start on what `check`
 /// refuses (before, `check` passed a missing model and `run` then ran without a pipeline).
 /// The signing key's contents and permissions are checked by the link when it loads it.
-pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
+pub fn preflight(loaded: &Loaded, model: &dyn Fn(&Path) -> Result<(), String>) -> Vec<Problem> {
     let s = &loaded.settings;
     let origin =
         |key: &str| loaded.origins.get(key).cloned().unwrap_or_else(|| "the built-in default".into());
@@ -555,7 +558,7 @@ pub fn preflight(loaded: &Loaded) -> Vec<Problem> {
             "indoor.model",
             &s.indoor.model,
             "a floor model (mavloc indoor train) for daemon.pipeline = \"indoor\"",
-            &|p| crate::indoor::model::Model::load(p).map(|_| ()),
+            model,
         );
     }
     match s.camera.source {

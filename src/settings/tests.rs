@@ -290,7 +290,7 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
             ],
             ..Layers::default()
         };
-        let p = problems(check(&layers));
+        let p = problems(check(&layers, &|_| Ok(())));
         assert_eq!(p.len(), 1, "{p:?}");
         assert_eq!(p[0].key, "area.segmenter");
         assert!(
@@ -304,7 +304,7 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
         [["area.segmenter=water", "camera.source=v4l2"], ["area.segmenter=masks", "camera.source=sim"]]
     {
         let layers = Layers { overrides: sets.map(String::from).to_vec(), ..Layers::default() };
-        assert!(check(&layers).is_ok(), "{sets:?}");
+        assert!(check(&layers, &|_| Ok(())).is_ok(), "{sets:?}");
     }
 }
 
