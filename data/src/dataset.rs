@@ -271,6 +271,13 @@ pub fn write_telemetry(dir: &Path, records: &[TelemetryRecord]) -> Result<(), St
     write_file(dir, TELEMETRY_FILE, lines.as_bytes())
 }
 
+/// The CRC-32 of a dataset's telemetry file, hex (`None` when it cannot be read): what a
+/// result records of the dataset it was made from, so an evaluation against another
+/// dataset is refused.
+pub fn telemetry_crc32(dir: &Path) -> Option<String> {
+    fs::read(dir.join(TELEMETRY_FILE)).ok().map(|b| format!("{:08x}", crc32fast::hash(&b)))
+}
+
 /// A dataset opened for reading.
 #[derive(Clone, Debug)]
 pub struct Dataset {

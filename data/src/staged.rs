@@ -105,6 +105,24 @@ impl Drop for StagedDir {
     }
 }
 
+/// A pipeline's results folder (`mavloc area` or `mavloc indoor run` over a dataset),
+/// written whole: `out` must be absent, empty, or an earlier run's results (it holds
+/// `summary.json`), which are replaced whole, so no file of the earlier run stays beside the
+/// new ones. A folder of other files, given as `--out` by mistake, is refused, not replaced.
+pub fn begin_results(out: &Path) -> Result<StagedDir, String> {
+    let out = followed(out)?;
+    let other_files = out.is_dir()
+        && !out.join("summary.json").is_file()
+        && fs::read_dir(&out).map(|mut d| d.next().is_some()).unwrap_or(false);
+    if other_files {
+        return Err(format!(
+            "{} holds files that are not mavloc results (no summary.json): give a new or empty folder as --out",
+            out.display()
+        ));
+    }
+    StagedDir::begin(&out, true)
+}
+
 /// `path` with the symbolic links at its end followed (to a target that need not exist).
 fn followed(path: &Path) -> Result<PathBuf, String> {
     let mut p = path.to_path_buf();

@@ -12,7 +12,6 @@
 //! ([`run_stoppable`], Ctrl-C in `mavloc area`) ends early and puts in place what it has,
 //! with `complete: false` in `summary.json`.
 
-use std::fs;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -29,7 +28,6 @@ use crate::output::{self, LandmarkRecord};
 use crate::settings::{AreaMethod, Settings};
 use mavloc_data::dataset::Dataset;
 use mavloc_data::results::border_csv;
-use mavloc_data::staged::StagedDir;
 use mavloc_data::table::{fixed, Appender, Row};
 
 /// Datasets this short (photo surveys) get the residual report without `--trace`.
@@ -147,6 +145,10 @@ pub struct RunSummary {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
     pub complete: bool,
+    /// The dataset's telemetry file's CRC-32 (hex): `mavloc eval` refuses to measure the
+    /// result against another dataset.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dataset_crc32: Option<String>,
 }
 
 /// Options of a run.
@@ -412,22 +414,6 @@ pub fn run_stoppable(
     Ok(run_observed(opts, s, progress, false, Some(stop))?.0)
 }
 
-/// The staging folder of a run's results, put in place of `out` at the end. `out` must be
-/// absent, empty, or an earlier run's results (it holds `summary.json`): a folder of other
-/// files given as `--out` by mistake is refused, not replaced.
-fn begin_results(out: &Path) -> anyhow::Result<StagedDir> {
-    let other_files = out.is_dir()
-        && !out.join("summary.json").is_file()
-        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
-    if other_files {
-        anyhow::bail!(
-            "{} holds files that are not mavloc area results (no summary.json): give a new or empty folder as --out",
-            out.display()
-        );
-    }
-    StagedDir::begin(out, true).map_err(|e| anyhow::anyhow!(e))
-}
-
 /// What a run saw, for estimating things that hold for the whole flight (the gimbal's
 /// static offset, `mavloc calibrate gimbal`): every sighting of a converged landmark at
 /// the pipeline's resolution, the landmarks, and that resolution.
@@ -449,7 +435,7 @@ pub fn run_observed(
     stop: Option<&AtomicBool>,
 ) -> anyhow::Result<(RunSummary, Observations)> {
     let ds = Dataset::open(&opts.dataset).map_err(|e| anyhow::anyhow!(e))?;
-    let staged = begin_results(&opts.out)?;
+    let staged = mavloc_data::staged::begin_results(&opts.out).map_err(|e| anyhow::anyhow!(e))?;
     let out = staged.path().to_path_buf();
     let k_full = ds.camera.intrinsics();
     let downscale = s.area.downscale.max(1);
@@ -479,7 +465,11 @@ pub fn run_observed(
     let total = opts.max_frames.unwrap_or(usize::MAX).min(ds.records.len()) as u64;
     let mut results: Vec<LandmarkRecord> = Vec::new();
     let mut stopped = false;
-    let mut summary = RunSummary { method: method.into(), ..RunSummary::default() };
+    let mut summary = RunSummary {
+        method: method.into(),
+        dataset_crc32: mavloc_data::dataset::telemetry_crc32(&ds.dir),
+        ..RunSummary::default()
+    };
     let mut timing = StageTiming::default();
     let mut frame_ms = Vec::new();
     let mut match_ms = Vec::new();

@@ -13,10 +13,34 @@ pub fn run(command: EvalCommand) -> anyhow::Result<ExitCode> {
     }
 }
 
+/// Refuses a result made from another dataset than `dataset` (its `summary.json` records
+/// the dataset's telemetry CRC; results of an older mavloc have none and are measured):
+/// the numbers would be meaningless and the plots written into the result would replace
+/// its own.
+fn same_dataset(dataset: &Path, result: &Path) -> anyhow::Result<()> {
+    let theirs = std::fs::read_to_string(result.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v.get("dataset_crc32").and_then(|c| c.as_str()).map(String::from));
+    let ours = crate::data::dataset::telemetry_crc32(dataset);
+    if let (Some(theirs), Some(ours)) = (theirs, ours) {
+        if theirs != ours {
+            anyhow::bail!(
+                "{} was made from another dataset than {} (or from an earlier version of it): their telemetry differs \
+                 (CRC-32 {theirs} in its summary.json, {ours} now); give the dataset the run used",
+                result.display(),
+                dataset.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// `mavloc eval area`: the seed's table for a result folder.
 fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
     use anyhow::Context;
     let ds = crate::data::Dataset::open(dataset).map_err(|e| anyhow::anyhow!(e))?;
+    same_dataset(dataset, result)?;
     if ds.ground_truth.is_empty() {
         anyhow::bail!("{} has no ground truth (ground_truth.csv)", dataset.display());
     }
@@ -58,6 +82,7 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
 
 /// `mavloc eval indoor`: errors against ground truth, and the plot.
 fn indoor(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    same_dataset(dataset, result)?;
     let (e, rows) = crate::indoor::eval::evaluate(dataset, result).map_err(|e| anyhow::anyhow!(e))?;
     let plot = result.join("trajectory.png");
     let title = format!("{} vs {}", result.display(), dataset.display());

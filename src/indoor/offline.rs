@@ -9,7 +9,9 @@
 //! in the spread.
 //!
 //! Running: each frame of a flight goes through the [`Localizer`]; `trajectory.csv` and
-//! `summary.json` are rewritten atomically every `CHECKPOINT_FRAMES` frames and at the end.
+//! `summary.json` are written into a folder beside `--out` and put in its place whole at
+//! the end (`mavloc_data::staged::begin_results`): a run that fails or is killed leaves the
+//! earlier results as they were.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -30,7 +32,6 @@ use crate::settings::{DictionaryMethod, Indoor};
 use mavloc_data::dataset::{Dataset, TelemetryRecord};
 use mavloc_data::results::{trajectory_csv, TrajectoryRow};
 
-const CHECKPOINT_FRAMES: usize = 100;
 /// Frames prepared at once (bounds memory for large training sets).
 const BATCH: usize = 128;
 /// Images the dictionary learns from, spread over the dataset, and patches from each.
@@ -420,6 +421,10 @@ pub struct RunSummary {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera_velocity_rms_m_s: Option<f64>,
     pub complete: bool,
+    /// The dataset's telemetry file's CRC-32 (hex): `mavloc eval` refuses to measure the
+    /// result against another dataset.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dataset_crc32: Option<String>,
 }
 
 fn write_trajectory(out: &Path, rows: &[TrajectoryRow], summary: &RunSummary) -> Result<(), String> {
@@ -460,11 +465,14 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         );
     }
     let mut loc = Localizer::new(&model, LocalizerParams::from_settings(&settings, opts.seed))?;
-    std::fs::create_dir_all(&opts.out).map_err(|e| format!("cannot create {}: {e}", opts.out.display()))?;
+    // Written beside --out and put in place whole at the end, as `mavloc area` does.
+    let staged = mavloc_data::staged::begin_results(&opts.out)?;
+    let out = staged.path().to_path_buf();
     let total = opts.max_frames.unwrap_or(usize::MAX).min(ds.records.len());
     let mut summary = RunSummary {
         motion_model: format!("{:?}", settings.motion_model).to_lowercase(),
         derotate: settings.derotate,
+        dataset_crc32: mavloc_data::dataset::telemetry_crc32(&ds.dir),
         ..RunSummary::default()
     };
     let (mut read_s, mut prepare_s, mut localize_s) = (0.0, 0.0, 0.0);
@@ -519,9 +527,6 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
             fix: e.fix,
         });
         summary.frames = rows.len();
-        if rows.len() % CHECKPOINT_FRAMES == 0 {
-            write_trajectory(&opts.out, &rows, &summary)?;
-        }
         progress(i + 1, total);
     }
     let n = rows.len().max(1) as f64;
@@ -536,6 +541,10 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         summary.camera_velocity_rms_m_s = (flow_n > 0).then(|| (flow_sq / flow_n as f64).sqrt());
     }
     summary.complete = true;
-    write_trajectory(&opts.out, &rows, &summary)?;
+    write_trajectory(&out, &rows, &summary)?;
+    // A run that could use no frame has nothing to stand for: the earlier results stay.
+    if !rows.is_empty() {
+        staged.commit()?;
+    }
     Ok(summary)
 }

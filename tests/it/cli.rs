@@ -755,6 +755,12 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
         serde_json::from_str(&std::fs::read_to_string(p.join("summary.json")).unwrap()).unwrap()
     };
     assert_eq!(summary(&out)["method"], "ground-plane");
+    // Measured against another dataset than the one it was made from: refused, its plots
+    // left alone.
+    let a =
+        mavloc().args(["eval", "area", "--dataset"]).arg(&long).arg("--result").arg(&out).assert().failure();
+    let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
+    assert!(err.contains("made from another dataset"), "{err}");
     let snapshot = |p: &std::path::Path| -> Vec<(String, Vec<u8>)> {
         names_in(p).into_iter().map(|n| (n.clone(), std::fs::read(p.join(&n)).unwrap())).collect()
     };
@@ -811,6 +817,6 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
     std::fs::write(other.join("a.txt"), "mine").unwrap();
     let a = mavloc().args(["area", "--dataset"]).arg(&short).arg("--out").arg(&other).assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
-    assert!(err.contains("not mavloc area results"), "{err}");
+    assert!(err.contains("not mavloc results"), "{err}");
     assert_eq!(names_in(&other), ["a.txt"]);
 }
