@@ -64,9 +64,16 @@ impl Intrinsics {
                 return Err(format!("{name} = {v} must be a positive number of pixels"));
             }
         }
-        for (name, v) in [("cx", self.cx), ("cy", self.cy)] {
-            if !v.is_finite() {
-                return Err(format!("{name} = {v} must be finite"));
+        // The principal point on the image: a calibration of another camera (or with its
+        // axes swapped) is otherwise taken and bends every bearing.
+        for (name, v, side) in [("cx", self.cx, self.width), ("cy", self.cy, self.height)] {
+            if !(v.is_finite() && (-0.5..=side as f64 - 0.5).contains(&v)) {
+                return Err(format!(
+                    "{name} = {v} must be on the {}x{} image (-0.5 to {})",
+                    self.width,
+                    self.height,
+                    side as f64 - 0.5
+                ));
             }
         }
         Ok(())
@@ -255,6 +262,10 @@ mod tests {
         bad.fx = 0.0;
         assert!(bad.validate().unwrap_err().contains("fx"));
         assert!(k().validate().is_ok());
+        let off = Intrinsics { cx: 99999.0, ..k() };
+        assert!(off.validate().unwrap_err().contains("cx = 99999 must be on the 1920x1080 image"));
+        let off = Intrinsics { cy: -5.0, ..k() };
+        assert!(off.validate().unwrap_err().contains("cy = -5"));
     }
 
     fn pose_strategy() -> impl Strategy<Value = (CameraPose, GimbalChain)> {

@@ -514,6 +514,12 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
         })
         .map(|(_, r)| format!("expected an integer from {r}"))
         .unwrap_or(msg.clone());
+    // A key with a documented range says that range, not the type's ("expected an
+    // unsigned 64 bit or less integer" for `area.l_max = -5`).
+    let expected = match key.as_ref().and_then(|k| self::ranges().get(k).copied()) {
+        Some((lo, hi)) if value.is_some() => format!("out of range; allowed {lo} ..= {hi}"),
+        _ => expected,
+    };
     match key {
         Some(key) => {
             let origin = origins.get(&key).cloned().unwrap_or_else(|| "the merged configuration".into());
@@ -691,7 +697,10 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     v.range_int("area.downscale", a.downscale.into(), 1, 8);
     v.range_int("area.band_px", a.band_px.into(), 1, 2000);
     v.range_int("area.l_max", a.l_max.into(), 1, 20_000);
-    v.range_int("area.turnover", a.turnover.into(), 0, a.l_max.saturating_sub(1).into());
+    // Bounded by l_max: when l_max itself is out of range that is the one problem (an
+    // unchanged turnover was blamed beside it).
+    let l_max = if (1..=20_000).contains(&a.l_max) { a.l_max } else { Settings::default().area.l_max };
+    v.range_int("area.turnover", a.turnover.into(), 0, l_max.saturating_sub(1).into());
     v.range_int("area.feature_factor", a.feature_factor.into(), 1, 100);
     v.range("area.ratio_test", a.ratio_test, 0.05, 1.0);
     v.range("area.mahalanobis_max", a.mahalanobis_max, 0.5, 1e6);

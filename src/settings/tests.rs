@@ -110,6 +110,14 @@ fn cross_field_turnover_below_l_max() {
     let p = problems(load_file(f.path()));
     assert_eq!(p[0].key, "area.turnover");
     assert!(p[0].expected.contains("0 ..= 9"), "{}", p[0]);
+    // An l_max out of range is the one problem: the default turnover is not blamed.
+    let f = write_temp("[area]\nl_max = 0\n");
+    let p = problems(load_file(f.path()));
+    assert_eq!(p.iter().map(|p| p.key.as_str()).collect::<Vec<_>>(), ["area.l_max"], "{p:?}");
+    // A negative value for an unsigned key says the key's range, not its Rust type.
+    let f = write_temp("[area]\nl_max = -5\n");
+    let p = problems(load_file(f.path()));
+    assert!(p[0].key == "area.l_max" && p[0].expected == "out of range; allowed 1 ..= 20000", "{p:?}");
 }
 
 #[test]
