@@ -26,7 +26,7 @@ impl StagedDir {
     /// replaced and the link stays (on a drone `data -> /mnt/sd/data` would otherwise
     /// become a real folder on the root file system).
     pub fn begin(target: &Path, replace: bool) -> Result<Self, String> {
-        let target = &followed(target)?;
+        let target = &absolute(&followed(target)?);
         if target.exists() {
             if !target.is_dir() {
                 return Err(format!("{} exists and is not a folder", target.display()));
@@ -44,23 +44,81 @@ impl StagedDir {
             .ok_or_else(|| format!("{} does not name a folder", target.display()))?
             .to_string_lossy()
             .into_owned();
-        let parent = match target.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
+        let parent = target.parent().map_or_else(|| PathBuf::from("/"), Path::to_path_buf);
+        // The folder is written beside the target and swapped in: the working folder
+        // itself would be swapped away from under the shell, and a mount point (or a
+        // folder whose parent cannot be written) cannot be swapped at all, which would be
+        // found only at the end of the run.
+        if std::env::current_dir().is_ok_and(|cwd| cwd.starts_with(target)) {
+            return Err(format!(
+                "{} is the working folder (or holds it): give a folder inside it, e.g. {}",
+                target.display(),
+                target.join("out").display()
+            ));
+        }
         fs::create_dir_all(&parent).map_err(|e| format!("cannot create {}: {e}", parent.display()))?;
-        // An interrupted earlier run's leftovers were never complete: remove them.
+        if let (Ok(t), Ok(p)) = (fs::metadata(target), fs::metadata(&parent)) {
+            use std::os::unix::fs::MetadataExt;
+            if t.dev() != p.dev() {
+                return Err(format!(
+                    "{} is a mount point: it is replaced whole from beside it, on the same file system; give a folder inside it, e.g. {}",
+                    target.display(),
+                    target.join(&name).display()
+                ));
+            }
+        }
+        // What interrupted runs left: a folder of a process still running is another
+        // mavloc writing the same target; one with results (`summary.json`: checkpoints of
+        // a long run) is kept, renamed to `NAME.interrupted-PID`; others are removed.
         let prefix = format!(".{name}.partial-");
         if let Ok(entries) = fs::read_dir(&parent) {
             for e in entries.flatten() {
-                if e.file_name().to_string_lossy().starts_with(&prefix) {
-                    let _ = fs::remove_dir_all(e.path());
+                let file = e.file_name().to_string_lossy().into_owned();
+                let Some(pid) = file.strip_prefix(&prefix) else { continue };
+                let pid: i32 = pid.parse().unwrap_or(0);
+                if pid > 0 && pid as u32 != std::process::id() && alive(pid) {
+                    return Err(format!(
+                        "another process (pid {pid}) is writing {}: wait for it or stop it",
+                        target.display()
+                    ));
                 }
+                if e.path().join("summary.json").is_file() {
+                    let kept = parent.join(format!("{name}.interrupted-{pid}"));
+                    let _ = fs::remove_dir_all(&kept);
+                    if fs::rename(e.path(), &kept).is_ok() {
+                        eprintln!(
+                            "mavloc: the results an interrupted run left are kept in {}",
+                            kept.display()
+                        );
+                        continue;
+                    }
+                }
+                let _ = fs::remove_dir_all(e.path());
             }
         }
         let stage = parent.join(format!("{prefix}{}", std::process::id()));
-        fs::create_dir(&stage).map_err(|e| format!("cannot create {}: {e}", stage.display()))?;
+        fs::create_dir(&stage).map_err(|e| {
+            format!(
+                "cannot create {} beside {} (its folder must be writable): {e}",
+                stage.display(),
+                target.display()
+            )
+        })?;
         Ok(Self { target: target.to_path_buf(), stage, committed: false })
+    }
+
+    /// Puts the finished folder beside the target instead, as `NAME.SUFFIX` (replacing one
+    /// of that name), leaving the target as it was: what a run stopped part way made, when
+    /// the target holds complete results it must not replace. Returns where it went.
+    pub fn commit_beside(mut self, suffix: &str) -> Result<PathBuf, String> {
+        let name = self.target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let beside = self.target.with_file_name(format!("{name}.{suffix}"));
+        let _ = fs::remove_dir_all(&beside);
+        fs::rename(&self.stage, &beside).map_err(|e| {
+            format!("cannot put {} in place: {e}; kept as {}", beside.display(), self.stage.display())
+        })?;
+        self.committed = true;
+        Ok(beside)
     }
 
     /// Where to write: the hidden folder beside the target.
@@ -75,17 +133,29 @@ impl StagedDir {
 
     /// Puts the finished folder in the target's place in one step and removes the old one.
     pub fn commit(mut self) -> Result<(), String> {
+        // A failure from here on keeps the stage, whole, and names it: the run's work is
+        // not thrown away at its last step.
+        let kept = |what: String, e: std::io::Error| {
+            format!("{what}: {e}; the finished folder is kept as {}", self.stage.display())
+        };
         // Everything written into the stage reaches the disk before the stage takes the
         // target's place: otherwise a crash soon after could leave the new folder with
         // empty files where the old one was whole. The writers do not sync file by file.
-        flush(&self.stage).map_err(|e| format!("cannot flush {} to disk: {e}", self.stage.display()))?;
-        let err = |e: std::io::Error| format!("cannot put {} in place: {e}", self.target.display());
-        if self.target.exists() {
-            swap(&self.stage, &self.target).map_err(err)?;
-            // The stage now holds the old folder.
-            let _ = fs::remove_dir_all(&self.stage);
+        if let Err(e) = flush(&self.stage) {
+            self.committed = true;
+            return Err(kept(format!("cannot flush {} to disk", self.stage.display()), e));
+        }
+        let placed = if self.target.exists() {
+            // The stage then holds the old folder.
+            swap(&self.stage, &self.target).map(|_| {
+                let _ = fs::remove_dir_all(&self.stage);
+            })
         } else {
-            fs::rename(&self.stage, &self.target).map_err(err)?;
+            fs::rename(&self.stage, &self.target)
+        };
+        if let Err(e) = placed {
+            self.committed = true;
+            return Err(kept(format!("cannot put {} in place", self.target.display()), e));
         }
         if let Some(d) = self.target.parent().filter(|d| !d.as_os_str().is_empty()) {
             if let Ok(d) = fs::File::open(d) {
@@ -121,6 +191,33 @@ pub fn begin_results(out: &Path) -> Result<StagedDir, String> {
         ));
     }
     StagedDir::begin(&out, true)
+}
+
+/// Whether process `pid` exists (`kill(pid, 0)`; EPERM: it exists under another user).
+fn alive(pid: i32) -> bool {
+    // SAFETY: signal 0 only checks that the process exists.
+    unsafe { libc::kill(pid, 0) == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM) }
+}
+
+/// `path` made absolute and free of `.` and `..` (lexically, after its links were
+/// followed): `--out .` names the working folder, not a folder called ".".
+fn absolute(path: &Path) -> PathBuf {
+    let abs = if path.is_absolute() {
+        path.to_path_buf()
+    } else {
+        std::env::current_dir().unwrap_or_default().join(path)
+    };
+    let mut out = PathBuf::new();
+    for c in abs.components() {
+        match c {
+            std::path::Component::CurDir => {}
+            std::path::Component::ParentDir => {
+                out.pop();
+            }
+            c => out.push(c),
+        }
+    }
+    out
 }
 
 /// `path` with the symbolic links at its end followed (to a target that need not exist).
@@ -288,6 +385,30 @@ mod tests {
         let s = StagedDir::begin(&out, false).unwrap();
         s.commit().unwrap();
         assert_eq!(names(root.path()), ["d"]);
+    }
+
+    /// What interrupted runs left: a live process's folder means another writer (refused,
+    /// its folder left alone); a dead one's checkpoint (`summary.json`) is kept in sight as
+    /// `NAME.interrupted-PID`; anything else is removed.
+    #[test]
+    fn leftovers_of_live_and_dead_runs_are_told_apart() {
+        let root = tempfile::tempdir().unwrap();
+        let out = root.path().join("d");
+        // pid 1 always runs.
+        fs::create_dir(root.path().join(".d.partial-1")).unwrap();
+        let e = StagedDir::begin(&out, false).unwrap_err();
+        assert!(e.contains("another process (pid 1) is writing"), "{e}");
+        assert!(root.path().join(".d.partial-1").is_dir(), "a live writer's folder is left alone");
+        fs::remove_dir(root.path().join(".d.partial-1")).unwrap();
+        // No process has a pid this high (Linux's pid_max is at most 2^22).
+        let dead = root.path().join(".d.partial-99999999");
+        fs::create_dir(&dead).unwrap();
+        fs::write(dead.join("summary.json"), "{}").unwrap();
+        fs::create_dir(root.path().join(".d.partial-99999998")).unwrap();
+        let s = StagedDir::begin(&out, false).unwrap();
+        s.commit().unwrap();
+        assert_eq!(names(root.path()), ["d", "d.interrupted-99999999"]);
+        assert!(root.path().join("d.interrupted-99999999/summary.json").is_file());
     }
 
     #[test]

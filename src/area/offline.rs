@@ -8,9 +8,12 @@
 //! killed leaves the previous results whole, with none of its own files among them (each
 //! file written atomically was not enough: a run interrupted half way left a new
 //! `landmarks.csv` beside the earlier run's `summary.json`, and files only one run wrote,
-//! such as `trace.csv`, stayed beside another run's results). A run stopped on request
-//! ([`run_stoppable`], Ctrl-C in `mavloc area`) ends early and puts in place what it has,
-//! with `complete: false` in `summary.json`.
+//! such as `trace.csv`, stayed beside another run's results). The staging folder gets a
+//! checkpoint every `CHECKPOINT_FRAMES` frames (`complete: false`): after a crash the next
+//! run into the same `--out` keeps it as `NAME.interrupted-PID`. A run stopped on request
+//! ([`run_stoppable`], Ctrl-C in `mavloc area`) ends early and puts what it has in place,
+//! `complete: false` in `summary.json`; over complete earlier results it puts it beside
+//! them instead, as `NAME.stopped`.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -30,6 +33,7 @@ use mavloc_data::dataset::Dataset;
 use mavloc_data::results::border_csv;
 use mavloc_data::table::{fixed, Appender, Row};
 
+const CHECKPOINT_FRAMES: u64 = 100;
 /// Datasets this short (photo surveys) get the residual report without `--trace`.
 pub const RESIDUAL_MAX_FRAMES: usize = 100;
 /// The baseline keeps one border pixel in this many along each contour.
@@ -149,6 +153,10 @@ pub struct RunSummary {
     /// result against another dataset.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dataset_crc32: Option<String>,
+    /// Where the results were put: `--out`, or beside it (`NAME.stopped`) for a run
+    /// stopped part way over complete earlier results.
+    #[serde(skip)]
+    pub written_to: PathBuf,
 }
 
 /// Options of a run.
@@ -435,6 +443,11 @@ pub fn run_observed(
     stop: Option<&AtomicBool>,
 ) -> anyhow::Result<(RunSummary, Observations)> {
     let ds = Dataset::open(&opts.dataset).map_err(|e| anyhow::anyhow!(e))?;
+    // Whether --out holds a complete earlier set, which a stopped run must not replace.
+    let earlier_complete = std::fs::read_to_string(opts.out.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .is_some_and(|v| v["complete"] == true);
     let staged = mavloc_data::staged::begin_results(&opts.out).map_err(|e| anyhow::anyhow!(e))?;
     let out = staged.path().to_path_buf();
     let k_full = ds.camera.intrinsics();
@@ -564,6 +577,11 @@ pub fn run_observed(
     };
     let mut preparing = std::time::Duration::ZERO;
     for (i, record) in ds.records.iter().take(total as usize).enumerate() {
+        // Before the frame, so a stretch of skipped frames does not hide the request.
+        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+            stopped = true;
+            break;
+        }
         let t_read = Instant::now();
         let frame_path = ds.frame_path(record);
         let mask_path = ds.mask_path(record);
@@ -664,11 +682,14 @@ pub fn run_observed(
             }
         }
         summary.frames += 1;
-        progress(i as u64 + 1, total);
-        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
-            stopped = true;
-            break;
+        // Checkpoints in the staging folder: a long run killed near its end leaves them,
+        // and the next run into --out keeps them as `NAME.interrupted-PID`.
+        if summary.frames.is_multiple_of(CHECKPOINT_FRAMES) {
+            summary.elapsed_s = start.elapsed().as_secs_f64();
+            summary.frames_per_s = summary.frames as f64 / summary.elapsed_s;
+            write_results(&out, &frame, &name, &results, &mut summary)?;
         }
+        progress(i as u64 + 1, total);
     }
     if let Some(p) = pipeline.as_ref() {
         results.extend(p.converged_now());
@@ -810,8 +831,15 @@ pub fn run_observed(
         super::segment::contact_sheets(&out, &sheet, &marks)?;
     }
     // A run that could use no frame has nothing to stand for: the earlier results stay.
+    // A run stopped part way does not replace complete earlier results either: what it
+    // made goes beside them.
+    summary.written_to = opts.out.clone();
     if summary.frames > 0 {
-        staged.commit().map_err(|e| anyhow::anyhow!(e))?;
+        if stopped && earlier_complete {
+            summary.written_to = staged.commit_beside("stopped").map_err(|e| anyhow::anyhow!(e))?;
+        } else {
+            staged.commit().map_err(|e| anyhow::anyhow!(e))?;
+        }
     }
     let observations = if observe {
         Observations { sightings: seen, landmarks: results, k: Some(k), downscale }

@@ -66,6 +66,13 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         &stop,
     )?;
     bar.finish();
+    if summary.frames == 0 && !summary.complete {
+        eprintln!(
+            "mavloc area: stopped by Ctrl-C before any frame was used; {} left as it was",
+            opts.out.display()
+        );
+        return Ok(ExitCode::from(130));
+    }
     if summary.frames == 0 {
         // Exit non-zero: a run that looked at nothing has no result to stand for.
         anyhow::bail!(
@@ -165,9 +172,14 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
     }
     if !summary.complete {
         eprintln!(
-            "mavloc area: stopped by Ctrl-C after {} frames; their results are in {} (summary.json: \"complete\": false)",
+            "mavloc area: stopped by Ctrl-C after {} frames; their results are in {} (summary.json: \"complete\": false){}",
             summary.frames + summary.skipped_frames,
-            opts.out.display()
+            summary.written_to.display(),
+            if summary.written_to != opts.out {
+                format!(", beside the complete results {} kept", opts.out.display())
+            } else {
+                String::new()
+            }
         );
         return Ok(ExitCode::from(130));
     }

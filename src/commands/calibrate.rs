@@ -162,8 +162,10 @@ fn gimbal(a: CalibrateGimbalArgs, global: Global) -> anyhow::Result<ExitCode> {
     }
     // An estimate the flight does not determine is not a calibration: written into a
     // configuration it would turn every later map (50 deg SDs from 50 video frames).
+    // With fewer than three groups of frames the jackknife has no spread to measure (one
+    // group gives an SD of 0 whatever the estimate): nothing is determined.
     let unsure: Vec<String> = (0..3)
-        .filter(|&i| !(total[i].is_finite() && jack_sd[i] <= a.max_sd_deg))
+        .filter(|&i| !(groups >= 3 && total[i].is_finite() && jack_sd[i] <= a.max_sd_deg))
         .map(|i| format!("{} (SD {:.2} deg)", names[i], jack_sd[i]))
         .collect();
     if !unsure.is_empty() {

@@ -135,10 +135,12 @@ impl Progress {
 
     /// Clears the bar; off a terminal, says where it ended if that was not said yet.
     pub(crate) fn finish(self) {
+        // Read before `finish_and_clear`, which moves the position to the end: a run
+        // stopped at 88 of 240 frames said "240/240 (100 %)".
+        let (done, total) = (self.bar.position(), self.bar.length().unwrap_or(0));
         self.bar.finish_and_clear();
         if !self.terminal {
             let last = *self.last.lock().unwrap_or_else(|e| e.into_inner());
-            let (done, total) = (self.bar.position(), self.bar.length().unwrap_or(0));
             if last.is_none_or(|(_, d, t)| (d, t) != (done, total)) && total > 0 {
                 self.line(done, total);
             }

@@ -11,7 +11,8 @@
 //! Running: each frame of a flight goes through the [`Localizer`]; `trajectory.csv` and
 //! `summary.json` are written into a folder beside `--out` and put in its place whole at
 //! the end (`mavloc_data::staged::begin_results`): a run that fails or is killed leaves the
-//! earlier results as they were.
+//! earlier results as they were, and its checkpoints (every `CHECKPOINT_FRAMES` frames) are
+//! kept by the next run as `NAME.interrupted-PID`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -394,6 +395,9 @@ pub struct RunOptions {
     pub seed: u64,
 }
 
+/// Frames between checkpoints of a run's results.
+const CHECKPOINT_FRAMES: usize = 100;
+
 /// What a run did; also `summary.json`.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct RunSummary {
@@ -527,6 +531,10 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
             fix: e.fix,
         });
         summary.frames = rows.len();
+        // Checkpoints in the staging folder: kept by the next run after a crash.
+        if rows.len() % CHECKPOINT_FRAMES == 0 {
+            write_trajectory(&out, &rows, &summary)?;
+        }
         progress(i + 1, total);
     }
     let n = rows.len().max(1) as f64;

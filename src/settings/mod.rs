@@ -516,10 +516,13 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
         .unwrap_or(msg.clone());
     // A key with a documented range says that range, not the type's ("expected an
     // unsigned 64 bit or less integer" for `area.l_max = -5`).
-    let expected = match key.as_ref().and_then(|k| self::ranges().get(k).copied()) {
-        Some((lo, hi)) if value.is_some() => format!("out of range; allowed {lo} ..= {hi}"),
-        _ => expected,
-    };
+    // (Not for a key whose range depends on another, e.g. `area.turnover` below `l_max`:
+    // the table holds the default's bound.)
+    let expected =
+        match key.as_ref().filter(|k| *k != "area.turnover").and_then(|k| self::ranges().get(k).copied()) {
+            Some((lo, hi)) if value.is_some() => format!("out of range; allowed {lo} ..= {hi}"),
+            _ => expected,
+        };
     match key {
         Some(key) => {
             let origin = origins.get(&key).cloned().unwrap_or_else(|| "the merged configuration".into());
@@ -662,8 +665,9 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     for (key, val, size) in
         [("camera.cx", s.camera.cx, s.camera.width), ("camera.cy", s.camera.cy, s.camera.height)]
     {
+        // On the image, as `Intrinsics::validate` wants it when the pipeline is built.
         if val != -1.0 {
-            v.range(key, val, 0.0, size as f64);
+            v.range(key, val, -0.5, size as f64 - 0.5);
         }
     }
     if ![0, 4, 5, 8].contains(&s.camera.distortion.len()) {

@@ -710,13 +710,14 @@ fn names_in(dir: &std::path::Path) -> Vec<String> {
     v
 }
 
-/// Waits (at most 60 s) until `child` has made its staging folder `.NAME.partial-PID` in
-/// `parent`.
-fn wait_for_stage(parent: &std::path::Path, name: &str, child: &mut std::process::Child) {
+/// Waits (at most 60 s) until `child` has written a checkpoint (`summary.json`, every 100
+/// frames) into its staging folder `.NAME.partial-PID` in `parent`.
+fn wait_for_checkpoint(parent: &std::path::Path, name: &str, child: &mut std::process::Child) {
+    let stage = parent.join(format!(".{name}.partial-{}", child.id()));
     let start = std::time::Instant::now();
-    while !names_in(parent).iter().any(|n| n.starts_with(&format!(".{name}.partial-"))) {
-        assert!(child.try_wait().unwrap().is_none(), "the run ended before it began writing");
-        assert!(start.elapsed().as_secs() < 60, "no staging folder after 60 s");
+    while !stage.join("summary.json").exists() {
+        assert!(child.try_wait().unwrap().is_none(), "the run ended before its first checkpoint");
+        assert!(start.elapsed().as_secs() < 60, "no checkpoint after 60 s");
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
 }
@@ -724,9 +725,11 @@ fn wait_for_stage(parent: &std::path::Path, name: &str, child: &mut std::process
 /// `mavloc area --out R` replaces R's results as a set. A later run leaves no file of an
 /// earlier one beside its own (the earlier run's trace and contact sheets); a run killed
 /// part way leaves the earlier set exactly as it was (each file written atomically was
-/// not enough: such a run left a new `landmarks.csv` beside the old `summary.json`);
-/// Ctrl-C ends a run after its frame in hand with the frames so far put in place
-/// (`complete: false`, exit 130); a folder of other files is refused, not replaced.
+/// not enough: such a run left a new `landmarks.csv` beside the old `summary.json`), and
+/// its checkpoint is kept by the next run as `r.interrupted-PID`; Ctrl-C ends a run after
+/// its frame, putting the frames so far in place (`complete: false`, exit 130), or beside
+/// complete earlier results as `r.stopped`; a result is not measured against another
+/// dataset; a folder of other files is refused, not replaced.
 #[test]
 fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one() {
     let short = crate::fixtures::small_flight("coastline", 30);
@@ -755,24 +758,25 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
         serde_json::from_str(&std::fs::read_to_string(p.join("summary.json")).unwrap()).unwrap()
     };
     assert_eq!(summary(&out)["method"], "ground-plane");
+    let snapshot = |p: &std::path::Path| -> Vec<(String, Vec<u8>)> {
+        names_in(p).into_iter().map(|n| (n.clone(), std::fs::read(p.join(&n)).unwrap())).collect()
+    };
+    let before = snapshot(&out);
     // Measured against another dataset than the one it was made from: refused, its plots
     // left alone.
     let a =
         mavloc().args(["eval", "area", "--dataset"]).arg(&long).arg("--result").arg(&out).assert().failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("made from another dataset"), "{err}");
-    let snapshot = |p: &std::path::Path| -> Vec<(String, Vec<u8>)> {
-        names_in(p).into_iter().map(|n| (n.clone(), std::fs::read(p.join(&n)).unwrap())).collect()
-    };
-    let before = snapshot(&out);
+    assert!(snapshot(&out) == before, "a refused evaluation changed the result");
 
-    // Killed part way through a longer run.
-    let spawn = || {
+    // Killed part way through a longer run, after its first checkpoint.
+    let spawn = |to: &std::path::Path| {
         std::process::Command::new(crate::fixtures::BIN)
             .args(["area", "--dataset"])
             .arg(&long)
             .arg("--out")
-            .arg(&out)
+            .arg(to)
             .args(small)
             .env_remove("MAVLOC_CONFIG")
             .stdout(std::process::Stdio::null())
@@ -780,36 +784,53 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
             .spawn()
             .unwrap()
     };
-    let mut child = spawn();
-    wait_for_stage(dir.path(), "r", &mut child);
-    std::thread::sleep(std::time::Duration::from_millis(500));
+    let mut child = spawn(&out);
+    let killed = child.id();
+    wait_for_checkpoint(dir.path(), "r", &mut child);
     child.kill().unwrap();
     child.wait().unwrap();
     assert!(snapshot(&out) == before, "a killed run changed the earlier results: {:?}", names_in(&out));
 
-    // Ctrl-C: the frames so far, put in place.
-    let mut child = spawn();
-    wait_for_stage(dir.path(), "r", &mut child);
-    std::thread::sleep(std::time::Duration::from_millis(1000));
-    // SAFETY: a plain kill(2) of our own child.
-    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
-    let stderr = crate::fixtures::read_in_background(child.stderr.take().unwrap());
-    let start = std::time::Instant::now();
-    let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
-            break s;
-        }
-        assert!(start.elapsed().as_secs() < 60, "Ctrl-C did not end the run within 60 s");
-        std::thread::sleep(std::time::Duration::from_millis(50));
+    // Ctrl-C after a checkpoint; SIGINT is handled from before the staging folder exists.
+    let interrupt = |to: &std::path::Path, name: &str| {
+        let mut child = spawn(to);
+        wait_for_checkpoint(dir.path(), name, &mut child);
+        // SAFETY: a plain kill(2) of our own child.
+        assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+        let stderr = crate::fixtures::read_in_background(child.stderr.take().unwrap());
+        let start = std::time::Instant::now();
+        let status = loop {
+            if let Some(s) = child.try_wait().unwrap() {
+                break s;
+            }
+            assert!(start.elapsed().as_secs() < 60, "Ctrl-C did not end the run within 60 s");
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        };
+        let stderr = stderr.join().unwrap();
+        assert_eq!(status.code(), Some(130), "{stderr}");
+        assert!(stderr.contains("stopped by Ctrl-C"), "{stderr}");
+        stderr
     };
-    let stderr = stderr.join().unwrap();
-    assert_eq!(status.code(), Some(130), "{stderr}");
-    assert!(stderr.contains("stopped by Ctrl-C"), "{stderr}");
-    let s = summary(&out);
-    assert_eq!((s["method"].as_str(), s["complete"].as_bool()), (Some("ukf"), Some(false)), "{s}");
-    let frames = s["frames"].as_u64().unwrap();
-    assert!(frames > 0 && frames < 240, "{frames} frames");
-    assert_eq!(names_in(dir.path()), ["r"], "no staging folder left");
+    let stopped_partial = |p: &std::path::Path| {
+        let s = summary(p);
+        assert_eq!((s["method"].as_str(), s["complete"].as_bool()), (Some("ukf"), Some(false)), "{s}");
+        let frames = s["frames"].as_u64().unwrap();
+        assert!((100..240).contains(&frames), "{frames} frames");
+    };
+    // Over the complete ground-plane results: they stay, the stopped run's go beside.
+    let said = interrupt(&out, "r");
+    assert!(said.contains("beside the complete results"), "{said}");
+    assert!(snapshot(&out) == before, "a stopped run replaced complete results");
+    stopped_partial(&dir.path().join("r.stopped"));
+    // The killed run's checkpoint, kept by the run after it.
+    let kept = dir.path().join(format!("r.interrupted-{killed}"));
+    assert_eq!(summary(&kept)["complete"], false, "{:?}", names_in(dir.path()));
+    // Into a new folder: the frames so far are the results.
+    let fresh = dir.path().join("r2");
+    interrupt(&fresh, "r2");
+    stopped_partial(&fresh);
+    let left: Vec<String> = names_in(dir.path()).into_iter().filter(|n| n.starts_with('.')).collect();
+    assert!(left.is_empty(), "staging folders left: {left:?}");
 
     // A folder that holds something else.
     let other = dir.path().join("notes");

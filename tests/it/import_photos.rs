@@ -72,15 +72,29 @@ fn photos_without_the_needed_tags_are_named_and_skipped_and_order_is_capture_tim
     std::fs::copy(sample().join("DJI_0030.JPG"), photos.join("f.jpg")).unwrap();
     std::fs::create_dir(photos.join("sub.jpg")).unwrap();
     std::fs::copy(sample().join("DJI_0031.JPG"), photos.join("sub.jpg/g.jpg")).unwrap();
+    // A header that claims 65535x65535 (its tags read; OpenCV will not decode it).
+    let mut forged = std::fs::read(sample().join("DJI_0031.JPG")).unwrap();
+    // The main image's frame header: walk the segments (the EXIF thumbnail and DJI's
+    // appended preview have their own).
+    let mut sof = 2;
+    while forged[sof + 1] != 0xC0 {
+        sof += 2 + u16::from_be_bytes([forged[sof + 2], forged[sof + 3]]) as usize;
+    }
+    forged[sof + 5..sof + 9].copy_from_slice(&[0xFF; 4]);
+    std::fs::write(photos.join("h.jpg"), forged).unwrap();
     let out = dir.path().join("ds");
     let r = import_photos(&photos, &out, &ImportOptions::default()).unwrap();
     assert_eq!(r.imported, ["c.jpg", "a.jpg"], "by capture time, not by name");
     let skipped: Vec<String> = r.skipped.iter().map(|(n, why)| format!("{n}: {why}")).collect();
-    assert_eq!(skipped.len(), 4, "{skipped:?}");
+    assert_eq!(skipped.len(), 5, "{skipped:?}");
     assert!(skipped[0].starts_with("b.jpg") && skipped[0].contains("GimbalYawDegree"), "{skipped:?}");
     assert!(skipped[1].starts_with("d.jpg: not a JPEG"), "named once: {skipped:?}");
     assert!(skipped[2].starts_with("e.jpg") && skipped[2].contains("truncated"), "{skipped:?}");
     assert!(skipped[3].starts_with("f.jpg: the same shot as c.jpg"), "{skipped:?}");
+    assert!(
+        skipped[4].starts_with("h.jpg: not an image OpenCV can decode (its header says 65535x65535)"),
+        "{skipped:?}"
+    );
     let ds = mavloc_data::Dataset::open(&out).unwrap();
     assert_eq!(ds.records.len(), 2);
     assert_eq!(ds.records[1].t, 14.0, "16:33:27 to 16:33:41");
