@@ -87,9 +87,17 @@ fn trains_on_views_and_tracks_a_flight() {
     assert!(e.mean_err_x_m < 0.6 && e.mean_err_y_m < 0.6, "{e:?}");
     assert!(e.frames_per_s > 0.0);
 
-    // Without telemetry velocity the velocity model fits one; still tracking.
-    let (_, med_fit, _) = errors(&dir.path().join("fit"), &settings, true);
+    // Without telemetry velocity the velocity model fits one; still tracking. Run into
+    // the first run's folder: its results are replaced as a set (a file beside them goes
+    // with them) and name the dataset they were made from.
+    let first = dir.path().join("run");
+    std::fs::write(first.join("stale.txt"), "from before").unwrap();
+    let (_, med_fit, _) = errors(&first, &settings, true);
     assert!(med_fit < 0.4, "median error {med_fit} m with fitted velocity");
+    assert!(!first.join("stale.txt").exists(), "the earlier folder's file stayed beside the new results");
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(first.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(s["dataset_crc32"].as_str(), mavloc_data::dataset::telemetry_crc32(&flight).as_deref());
     // With the camera's own velocity, as the daemon flies without GPS: as good as with
     // the telemetry's.
     let (_, med_cam, _) = errors_with(&dir.path().join("camera"), &settings, false, true);
