@@ -694,15 +694,15 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     }
     // The same photo twice (a copy beside the original): one shot, not two views from one
     // place, which would make the overlap checks and the alignment agree with themselves.
-    let mut seen: std::collections::BTreeMap<String, String> = std::collections::BTreeMap::new();
-    photos.retain(|(_, _, t)| {
-        let key = format!(
-            "{} {} {} {} {:?} {:?} {}x{}",
-            t.time, t.lat_deg, t.lon_deg, t.gps_alt_m, t.gimbal_deg, t.flight_deg, t.width, t.height
-        );
+    // The bytes decide (their CRC-32 and length), not the tags alone: a camera that shoots
+    // twice a second with GPS at 1 Hz and no attitude tags tags two shots alike.
+    let mut seen: std::collections::BTreeMap<(u32, u64), String> = std::collections::BTreeMap::new();
+    photos.retain(|(_, path, t)| {
+        let Ok(bytes) = std::fs::read(path) else { return true };
+        let key = (crc32fast::hash(&bytes), bytes.len() as u64);
         match seen.get(&key) {
             Some(first) => {
-                let why = format!("the same shot as {first} (time, position and attitude)");
+                let why = format!("the same file as {first}");
                 tracing::warn!("skipped {}: {why}", t.name);
                 report.skipped.push((t.name.clone(), why));
                 false

@@ -90,7 +90,7 @@ fn photos_without_the_needed_tags_are_named_and_skipped_and_order_is_capture_tim
     assert!(skipped[0].starts_with("b.jpg") && skipped[0].contains("GimbalYawDegree"), "{skipped:?}");
     assert!(skipped[1].starts_with("d.jpg: not a JPEG"), "named once: {skipped:?}");
     assert!(skipped[2].starts_with("e.jpg") && skipped[2].contains("truncated"), "{skipped:?}");
-    assert!(skipped[3].starts_with("f.jpg: the same shot as c.jpg"), "{skipped:?}");
+    assert!(skipped[3].starts_with("f.jpg: the same file as c.jpg"), "{skipped:?}");
     assert!(
         skipped[4].starts_with("h.jpg: not an image OpenCV can decode (its header says 65535x65535)"),
         "{skipped:?}"
