@@ -172,7 +172,15 @@ fn rational_f64(f: &exif::Field, i: usize) -> Option<f64> {
 pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let bytes = std::fs::read(path).map_err(|e| format!("{name}: {e}"))?;
-    let (width, height) = jpeg_size(&bytes).ok_or_else(|| format!("{name}: not a JPEG (no frame header)"))?;
+    let (width, height) = jpeg_size(&bytes).ok_or_else(|| {
+        // A JPEG's start with no frame header after it is a file cut short (inside its
+        // EXIF, say), not another format.
+        if bytes.starts_with(&[0xFF, 0xD8]) {
+            format!("{name}: truncated or damaged JPEG (no frame header in its {} bytes)", bytes.len())
+        } else {
+            format!("{name}: not a JPEG (no frame header)")
+        }
+    })?;
     let exif = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes));
     let dji = xmp_values(&bytes, "drone-dji:");
     let sensefly = xmp_values(&bytes, "sensefly:");

@@ -68,6 +68,8 @@ fn photos_without_the_needed_tags_are_named_and_skipped_and_order_is_capture_tim
     // Cut two thirds in (a copy interrupted): its tags read, its image does not.
     let whole = std::fs::read(sample().join("DJI_0031.JPG")).unwrap();
     std::fs::write(photos.join("e.jpg"), &whole[..whole.len() * 2 / 3]).unwrap();
+    // Cut inside its EXIF block (before the image's frame header).
+    std::fs::write(photos.join("e2.jpg"), &whole[..30_000]).unwrap();
     // A copy of a photo beside it, and a subfolder (not searched).
     std::fs::copy(sample().join("DJI_0030.JPG"), photos.join("f.jpg")).unwrap();
     std::fs::create_dir(photos.join("sub.jpg")).unwrap();
@@ -86,13 +88,14 @@ fn photos_without_the_needed_tags_are_named_and_skipped_and_order_is_capture_tim
     let r = import_photos(&photos, &out, &ImportOptions::default()).unwrap();
     assert_eq!(r.imported, ["c.jpg", "a.jpg"], "by capture time, not by name");
     let skipped: Vec<String> = r.skipped.iter().map(|(n, why)| format!("{n}: {why}")).collect();
-    assert_eq!(skipped.len(), 5, "{skipped:?}");
+    assert_eq!(skipped.len(), 6, "{skipped:?}");
     assert!(skipped[0].starts_with("b.jpg") && skipped[0].contains("GimbalYawDegree"), "{skipped:?}");
     assert!(skipped[1].starts_with("d.jpg: not a JPEG"), "named once: {skipped:?}");
     assert!(skipped[2].starts_with("e.jpg") && skipped[2].contains("truncated"), "{skipped:?}");
-    assert!(skipped[3].starts_with("f.jpg: the same file as c.jpg"), "{skipped:?}");
+    assert!(skipped[3].starts_with("e2.jpg: truncated or damaged JPEG (no frame header"), "{skipped:?}");
+    assert!(skipped[4].starts_with("f.jpg: the same file as c.jpg"), "{skipped:?}");
     assert!(
-        skipped[4].starts_with("h.jpg: not an image OpenCV can decode (its header says 65535x65535)"),
+        skipped[5].starts_with("h.jpg: not an image OpenCV can decode (its header says 65535x65535)"),
         "{skipped:?}"
     );
     let ds = mavloc_data::Dataset::open(&out).unwrap();
