@@ -487,24 +487,28 @@ pub enum ParamsCommand {
 
 /// Parses `a,b` into two numbers.
 fn parse_pair(s: &str) -> Result<[f64; 2], String> {
-    let v = numbers(s, number)?;
-    <[f64; 2]>::try_from(v).map_err(|v| format!("expected two comma-separated numbers, got {}", v.len()))
+    numbers(s, number)
 }
 
 /// Parses `a,b,c` into three numbers.
 fn parse_triple(s: &str) -> Result<[f64; 3], String> {
-    let v = numbers(s, number)?;
-    <[f64; 3]>::try_from(v).map_err(|v| format!("expected three comma-separated numbers, got {}", v.len()))
+    numbers(s, number)
 }
 
 /// Parses `a,b,c` into three numbers of 0 or more (standard deviations).
 fn parse_sd_triple(s: &str) -> Result<[f64; 3], String> {
-    let v = numbers(s, non_negative)?;
-    <[f64; 3]>::try_from(v).map_err(|v| format!("expected three comma-separated numbers, got {}", v.len()))
+    numbers(s, non_negative)
 }
 
-fn numbers(s: &str, each: fn(&str) -> Result<f64, String>) -> Result<Vec<f64>, String> {
-    s.split(',').map(|p| each(p.trim())).collect()
+/// `N` comma-separated numbers, each checked by `each`.
+fn numbers<const N: usize>(s: &str, each: fn(&str) -> Result<f64, String>) -> Result<[f64; N], String> {
+    let v = s.split(',').map(|p| each(p.trim())).collect::<Result<Vec<f64>, String>>()?;
+    let count = match N {
+        2 => "two".to_string(),
+        3 => "three".to_string(),
+        n => n.to_string(),
+    };
+    <[f64; N]>::try_from(v).map_err(|v| format!("expected {count} comma-separated numbers, got {}", v.len()))
 }
 
 /// A finite number: Rust's parser also takes `nan` and `inf`, which would reach datasets

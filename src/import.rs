@@ -82,6 +82,9 @@ pub struct PhotoTags {
     /// Focal length in pixels of this file from EXIF FocalLength and FocalPlaneXResolution,
     /// when both are there (scaled from the EXIF image width to the file's).
     pub focal_px: Option<f64>,
+    /// The file's CRC-32 and length: two files alike in both are copies of one photo.
+    #[serde(skip)]
+    pub file_id: (u32, u64),
 }
 
 /// Where the camera's attitude comes from.
@@ -172,6 +175,7 @@ fn rational_f64(f: &exif::Field, i: usize) -> Option<f64> {
 pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let bytes = std::fs::read(path).map_err(|e| format!("{name}: {e}"))?;
+    let file_id = (crc32fast::hash(&bytes), bytes.len() as u64);
     let (width, height) = jpeg_size(&bytes).ok_or_else(|| {
         // A JPEG's start with no frame header after it is a file cut short (inside its
         // EXIF, say), not another format.
@@ -289,6 +293,7 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
             flight_deg: [f64::NAN; 3],
             vendor: String::new(),
             focal_px,
+            file_id,
         }
     };
     let tags = match vendor {
@@ -341,6 +346,7 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 flight_deg: attitude,
                 vendor: "sensefly".into(),
                 focal_px,
+                file_id,
             }
         }
         Vendor::Parrot => {
@@ -705,20 +711,16 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     // The bytes decide (their CRC-32 and length), not the tags alone: a camera that shoots
     // twice a second with GPS at 1 Hz and no attitude tags tags two shots alike.
     let mut seen: std::collections::BTreeMap<(u32, u64), String> = std::collections::BTreeMap::new();
-    photos.retain(|(_, path, t)| {
-        let Ok(bytes) = std::fs::read(path) else { return true };
-        let key = (crc32fast::hash(&bytes), bytes.len() as u64);
-        match seen.get(&key) {
-            Some(first) => {
-                let why = format!("the same file as {first}");
-                tracing::warn!("skipped {}: {why}", t.name);
-                report.skipped.push((t.name.clone(), why));
-                false
-            }
-            None => {
-                seen.insert(key, t.name.clone());
-                true
-            }
+    photos.retain(|(_, _, t)| match seen.get(&t.file_id) {
+        Some(first) => {
+            let why = format!("the same file as {first}");
+            tracing::warn!("skipped {}: {why}", t.name);
+            report.skipped.push((t.name.clone(), why));
+            false
+        }
+        None => {
+            seen.insert(t.file_id, t.name.clone());
+            true
         }
     });
     // A photo whose tags read but whose image OpenCV cannot decode (a forged or damaged

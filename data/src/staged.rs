@@ -113,6 +113,8 @@ impl StagedDir {
     pub fn commit_beside(mut self, suffix: &str) -> Result<PathBuf, String> {
         let name = self.target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let beside = self.target.with_file_name(format!("{name}.{suffix}"));
+        // On disk before it is named, as in `commit`.
+        flush(&self.stage).map_err(|e| format!("cannot flush {} to disk: {e}", self.stage.display()))?;
         let _ = fs::remove_dir_all(&beside);
         fs::rename(&self.stage, &beside).map_err(|e| {
             format!("cannot put {} in place: {e}; kept as {}", beside.display(), self.stage.display())
@@ -180,17 +182,17 @@ impl Drop for StagedDir {
 /// `summary.json`), which are replaced whole, so no file of the earlier run stays beside the
 /// new ones. A folder of other files, given as `--out` by mistake, is refused, not replaced.
 pub fn begin_results(out: &Path) -> Result<StagedDir, String> {
-    let out = followed(out)?;
+    // Through a link as well: these calls follow it.
     let other_files = out.is_dir()
         && !out.join("summary.json").is_file()
-        && fs::read_dir(&out).map(|mut d| d.next().is_some()).unwrap_or(false);
+        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
     if other_files {
         return Err(format!(
             "{} holds files that are not mavloc results (no summary.json): give a new or empty folder as --out",
             out.display()
         ));
     }
-    StagedDir::begin(&out, true)
+    StagedDir::begin(out, true)
 }
 
 /// Whether process `pid` exists (`kill(pid, 0)`; EPERM: it exists under another user).

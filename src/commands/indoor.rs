@@ -3,7 +3,7 @@
 
 use std::process::ExitCode;
 
-use anyhow::{anyhow, bail};
+use anyhow::anyhow;
 
 use super::{Global, Progress};
 use crate::cli::IndoorCommand;
@@ -119,13 +119,7 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         IndoorCommand::MapEval(a) => {
-            // Checked before minutes of rendering, not after.
-            if a.out.is_dir() {
-                bail!("--out {} is a folder: give the heat map's file name (.png)", a.out.display());
-            }
-            if let Some(parent) = a.out.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
-                bail!("--out {}: the folder {} does not exist", a.out.display(), parent.display());
-            }
+            super::writable_file(&a.out, "heat map")?;
             let bar = Progress::new("rendering views", "views");
             let e = crate::simulated::mapeval::evaluate(
                 &a.map,

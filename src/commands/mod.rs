@@ -41,6 +41,18 @@ impl Global {
     }
 }
 
+/// An output file a command can write at `path` (`what` names it), checked before the
+/// work that makes it, not after minutes of rendering.
+pub(crate) fn writable_file(path: &std::path::Path, what: &str) -> anyhow::Result<()> {
+    if path.is_dir() {
+        anyhow::bail!("--out {} is a folder: give the {what}'s file name", path.display());
+    }
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
+        anyhow::bail!("--out {}: the folder {} does not exist", path.display(), parent.display());
+    }
+    Ok(())
+}
+
 fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded> {
     Ok(settings::load(&Layers::from_process(file, overrides))?)
 }

@@ -150,15 +150,10 @@ fn image_write(path: &Path, w: usize, h: usize, rgb: &[u8]) -> anyhow::Result<()
 
 /// An image file `imwrite` can write at `path`, checked before the work that makes it.
 fn writable_image(path: &Path) -> anyhow::Result<()> {
-    if path.is_dir() {
-        anyhow::bail!("--out {} is a folder: give the image's file name (.png or .jpg)", path.display());
-    }
+    super::writable_file(path, "image")?;
     let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
     if !matches!(ext.as_str(), "png" | "jpg" | "jpeg" | "tif" | "tiff" | "bmp") {
         anyhow::bail!("--out {}: name the image .png, .jpg, .tif or .bmp", path.display());
-    }
-    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty() && !p.is_dir()) {
-        anyhow::bail!("--out {}: the folder {} does not exist", path.display(), parent.display());
     }
     Ok(())
 }
