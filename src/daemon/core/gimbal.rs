@@ -50,6 +50,12 @@ pub struct Gimbal {
     pending: Option<(f64, f64)>,
     next: Mono,
     refused_once: bool,
+    /// A setpoint was accepted since the last refusal: a refusal now means the autopilot
+    /// took the gimbal back (PX4's navigator does for RTL and landing), not that it has no
+    /// gimbal manager.
+    in_use: bool,
+    /// A setpoint was ever accepted.
+    ever_accepted: bool,
 }
 
 impl Default for Gimbal {
@@ -62,6 +68,8 @@ impl Default for Gimbal {
             pending: None,
             next: Mono::ZERO,
             refused_once: false,
+            in_use: false,
+            ever_accepted: false,
         }
     }
 }
@@ -182,13 +190,18 @@ impl Gimbal {
         ))
     }
 
-    /// The manager's answer to CONFIGURE or PITCHYAW. Returns a line to report the first
-    /// time control is refused.
+    /// The manager's answer to CONFIGURE or PITCHYAW. Returns a line to report: the first
+    /// refusal of a manager that never took a setpoint (likely no gimbal manager), and
+    /// each time an autopilot that took setpoints starts refusing them (it points the
+    /// camera itself); while it keeps refusing, nothing more.
     pub fn on_ack(&mut self, command: MavCmd, result: MavResult) -> Option<String> {
         match result {
             MavResult::MAV_RESULT_ACCEPTED | MavResult::MAV_RESULT_IN_PROGRESS => {
                 if command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE {
                     self.control = Control::InControl;
+                } else if command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW {
+                    self.in_use = true;
+                    self.ever_accepted = true;
                 }
                 None
             }
@@ -199,9 +212,19 @@ impl Gimbal {
                 // them would count the autopilot's choice as mavloc's pointing error.
                 self.control = Control::Released;
                 self.sent.clear();
-                (!std::mem::replace(&mut self.refused_once, true)).then(|| {
-                    format!("autopilot refused {command:?}: {other:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?")
-                })
+                let first = !std::mem::replace(&mut self.refused_once, true);
+                if std::mem::replace(&mut self.in_use, false) {
+                    Some(format!(
+                        "autopilot took the gimbal back ({command:?}: {other:?}): it points the camera itself \
+                         (PX4 does in RTL and landing); mavloc asks for control again"
+                    ))
+                } else if first && !self.ever_accepted {
+                    Some(format!(
+                        "autopilot refused {command:?}: {other:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?"
+                    ))
+                } else {
+                    None
+                }
             }
         }
     }
@@ -334,5 +357,41 @@ mod tests {
             .is_none());
         let (c, _, _) = command(&g.poll_transmit(Mono::ZERO, 1, (1, 191)).unwrap());
         assert_eq!(c, MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE);
+    }
+
+    /// PX4 takes the gimbal for RTL after mavloc has pointed it for the whole mission (every
+    /// SITL coastline flight): that is said as such, once per time it happens, not as a
+    /// missing gimbal manager. Its loop of accepted CONFIGUREs and refused setpoints stays
+    /// quiet.
+    #[test]
+    fn an_autopilot_taking_the_gimbal_back_is_told_from_one_without_a_manager() {
+        let me = (1, 191);
+        let yaw = MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW;
+        let configure = MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE;
+        let (ok, denied) = (MavResult::MAV_RESULT_ACCEPTED, MavResult::MAV_RESULT_DENIED);
+        let mut g = Gimbal::default();
+        let flight = |g: &mut Gimbal| {
+            assert!(g.on_ack(configure, ok).is_none());
+            for _ in 0..3 {
+                assert!(g.on_ack(yaw, ok).is_none());
+            }
+            let said = g.on_ack(yaw, denied).expect("the first refusal after accepted setpoints is reported");
+            assert!(said.contains("took the gimbal back") && !said.contains("MNT_MODE_IN"), "{said}");
+            for _ in 0..10 {
+                assert!(g.on_ack(configure, ok).is_none());
+                assert!(g.on_ack(yaw, denied).is_none(), "refused again while the autopilot holds it");
+            }
+        };
+        g.aim(0.0, -1.0);
+        g.poll_transmit(Mono::ZERO, 1, me);
+        flight(&mut g);
+        // The next flight: pointed again, then taken back again, said again.
+        flight(&mut g);
+        // A manager that never took a setpoint: the configuration hint.
+        let mut g = Gimbal::default();
+        assert!(g.on_ack(configure, ok).is_none());
+        let said = g.on_ack(yaw, denied).unwrap();
+        assert!(said.contains("MNT_MODE_IN=4"), "{said}");
+        assert!(g.on_ack(yaw, denied).is_none());
     }
 }
