@@ -45,7 +45,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use crate::geometry::{Geodetic, LocalFrame};
+use crate::geometry::{Geodetic, Intrinsics, LocalFrame};
 use mavloc_data::dataset::{self, CameraFile, GimbalFrame, PoseRecord, TelemetryRecord};
 
 /// `config/photo-survey.toml`, written into every imported dataset as its own settings.
@@ -452,7 +452,8 @@ pub struct Calibration {
 }
 
 impl Calibration {
-    fn check(&self) -> Result<(), String> {
+    /// The coefficients, for photos of `width` x `height`.
+    fn check(&self, width: u32, height: u32) -> Result<(), String> {
         if ![0, 4, 5, 8].contains(&self.distortion.len()) {
             return Err(format!(
                 "distortion has {} coefficients; OpenCV's model takes 4, 5 or 8 ([k1, k2, p1, p2, k3, ...])",
@@ -462,7 +463,16 @@ impl Calibration {
         if let Some(d) = self.distortion.iter().find(|d| !d.is_finite()) {
             return Err(format!("distortion coefficient {d} is not a finite number"));
         }
-        Ok(())
+        if !(self.fx >= 1.0 && self.fy >= 1.0 && self.fx.is_finite() && self.fy.is_finite()) {
+            return Err(format!("fx = {} and fy = {} must be focal lengths in pixels", self.fx, self.fy));
+        }
+        let k = Intrinsics { width, height, fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy };
+        match crate::lens::fold_problem(&k, &self.distortion) {
+            Some(problem) => {
+                Err(format!("distortion {:?} on {width}x{height} photos: {problem}", self.distortion))
+            }
+            None => Ok(()),
+        }
     }
 
     /// Whether the photos need undistorting.
@@ -827,7 +837,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         Some(p) => {
             let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
             let c: Calibration = toml::from_str(&text).map_err(|e| format!("{}: {e}", p.display()))?;
-            c.check().map_err(|e| format!("{}: {e}", p.display()))?;
+            c.check(w, h).map_err(|e| format!("{}: {e}", p.display()))?;
             let from = if c.distorted() {
                 format!("calibration file {} (frames undistorted)", p.display())
             } else {

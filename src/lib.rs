@@ -20,6 +20,7 @@
 //!   traits, numerically guarded), the static-landmark bearing model, and the 2D particle
 //!   filter of the indoor pipeline.
 //! * [`settings`]: the layered, validated configuration (`config/mavloc.toml`).
+//! * [`lens`]: whether a lens distortion model can be undone over a whole image.
 //! * [`link`]: the MAVLink side: addresses, framing, signing, parameters, transports.
 //! * [`camera`]: frame sources (V4L2, file, dataset replay, the simulated camera).
 //! * [`align`]: time alignment of frames with the autopilot's telemetry.
@@ -55,6 +56,7 @@ pub mod filter;
 pub mod imaging;
 pub mod import;
 pub mod indoor;
+pub mod lens;
 pub mod link;
 pub mod logging;
 pub mod output;

@@ -677,14 +677,24 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
             "0, 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]])",
         );
     }
-    for c in &s.camera.distortion {
-        if !c.is_finite() || c.abs() > 100.0 {
+    let bounded = s.camera.distortion.iter().all(|c| c.is_finite() && c.abs() <= 100.0);
+    if !bounded {
+        v.problem(
+            "camera.distortion",
+            format!("{:?}", s.camera.distortion),
+            "coefficients within -100 ..= 100",
+        );
+    }
+    // The model must hold out to the image's corners at this size (`lens`).
+    let k = s.camera.intrinsics();
+    let sized = (16..=8192).contains(&s.camera.width) && (16..=8192).contains(&s.camera.height);
+    if bounded && sized && k.fx >= 1.0 && k.fy >= 1.0 {
+        if let Some(problem) = crate::lens::fold_problem(&k, &s.camera.distortion) {
             v.problem(
                 "camera.distortion",
-                format!("{:?}", s.camera.distortion),
-                "coefficients within -100 ..= 100",
+                format!("{:?} at {}x{}", s.camera.distortion, s.camera.width, s.camera.height),
+                problem,
             );
-            break;
         }
     }
 

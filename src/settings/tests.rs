@@ -78,6 +78,28 @@ fn out_of_range_value_names_key_value_range_and_file() {
     }
 }
 
+/// Distortion coefficients of a calibration made at 640x360 given for a 1920x1080 camera
+/// (focal length in pixels of the small size): the model turns over inside the image, which
+/// OpenCV's undistortion would fold without a word. The same coefficients with the focal
+/// length of this size load.
+#[test]
+fn a_lens_model_that_folds_inside_the_image_is_refused() {
+    let camera = |fx: f64| {
+        format!(
+            "[camera]\nwidth = 1920\nheight = 1080\nfx = {fx}\ndistortion = [-0.3, 0.02, 0.0, 0.0, 0.0]\n"
+        )
+    };
+    let f = write_temp(&camera(466.7));
+    let p = problems(load_file(f.path()));
+    assert_eq!(p.len(), 1, "{p:?}");
+    let msg = p[0].to_string();
+    for needle in ["camera.distortion", "1920x1080", "turns back on itself", "another image size"] {
+        assert!(msg.contains(needle), "`{needle}` missing from: {msg}");
+    }
+    let f = write_temp(&camera(1400.0));
+    load_file(f.path()).unwrap();
+}
+
 #[test]
 fn wrong_type_and_unknown_section_are_refused() {
     let f = write_temp("[area]\nl_max = \"lots\"\n[aera]\nx = 1\n");

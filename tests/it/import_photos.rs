@@ -189,6 +189,19 @@ fn a_calibration_with_distortion_undistorts_the_frames() {
     .unwrap();
     let e = import_photos(&sample(), &dir.path().join("ds2"), &with_calibration(&cal)).unwrap_err();
     assert!(e.contains("cal.toml") && e.contains("distortion has 3 coefficients"), "{e}");
+    // The same k1 with the focal length of a calibration made at a sixth of the size: the
+    // model turns over inside these photos (OpenCV would fold them without a word).
+    std::fs::write(
+        &cal,
+        format!(
+            "fx = {f}\nfy = {f}\ncx = 1999.5\ncy = 1124.5\ndistortion = [{k1}, 0.0, 0.0, 0.0, 0.0]\n",
+            f = fx / 6.0
+        ),
+    )
+    .unwrap();
+    let e = import_photos(&sample(), &dir.path().join("ds3"), &with_calibration(&cal)).unwrap_err();
+    assert!(e.contains("cal.toml") && e.contains("4000x2250") && e.contains("turns back on itself"), "{e}");
+    assert!(!dir.path().join("ds3").exists());
 }
 
 #[test]
