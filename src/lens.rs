@@ -63,15 +63,9 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
+    /// Square pixels of focal length `f`, principal point at the centre.
     fn k(width: u32, height: u32, f: f64) -> Intrinsics {
-        Intrinsics {
-            width,
-            height,
-            fx: f,
-            fy: f,
-            cx: (width as f64 - 1.0) / 2.0,
-            cy: (height as f64 - 1.0) / 2.0,
-        }
+        Intrinsics { fx: f, fy: f, ..Intrinsics::from_hfov(width, height, 1.0) }
     }
 
     /// Whether OpenCV's own undistortion maps fetch the pixels along the diagonal from the

@@ -687,8 +687,7 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     }
     // The model must hold out to the image's corners at this size (`lens`).
     let k = s.camera.intrinsics();
-    let sized = (16..=8192).contains(&s.camera.width) && (16..=8192).contains(&s.camera.height);
-    if bounded && sized && k.fx >= 1.0 && k.fy >= 1.0 {
+    if bounded && k.fx >= 1.0 && k.fy >= 1.0 {
         if let Some(problem) = crate::lens::fold_problem(&k, &s.camera.distortion) {
             v.problem(
                 "camera.distortion",
