@@ -147,8 +147,10 @@ uninstall:
 # changes go in /etc/systemd/system/mavloc.service.d/), the real-drone configuration as a
 # conffile (/etc/mavloc/mavloc.toml: dpkg never overwrites an edited one on upgrade), the
 # demo and SITL configurations as examples, and maintainer scripts that reload systemd
-# and stop/disable the service on removal. Built with dpkg-deb itself, from the same
-# files as `make install`: target/debian/mavloc_<version>_<arch>.deb.
+# and stop/disable the service on removal. The README goes in with the docs/ folder it
+# links to (notes, pictures and their licences), its link to the demo configuration
+# pointing at the packaged example. Built with dpkg-deb itself, from the same files as
+# `make install`: target/debian/mavloc_<version>_<arch>.deb.
 DEB_DIR ?= target/debian
 DEB_COMPRESS ?= xz
 DEB_MAINTAINER ?= mavloc developers <mavloc@localhost>
@@ -168,7 +170,9 @@ deb-files:
 	install -D -m 0644 config/drone.toml $$stage/etc/mavloc/mavloc.toml; \
 	install -D -m 0644 config/mavloc.toml $$stage/usr/share/doc/mavloc/examples/demo.toml; \
 	install -m 0644 config/sitl.toml config/sitl-indoor.toml config/photo-survey.toml $$stage/usr/share/doc/mavloc/examples/; \
-	install -m 0644 README.md packaging/deb/copyright $$stage/usr/share/doc/mavloc/; \
+	install -m 0644 packaging/deb/copyright $$stage/usr/share/doc/mavloc/; \
+	sed 's|](config/mavloc.toml)|](examples/demo.toml)|g' README.md > $$stage/usr/share/doc/mavloc/README.md; \
+	install -D -m 0644 -t $$stage/usr/share/doc/mavloc/docs docs/*; \
 	mkdir -p $$stage/DEBIAN; \
 	install -m 0755 packaging/deb/postinst packaging/deb/prerm packaging/deb/postrm $$stage/DEBIAN/; \
 	echo /etc/mavloc/mavloc.toml > $$stage/DEBIAN/conffiles; \

@@ -66,7 +66,8 @@ fn dpkg_deb(args: &[&str], deb: &Path) -> String {
 /// `make deb` (here its packaging step on the debug binary, uncompressed): the binary, the
 /// unit under /usr/lib pointing at it, the real-drone configuration as the one conffile,
 /// the demo and SITL configurations as examples, library dependencies worked out, and
-/// maintainer scripts that reload systemd and stop and disable the service on removal.
+/// maintainer scripts that reload systemd and stop and disable the service on removal,
+/// and the README with every page and picture it links to.
 #[test]
 fn the_debian_package_holds_the_service_and_keeps_the_configuration_as_a_conffile() {
     let dir = tempfile::tempdir().unwrap();
@@ -121,4 +122,42 @@ fn the_debian_package_holds_the_service_and_keeps_the_configuration_as_a_conffil
     assert!(unit.contains("RestartPreventExitStatus=78"));
     let config = std::fs::read_to_string(unit_dir.path().join("etc/mavloc/mavloc.toml")).unwrap();
     assert!(config.contains("source = \"v4l2\""), "the real-drone configuration is the conffile");
+
+    // The packaged manual reads whole: every relative link of the README and of the notes
+    // it links to (pictures, licences, the example configuration) resolves inside the
+    // package.
+    let doc = unit_dir.path().join("usr/share/doc/mavloc");
+    let mut pages = vec![doc.join("README.md")];
+    let mut seen = std::collections::HashSet::new();
+    let mut checked = 0;
+    while let Some(page) = pages.pop() {
+        if !seen.insert(page.canonicalize().unwrap()) {
+            continue;
+        }
+        let text = std::fs::read_to_string(&page).unwrap_or_else(|e| panic!("{}: {e}", page.display()));
+        for target in relative_links(&text) {
+            let path = page.parent().unwrap().join(&target);
+            assert!(path.exists(), "{} links to {target}, not in the package", page.display());
+            if target.ends_with(".md") {
+                pages.push(path);
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked >= 20, "the README and its notes link to their pictures and notes ({checked} links)");
+    assert!(doc.join("docs/dji-masks.LICENSE.txt").exists(), "a picture's licence travels with it");
+}
+
+/// The targets of a Markdown text's relative links (`[text](target)`), without anchors.
+fn relative_links(text: &str) -> Vec<String> {
+    let mut links = Vec::new();
+    for (i, _) in text.match_indices("](") {
+        let rest = &text[i + 2..];
+        let Some(end) = rest.find(')') else { continue };
+        let target = rest[..end].split('#').next().unwrap();
+        if !target.is_empty() && !target.contains("://") && !target.starts_with("mailto:") {
+            links.push(target.to_string());
+        }
+    }
+    links
 }
