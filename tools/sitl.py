@@ -375,7 +375,8 @@ def estimate_vs_truth(ulg):
     import numpy as np
     from pyulog import ULog
     u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_land_detected",
-                   "estimator_status_flags", "vehicle_attitude", "vehicle_attitude_groundtruth"])
+                   "estimator_status_flags", "vehicle_attitude", "vehicle_attitude_groundtruth",
+                   "estimator_states"])
     d = {x.name: x.data for x in u.data_list}
     est, gt = d["vehicle_local_position"], d["vehicle_local_position_groundtruth"]
     t = gt["timestamp"]
@@ -410,7 +411,7 @@ def estimate_vs_truth(ulg):
         if fa is not None and fa.any():
             out["ev_pos_fused_share"] = round(float(flags["cs_ev_pos"][fa].mean()), 4)
     out["attitude_error_deg"] = attitude_vs_truth(u)
-    states = ekf_bias_states(ulg)
+    states = ekf_bias_states(u)
     if states:
         out["ekf_bias_states"] = states
     # Where the vehicle came to rest: the truth's last sample, in the EKF's frame.
@@ -419,16 +420,15 @@ def estimate_vs_truth(ulg):
     return out
 
 
-def ekf_bias_states(ulg):
-    """EKF2's bias and field states over the airborne time (`estimator_states`, 2 Hz): the
-    gyro bias (mrad/s), the accelerometer bias (m/s^2), the magnetometer bias (mG) and the
-    declination of its earth-field state (deg), each min / mean / max per axis. SIH's
-    sensors have no bias and its field is the WMM's, so whatever these states hold is
-    error the estimator traded against its attitude: on the coastline, a roll error of
-    2.5 deg held 40 s came with 0.15 m/s^2 of accelerometer bias on y (session 30)."""
+def ekf_bias_states(u):
+    """EKF2's bias and field states over the airborne time (`estimator_states`, 2 Hz), from
+    the parsed flight log `u`: the gyro bias (mrad/s), the accelerometer bias (m/s^2), the
+    magnetometer bias (mG) and the declination of its earth-field state (deg), each
+    min / mean / max (per axis). SIH's sensors have no bias and its field is the WMM's, so
+    what these states hold is error the estimator traded against its attitude (session 30,
+    coastline run 4: 0.10-0.16 m/s^2 of accelerometer bias on y while the roll was up to
+    2.5 deg off)."""
     import numpy as np
-    from pyulog import ULog
-    u = ULog(ulg, ["estimator_states", "vehicle_land_detected"])
     es = next((x.data for x in u.data_list if x.name == "estimator_states" and x.multi_id == 0), None)
     if es is None or "states[21]" not in es:
         return None
@@ -436,17 +436,19 @@ def ekf_bias_states(ulg):
     if air is None or not air.any():
         return None
 
-    def stats(idx, scale):
-        return [{"min": round(float(v.min()), 3), "mean": round(float(v.mean()), 3), "max": round(float(v.max()), 3)}
-                for v in (es[f"states[{i}]"][air] * scale for i in idx)]
+    def summary(v, digits=3):
+        return {"min": round(float(v.min()), digits), "mean": round(float(v.mean()), digits),
+                "max": round(float(v.max()), digits)}
+
+    def axes(idx, scale):
+        return [summary(es[f"states[{i}]"][air] * scale) for i in idx]
 
     decl = np.degrees(np.arctan2(es["states[17]"][air], es["states[16]"][air]))
     return {
-        "gyro_bias_mrad_s": stats((10, 11, 12), 1e3),
-        "accel_bias_m_s2": stats((13, 14, 15), 1.0),
-        "mag_bias_mgauss": stats((19, 20, 21), 1e3),
-        "earth_field_declination_deg": {"min": round(float(decl.min()), 2), "mean": round(float(decl.mean()), 2),
-                                        "max": round(float(decl.max()), 2)},
+        "gyro_bias_mrad_s": axes((10, 11, 12), 1e3),
+        "accel_bias_m_s2": axes((13, 14, 15), 1.0),
+        "mag_bias_mgauss": axes((19, 20, 21), 1e3),
+        "earth_field_declination_deg": summary(decl, 2),
     }
 
 
