@@ -98,42 +98,80 @@ pub fn corrected(pose: &CameraPose, delta: &Vec3) -> CameraPose {
     CameraPose { position: pose.position, attitude: Rot3::new(*delta) * pose.attitude }
 }
 
+/// A sighting's reprojection error (pixels) at `pose`: what [`FrameAt::residual`] computes
+/// with the pose's parts cached.
+#[cfg(test)]
 fn residual(pose: &CameraPose, k: &Intrinsics, x: &Vec3, seen: Pixel) -> Option<[f64; 2]> {
     let p = pose.project(k, x)?;
     Some([p.u - seen.u, p.v - seen.v])
 }
 
-/// The reprojection's Jacobians at `pose`: with respect to the landmark `x` (also, negated,
-/// to a shift of the camera's position), and to the frame's rotation correction `delta`,
-/// which the pose carries as `exp(delta) R` (every [`Problem::pose`] applies it so). `None`
-/// behind the camera.
-///
-/// With `M` the pose's "local <- camera" rotation, `d = x - c` and `p = M^T d` the point in
-/// the camera, the pixel moves by `P dp` (`P` the pinhole's 2x3 derivative), and
-/// `dp = M^T dx` for the landmark; a change `e` of `delta` turns the camera by
-/// `w = J_l(delta) e` (the left Jacobian of SO(3)), and `exp(w) M` gives
-/// `dp = M^T [d]x w`. Analytic where central differences took 12 projections per sighting
-/// and round (40 % of a rendered photo survey's run).
+/// [`FrameAt::jacobians`] at `pose` with its correction `delta`.
+#[cfg(test)]
 fn jacobians(
     pose: &CameraPose,
     k: &Intrinsics,
     x: &Vec3,
     delta: &Vec3,
 ) -> Option<(nalgebra::Matrix2x3<f64>, nalgebra::Matrix2x3<f64>)> {
-    let mt = pose.local_from_camera().inverse();
-    let d = x - pose.position;
-    let pc = mt * d;
-    if pc.z.is_nan() || pc.z <= 0.0 {
-        return None;
+    FrameAt::new(pose, delta).jacobians(k, x)
+}
+
+/// What the reprojection of every sighting in one frame shares, computed once per frame
+/// and evaluation instead of once per sighting (a survey has thousands of sightings per
+/// photo): the pose's "camera <- local" rotation `M^T`, its position, and the left
+/// Jacobian of its rotation correction.
+struct FrameAt {
+    mt: Matrix3<f64>,
+    position: Vec3,
+    left: Matrix3<f64>,
+}
+
+impl FrameAt {
+    fn new(pose: &CameraPose, delta: &Vec3) -> FrameAt {
+        FrameAt {
+            mt: *pose.local_from_camera().inverse().matrix(),
+            position: pose.position,
+            left: left_jacobian(delta),
+        }
     }
-    let iz = 1.0 / pc.z;
-    #[rustfmt::skip]
-    let pinhole = nalgebra::Matrix2x3::new(
-        k.fx * iz, 0.0, -k.fx * pc.x * iz * iz,
-        0.0, k.fy * iz, -k.fy * pc.y * iz * iz,
-    );
-    let dx = small::m23(&pinhole, mt.matrix());
-    Some((dx, small::m23(&small::m23(&dx, &d.cross_matrix()), &left_jacobian(delta))))
+
+    /// A sighting's reprojection error, pixels: [`CameraPose::project`]'s arithmetic.
+    fn residual(&self, k: &Intrinsics, x: &Vec3, seen: Pixel) -> Option<[f64; 2]> {
+        let p = k.project_camera(&small::mv(&self.mt, &(x - self.position)))?;
+        Some([p.u - seen.u, p.v - seen.v])
+    }
+
+    /// The reprojection's Jacobians at this frame's pose: with respect to the landmark `x`
+    /// (also, negated, to a shift of the camera's position), and to the frame's rotation
+    /// correction `delta`, which the pose carries as `exp(delta) R` (every `Problem::pose`
+    /// applies it so). `None` behind the camera.
+    ///
+    /// With `M` the pose's "local <- camera" rotation, `d = x - c` and `p = M^T d` the point
+    /// in the camera, the pixel moves by `P dp` (`P` the pinhole's 2x3 derivative), and
+    /// `dp = M^T dx` for the landmark; a change `e` of `delta` turns the camera by
+    /// `w = J_l(delta) e` (the left Jacobian of SO(3)), and `exp(w) M` gives
+    /// `dp = M^T [d]x w`. Analytic where central differences took 12 projections per
+    /// sighting and round (40 % of a rendered photo survey's run).
+    fn jacobians(
+        &self,
+        k: &Intrinsics,
+        x: &Vec3,
+    ) -> Option<(nalgebra::Matrix2x3<f64>, nalgebra::Matrix2x3<f64>)> {
+        let d = x - self.position;
+        let pc = small::mv(&self.mt, &d);
+        if pc.z.is_nan() || pc.z <= 0.0 {
+            return None;
+        }
+        let iz = 1.0 / pc.z;
+        #[rustfmt::skip]
+        let pinhole = nalgebra::Matrix2x3::new(
+            k.fx * iz, 0.0, -k.fx * pc.x * iz * iz,
+            0.0, k.fy * iz, -k.fy * pc.y * iz * iz,
+        );
+        let dx = small::m23(&pinhole, &self.mt);
+        Some((dx, small::m23(&small::m23(&dx, &d.cross_matrix()), &self.left)))
+    }
 }
 
 /// The left Jacobian of SO(3) at the rotation vector `phi`: `exp(phi + e)` is
@@ -439,10 +477,17 @@ impl Solution {
 /// One sighting's blocks: its frame's own (if any) and the shared one (if any).
 #[derive(Clone, Copy)]
 struct Seen {
+    /// The frame's index in the problem's frame list.
+    fi: usize,
+    px: Pixel,
+}
+
+/// A frame in the problem: its id and blocks (its own rotation, its shift).
+#[derive(Clone, Copy)]
+struct InProblem {
     frame: u64,
     own: Option<usize>,
     shift: Option<usize>,
-    px: Pixel,
 }
 
 impl Problem<'_> {
@@ -486,6 +531,11 @@ impl Problem<'_> {
         let is_fixed: Vec<bool> = self.landmarks.iter().map(|l| self.fixed.contains(&l.id)).collect();
         let mut per_landmark: Vec<Vec<Seen>> = vec![Vec::new(); self.landmarks.len()];
         let mut left_out = 0;
+        // Frames by dense index: a frame's pose is computed once per evaluation, not once
+        // per sighting (the closure composes rotations; per sighting it was most of a photo
+        // survey's adjustment).
+        let mut frames: Vec<InProblem> = Vec::new();
+        let mut frame_ix: FxHashMap<u64, usize> = FxHashMap::default();
         for &(f, id, px) in self.sightings {
             let own = self.frame_block.get(&f).copied();
             let shift = self.shift_block.get(&f).copied();
@@ -501,7 +551,11 @@ impl Problem<'_> {
                 continue;
             }
             if let Some(&j) = index.get(&id) {
-                per_landmark[j].push(Seen { frame: f, own, shift, px });
+                let fi = *frame_ix.entry(f).or_insert_with(|| {
+                    frames.push(InProblem { frame: f, own, shift });
+                    frames.len() - 1
+                });
+                per_landmark[j].push(Seen { fi, px });
             }
         }
         // A landmark left with one sighting would be free along its ray.
@@ -514,19 +568,27 @@ impl Problem<'_> {
         let mut xs: Vec<Vec3> = self.landmarks.iter().map(|l| l.position).collect();
         let mut theta = vec![Vec3::zeros(); nb];
         let zero = Vec3::zeros();
-        let pose_of = |theta: &[Vec3], s: &Seen| {
-            let own = s.own.map_or(&zero, |b| &theta[b]);
-            let sh = shared_ix.map_or(&zero, |b| &theta[b]);
-            let t = s.shift.map_or(&zero, |b| &theta[b]);
-            shifted((self.pose)(s.frame, own, sh), t)
+        // Each frame's pose at `theta`, with the shared block `sh` (`theta`'s own unless
+        // perturbed for its derivative).
+        let poses_at = |theta: &[Vec3], sh: &Vec3| -> Vec<FrameAt> {
+            frames
+                .iter()
+                .map(|fr| {
+                    let own = fr.own.map_or(zero, |b| theta[b]);
+                    let t = fr.shift.map_or(zero, |b| theta[b]);
+                    FrameAt::new(&shifted((self.pose)(fr.frame, &own, sh), &t), &own)
+                })
+                .collect()
         };
+        let shared_of = |theta: &[Vec3]| shared_ix.map_or(zero, |b| theta[b]);
         let cost_and_errors = |xs: &[Vec3], theta: &[Vec3]| -> (f64, Vec<f64>) {
             let mut cost =
                 theta.iter().enumerate().map(|(b, d)| 0.5 * (d.norm() / prior(b)).powi(2)).sum::<f64>();
+            let at = poses_at(theta, &shared_of(theta));
             let mut errs = Vec::new();
             for (j, obs) in per_landmark.iter().enumerate() {
                 for s in obs {
-                    match residual(&pose_of(theta, s), k, &xs[j], s.px) {
+                    match at[s.fi].residual(k, &xs[j], s.px) {
                         Some(r) => {
                             let e = r[0].hypot(r[1]);
                             errs.push(e);
@@ -560,33 +622,49 @@ impl Problem<'_> {
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
             let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
             let mut w: Vec<Vec<(usize, Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
+            let at = poses_at(&theta, &shared_of(&theta));
+            // The shared block's central differences: every frame's pose with that block
+            // moved by -h and +h in each of its three parameters.
+            let ht = shared_ix.map_or(0.0, |b| 1e-6 * prior(b).max(1e-3));
+            let moved: Vec<[Vec<FrameAt>; 2]> = if shared_ix.is_some() {
+                let sh = shared_of(&theta);
+                (0..3)
+                    .map(|c| {
+                        let mut h = sh;
+                        h[c] += ht;
+                        let plus = poses_at(&theta, &h);
+                        let mut h = sh;
+                        h[c] -= ht;
+                        [plus, poses_at(&theta, &h)]
+                    })
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            // Each frame's part of U, by the sighting's slots (own, shift, shared): the
+            // blocks a sighting touches are its frame's, so U is summed per frame and
+            // folded into the map once per round instead of once per sighting.
+            let mut uf = vec![[[Matrix3::<f64>::zeros(); 3]; 3]; frames.len()];
+            let mut seen_in = vec![false; frames.len()];
             for (j, obs) in per_landmark.iter().enumerate() {
                 for s in obs {
-                    let pose = pose_of(&theta, s);
-                    let Some(r0) = residual(&pose, k, &xs[j], s.px) else { continue };
+                    let fr = &frames[s.fi];
+                    let Some(r0) = at[s.fi].residual(k, &xs[j], s.px) else { continue };
                     let n = r0[0].hypot(r0[1]) / p.pixel_sd;
                     let wt = huber_weight(n, p.huber) / p.pixel_sd.powi(2);
                     // Jacobians, 2x3 for each block's parameters and for the landmark:
                     // analytic for the landmark, the frame's own rotation and its shift;
                     // central differences for the shared block, which enters through the
                     // caller's gimbal chain.
-                    let slots = [s.own, s.shift, shared_ix];
+                    let slots = [fr.own, fr.shift, shared_ix];
                     let blocks = || slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b)));
-                    let own = s.own.map_or(zero, |b| theta[b]);
-                    let Some((bj, a_own)) = jacobians(&pose, k, &xs[j], &own) else { continue };
+                    let Some((bj, a_own)) = at[s.fi].jacobians(k, &xs[j]) else { continue };
                     let mut a = [a_own, -bj, nalgebra::Matrix2x3::<f64>::zeros()];
-                    if let Some(b) = shared_ix {
-                        let sh = theta[b];
-                        let t = s.shift.map_or(zero, |b| theta[b]);
-                        let ht = 1e-6 * prior(b).max(1e-3);
-                        let at = |c: usize, sign: f64| {
-                            let mut h = sh;
-                            h[c] += ht * sign;
-                            residual(&shifted((self.pose)(s.frame, &own, &h), &t), k, &xs[j], s.px)
-                        };
+                    if shared_ix.is_some() {
                         let mut ok = true;
-                        for c in 0..3 {
-                            match (at(c, 1.0), at(c, -1.0)) {
+                        for (c, [plus, minus]) in moved.iter().enumerate() {
+                            let r = |poses: &[FrameAt]| poses[s.fi].residual(k, &xs[j], s.px);
+                            match (r(plus), r(minus)) {
                                 (Some(rp), Some(rm)) => {
                                     a[2][(0, c)] = (rp[0] - rm[0]) / (2.0 * ht);
                                     a[2][(1, c)] = (rp[1] - rm[1]) / (2.0 * ht);
@@ -599,11 +677,12 @@ impl Problem<'_> {
                         }
                     }
                     let r = nalgebra::Vector2::new(r0[0], r0[1]);
+                    seen_in[s.fi] = true;
                     for (i1, b1) in blocks() {
                         let a1 = &a[i1];
                         eu[b1] += small::tv2(a1, &r) * wt;
-                        for (i2, b2) in blocks() {
-                            *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += small::tn(a1, &a[i2]) * wt;
+                        for (i2, _) in blocks() {
+                            uf[s.fi][i1][i2] += small::tn(a1, &a[i2]) * wt;
                         }
                         if !is_fixed[j] {
                             *entry(&mut w[j], b1) += small::tn(a1, &bj) * wt;
@@ -612,6 +691,14 @@ impl Problem<'_> {
                     if !is_fixed[j] {
                         v[j] += small::tn(&bj, &bj) * wt;
                         ev[j] += small::tv2(&bj, &r) * wt;
+                    }
+                }
+            }
+            for ((fr, parts), _) in frames.iter().zip(&uf).zip(&seen_in).filter(|(_, seen)| **seen) {
+                let slots = [fr.own, fr.shift, shared_ix];
+                for (i1, b1) in slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b))) {
+                    for (i2, b2) in slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b))) {
+                        *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += parts[i1][i2];
                     }
                 }
             }
@@ -687,12 +774,12 @@ impl Problem<'_> {
             }
         }
         let (_, errs) = cost_and_errors(&xs, &theta);
+        let at = poses_at(&theta, &shared_of(&theta));
         let mut errors = Vec::with_capacity(sightings);
         for (j, obs) in per_landmark.iter().enumerate() {
             for s in obs {
-                let e = residual(&pose_of(&theta, s), k, &xs[j], s.px)
-                    .map_or(f64::INFINITY, |r| r[0].hypot(r[1]));
-                errors.push((s.frame, self.landmarks[j].id, e));
+                let e = at[s.fi].residual(k, &xs[j], s.px).map_or(f64::INFINITY, |r| r[0].hypot(r[1]));
+                errors.push((frames[s.fi].frame, self.landmarks[j].id, e));
             }
         }
         // The reduced normal matrix's inverse is the blocks' covariance (in units of the
