@@ -2,9 +2,11 @@
 //! indoor model, built once and cached in cargo's test scratch folder (`target/tmp`).
 //! A rendered dataset is stamped with the renderer's inputs (the sources of the simulator
 //! and of the crates it uses, its scenarios and textures, and `Cargo.lock`), so a change
-//! elsewhere in mavloc does not render again (about a minute each time); the model is
-//! stamped with this test binary, which has the trainer compiled in. Rendering and
-//! training are deterministic, so a cached fixture is the one the test would make.
+//! elsewhere in mavloc does not render again (about a minute each time); a model is
+//! stamped with the trainer's inputs (mavloc's library sources and the crates it uses, and
+//! the views it was trained on), so a change to the tests alone does not train again
+//! (38 s of CPU for the two models). Rendering and training are deterministic, so a
+//! cached fixture is the one the test would make.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
@@ -14,44 +16,53 @@ use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
 
-/// This test binary's identity: its size and modification time.
-fn build_stamp() -> String {
-    let exe = std::env::current_exe().unwrap();
-    let m = std::fs::metadata(&exe).unwrap();
-    format!("{} {:?}", m.len(), m.modified().unwrap())
+/// A hash of the files under `dirs` and of `files` (relative to the project root): what a
+/// fixture built from them depends on. A file missed here would leave a stale fixture, so
+/// it is whole folders, not a list of files.
+fn sources_stamp(dirs: &[&str], files: &[&str]) -> String {
+    use std::hash::{Hash, Hasher};
+    fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+        entries.sort();
+        for p in entries {
+            if p.is_dir() {
+                walk(&p, out);
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut paths: Vec<PathBuf> = files.iter().map(|f| root.join(f)).collect();
+    for dir in dirs {
+        walk(&root.join(dir), &mut paths);
+    }
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    for f in paths {
+        f.strip_prefix(root).unwrap().hash(&mut h);
+        std::fs::read(&f).unwrap().hash(&mut h);
+    }
+    format!("{:016x}", h.finish())
 }
 
-/// What a rendered dataset depends on: a hash of the files the renderer is built from and
-/// reads (the simulator crate, the geometry and data crates it uses, the locked
-/// dependency versions). A file missed here would leave a stale dataset, so it is whole
-/// folders, not a list of files.
+/// What a rendered dataset depends on: the simulator crate, the geometry and data crates
+/// it uses, the locked dependency versions.
 fn renderer_stamp() -> &'static str {
     static STAMP: OnceLock<String> = OnceLock::new();
     STAMP.get_or_init(|| {
-        use std::hash::{Hash, Hasher};
-        fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
-            let mut entries: Vec<PathBuf> =
-                std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
-            entries.sort();
-            for p in entries {
-                if p.is_dir() {
-                    walk(&p, out);
-                } else {
-                    out.push(p);
-                }
-            }
-        }
-        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-        let mut files = vec![root.join("Cargo.lock"), root.join("sim/Cargo.toml")];
-        for dir in ["sim/src", "sim/scenarios", "sim/assets", "src/geometry", "data"] {
-            walk(&root.join(dir), &mut files);
-        }
-        let mut h = std::collections::hash_map::DefaultHasher::new();
-        for f in files {
-            f.strip_prefix(root).unwrap().hash(&mut h);
-            std::fs::read(&f).unwrap().hash(&mut h);
-        }
-        format!("renderer {:016x}", h.finish())
+        let dirs = ["sim/src", "sim/scenarios", "sim/assets", "src/geometry", "data"];
+        format!("renderer {}", sources_stamp(&dirs, &["Cargo.lock", "sim/Cargo.toml"]))
+    })
+}
+
+/// What a trained model depends on besides its views and settings: the trainer is
+/// mavloc's library (its whole source tree, which holds the geometry crate) and the crates
+/// of this workspace it uses, built with the locked dependency versions and the manifests.
+fn trainer_stamp() -> &'static str {
+    static STAMP: OnceLock<String> = OnceLock::new();
+    STAMP.get_or_init(|| {
+        let files = ["Cargo.lock", "Cargo.toml", "sim/Cargo.toml"];
+        format!("trainer {}", sources_stamp(&["src", "data", "sim/src"], &files))
     })
 }
 
@@ -151,8 +162,9 @@ pub fn small_indoor_model() -> &'static Path {
     &small_indoor_training().0
 }
 
-/// [`small_indoor_model`] and what its training reported: trained once per build, for
-/// every test that trains with the default settings on these views.
+/// [`small_indoor_model`] and what its training reported, for every test that trains with
+/// the default settings on these views: trained again only when the trainer or the views
+/// change.
 pub fn small_indoor_training() -> &'static (PathBuf, TrainReport) {
     static MODEL: OnceLock<(PathBuf, TrainReport)> = OnceLock::new();
     MODEL.get_or_init(|| {
@@ -172,10 +184,13 @@ pub fn plain_indoor_model() -> PathBuf {
 }
 
 /// A folder with `floor.model`, trained on [`indoor_views`] with `settings`, and its
-/// training's `report.json`: built once per build of the tests under `key`.
+/// training's `report.json`, under `key`: trained again only when the trainer or the
+/// views change.
 fn trained_on_views(key: &str, settings: &mavloc::settings::Indoor) -> PathBuf {
     let views = indoor_views();
-    cached(key, &build_stamp(), |out| {
+    let of_views = std::fs::read_to_string(stamp_of(&views)).unwrap();
+    let stamp = format!("{}\n{settings:?}\nviews: {of_views}", trainer_stamp());
+    cached(key, &stamp, |out| {
         std::fs::create_dir_all(out).unwrap();
         let opts = TrainOptions {
             dataset: views,
