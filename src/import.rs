@@ -503,6 +503,9 @@ fn undistort_photo(src: &Path, dest: &Path, c: &Calibration) -> Result<(), Strin
     Ok(())
 }
 
+/// The error of an import stopped by [`ImportOptions::stop`].
+pub const STOPPED: &str = "stopped by Ctrl-C";
+
 /// How to import.
 #[derive(Clone, Debug, Default)]
 pub struct ImportOptions {
@@ -518,6 +521,9 @@ pub struct ImportOptions {
     /// photos' GPS altitude datum (m), where new landmarks start (the photos do not say how
     /// high above the ground they were taken).
     pub ground_alt_m: Option<f64>,
+    /// Set (by Ctrl-C) to stop after the photo in hand: the import then fails, its staging
+    /// folder is removed and `out` stays as it was.
+    pub stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 /// What an import did.
@@ -890,7 +896,11 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     let frame = LocalFrame::new(origin);
     let t0 = photos[0].0;
     let mut records = Vec::with_capacity(photos.len());
+    let stopped = || opts.stop.as_ref().is_some_and(|s| s.load(std::sync::atomic::Ordering::SeqCst));
     for (i, (s, path, t)) in photos.iter().enumerate() {
+        if stopped() {
+            return Err(STOPPED.into());
+        }
         let dest = out.join("frames").join(format!("{i:06}.jpg"));
         match &undistort {
             Some(c) => undistort_photo(path, &dest, c)?,
@@ -919,6 +929,9 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     // whose image is turned half a turn from its tags gets its yaw corrected here, before
     // any landmark is estimated from it.
     let check = image_up(out, &camera, &mut records)?;
+    if stopped() {
+        return Err(STOPPED.into());
+    }
     report.overlap_median_m = check.0;
     report.turned = check.1.iter().map(|&i| photos[i].2.name.clone()).collect();
     let write = |name: &str, bytes: &[u8]| dataset::write_file(out, name, bytes);

@@ -3,6 +3,7 @@
 //! telemetry and the ground truth through it.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use mavloc_data::dataset::{self, Appearance, CameraFile, GimbalFrame, PoseRecord, TelemetryRecord};
 use rand::SeedableRng;
@@ -149,7 +150,22 @@ pub fn render_dataset(
     scenario: &Scenario,
     opts: &RenderOptions,
     out: &Path,
+    progress: impl FnMut(usize, usize),
+) -> Result<RenderSummary, String> {
+    render_dataset_until(scenario, opts, out, progress, &AtomicBool::new(false))
+}
+
+/// The error of a render stopped by its flag ([`render_dataset_until`]).
+pub const STOPPED: &str = "stopped by Ctrl-C";
+
+/// [`render_dataset`] that stops after the frame in hand once `stop` is set (Ctrl-C): it
+/// then fails with [`STOPPED`], its staging folder removed and `out` as it was.
+pub fn render_dataset_until(
+    scenario: &Scenario,
+    opts: &RenderOptions,
+    out: &Path,
     mut progress: impl FnMut(usize, usize),
+    stop: &AtomicBool,
 ) -> Result<RenderSummary, String> {
     let mut scenario = scenario.clone();
     if let Some(seed) = opts.seed {
@@ -226,6 +242,9 @@ pub fn render_dataset(
     let mut written = 0;
     let mut drift = Drift::default();
     for (i, (truth, appearance)) in shots.iter().enumerate() {
+        if stop.load(Ordering::SeqCst) {
+            return Err(STOPPED.into());
+        }
         // Drawn for every shot, dropped or not, so the drift's time course does not
         // depend on the drops.
         let wander = drift.step(noise, truth.t, opts.views.is_none(), &mut rng, &unit);

@@ -29,7 +29,7 @@ pub mod vehicle;
 pub mod views;
 pub mod world;
 
-pub use dataset::{render_dataset, RenderOptions};
+pub use dataset::{render_dataset, render_dataset_until, RenderOptions};
 pub use mission::Mission;
 pub use render::{Frame, Renderer};
 pub use scenario::Scenario;

@@ -55,7 +55,7 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         max_frames: args.frames,
         debug_masks: args.debug_masks,
     };
-    let stop = stop_on_ctrl_c()?;
+    let stop = super::stop_on_ctrl_c()?;
     let bar = Progress::new("area", "frames");
     let summary = run_stoppable(
         &opts,
@@ -184,24 +184,6 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         return Ok(ExitCode::from(130));
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// Ctrl-C ends the run after the frame in hand and puts the results so far in place; a
-/// second Ctrl-C ends the process at once (the earlier results then stay, whole).
-fn stop_on_ctrl_c() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
-    use std::sync::atomic::{AtomicBool, Ordering};
-    let stop = std::sync::Arc::new(AtomicBool::new(false));
-    let flag = stop.clone();
-    // SAFETY: the action only swaps an atomic and calls `_exit`, both async-signal-safe.
-    unsafe {
-        signal_hook_registry::register(libc::SIGINT, move || {
-            if flag.swap(true, Ordering::SeqCst) {
-                libc::_exit(130);
-            }
-        })
-    }
-    .map_err(|e| anyhow::anyhow!("cannot handle Ctrl-C: {e}"))?;
-    Ok(stop)
 }
 
 /// Whether a folder has JPEG photos directly in it (raw photos, not a dataset).

@@ -9,8 +9,19 @@ pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
         ImportCommand::Photos { dir, out, calibration, force, mount_deg, ground_alt_m } => {
             // Skipped photos and the image-up check speak through the log.
             crate::logging::init("info");
-            let opts = crate::import::ImportOptions { calibration, replace: force, mount_deg, ground_alt_m };
-            let r = crate::import::import_photos(&dir, &out, &opts).map_err(anyhow::Error::msg)?;
+            let stop = super::stop_on_ctrl_c()?;
+            let opts = crate::import::ImportOptions {
+                calibration,
+                replace: force,
+                mount_deg,
+                ground_alt_m,
+                stop: Some(stop.clone()),
+            };
+            let r = match crate::import::import_photos(&dir, &out, &opts) {
+                Ok(r) => r,
+                Err(e) if super::stopped(&stop) => return Ok(super::stopped_with_nothing_written(&out, &e)),
+                Err(e) => return Err(anyhow::Error::msg(e)),
+            };
             println!(
                 "{}: {} photos imported, {} skipped; fx {:.1} px from the {}",
                 out.display(),

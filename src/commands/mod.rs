@@ -53,6 +53,39 @@ pub(crate) fn writable_file(path: &std::path::Path, what: &str) -> anyhow::Resul
     Ok(())
 }
 
+/// Ctrl-C sets the returned flag: the command stops after the frame or photo in hand (an
+/// area run puts its results so far in place; an import or a render removes its staging
+/// folder and leaves `--out` as it was). A second Ctrl-C ends the process at once; the
+/// staging folder it leaves is removed by the next run into the same `--out`.
+pub(crate) fn stop_on_ctrl_c() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    // SAFETY: the action only swaps an atomic and calls `_exit`, both async-signal-safe.
+    unsafe {
+        signal_hook_registry::register(libc::SIGINT, move || {
+            if flag.swap(true, Ordering::SeqCst) {
+                libc::_exit(130);
+            }
+        })
+    }
+    .map_err(|e| anyhow::anyhow!("cannot handle Ctrl-C: {e}"))?;
+    Ok(stop)
+}
+
+/// Whether Ctrl-C has set `stop`.
+pub(crate) fn stopped(stop: &std::sync::atomic::AtomicBool) -> bool {
+    stop.load(std::sync::atomic::Ordering::SeqCst)
+}
+
+/// Says that a command writing the folder `out` whole was stopped by Ctrl-C (`why`, its
+/// error) before it put anything in place, and gives the shell's exit code for SIGINT.
+pub(crate) fn stopped_with_nothing_written(out: &Path, why: &str) -> std::process::ExitCode {
+    let state = if out.exists() { "left as it was" } else { "not made" };
+    eprintln!("mavloc: {why}; nothing written, {} {state}", out.display());
+    std::process::ExitCode::from(130)
+}
+
 fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded> {
     Ok(settings::load(&Layers::from_process(file, overrides))?)
 }

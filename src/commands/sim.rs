@@ -52,7 +52,7 @@ pub fn run(command: SimCommand) -> anyhow::Result<ExitCode> {
 
 /// `mavloc sim render`: a dataset from a scenario, with a progress bar.
 fn render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
-    use mavloc_sim::{render_dataset, RenderOptions, Scenario};
+    use mavloc_sim::{render_dataset_until, RenderOptions, Scenario};
     let scenario = Scenario::load(&args.scenario).map_err(|e| anyhow!(e))?;
     let mut noise = scenario.noise.clone();
     if args.no_noise {
@@ -101,12 +101,18 @@ fn render(args: Box<RenderArgs>) -> anyhow::Result<ExitCode> {
         force: args.force,
         frames_from: args.frames_from.clone(),
     };
+    let stop = super::stop_on_ctrl_c()?;
     let bar = Progress::new(&format!("rendering {}", scenario.name), "frames");
     let start = std::time::Instant::now();
-    let summary = render_dataset(&scenario, &opts, &args.out, |done, total| {
-        bar.set(done as u64, total as u64);
-    })
-    .map_err(|e| anyhow!(e))?;
+    let progress = |done: usize, total: usize| bar.set(done as u64, total as u64);
+    let summary = match render_dataset_until(&scenario, &opts, &args.out, progress, &stop) {
+        Ok(s) => s,
+        Err(e) if super::stopped(&stop) => {
+            bar.finish();
+            return Ok(super::stopped_with_nothing_written(&args.out, &e));
+        }
+        Err(e) => return Err(anyhow!(e)),
+    };
     bar.finish();
     println!(
         "{}: {} frames ({} dropped) of {} in {:.1} s",

@@ -841,3 +841,58 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
     assert!(err.contains("not mavloc results"), "{err}");
     assert_eq!(names_in(&other), ["a.txt"]);
 }
+
+/// Ctrl-C stops `mavloc sim render` after the frame in hand: exit 130, the staging folder
+/// with the frames so far removed, and the dataset the render was replacing (`--force`)
+/// left as it was. Before, SIGINT killed the process at once and the hidden
+/// `.NAME.partial-PID` folder stayed until the next render into the same folder.
+#[test]
+fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ds");
+    let render = ["sim", "render", "--scenario", "coastline", "--width", "480", "--height", "270"];
+    stdout_of(mavloc().args(render).args(["--frames", "3", "--out"]).arg(&out));
+    let before: Vec<(String, Vec<u8>)> = names_in(&out.join("frames"))
+        .into_iter()
+        .map(|n| (n.clone(), std::fs::read(out.join("frames").join(&n)).unwrap()))
+        .collect();
+    let telemetry = std::fs::read(out.join("telemetry.jsonl")).unwrap();
+    let mut child = std::process::Command::new(crate::fixtures::BIN)
+        .args(render)
+        .args(["--frames", "2000", "--force", "--out"])
+        .arg(&out)
+        .env_remove("MAVLOC_CONFIG")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = crate::fixtures::read_in_background(child.stderr.take().unwrap());
+    let stage = dir.path().join(format!(".ds.partial-{}", child.id()));
+    let start = std::time::Instant::now();
+    // Some frames rendered into the staging folder, not yet the whole flight.
+    while std::fs::read_dir(stage.join("frames")).map_or(0, |d| d.count()) < 3 {
+        assert!(child.try_wait().unwrap().is_none(), "the render ended before it was interrupted");
+        assert!(start.elapsed().as_secs() < 60, "no frame rendered after 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    // SAFETY: a plain kill(2) of our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        assert!(start.elapsed().as_secs() < 60, "Ctrl-C did not end the render");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    let said = stderr.join().unwrap();
+    assert_eq!(status.code(), Some(130), "{said}");
+    assert!(said.contains("stopped by Ctrl-C; nothing written") && said.contains("left as it was"), "{said}");
+    assert!(!stage.exists(), "the staging folder is left: {:?}", names_in(dir.path()));
+    assert_eq!(names_in(dir.path()), ["ds"]);
+    let after: Vec<(String, Vec<u8>)> = names_in(&out.join("frames"))
+        .into_iter()
+        .map(|n| (n.clone(), std::fs::read(out.join("frames").join(&n)).unwrap()))
+        .collect();
+    assert!(after == before, "the earlier dataset's frames changed");
+    assert_eq!(std::fs::read(out.join("telemetry.jsonl")).unwrap(), telemetry);
+}

@@ -725,3 +725,41 @@ fn parrot_photos_import_with_the_gimbal_in_the_earth_frame() {
         }
     }
 }
+
+/// An import stopped by its flag (Ctrl-C in `mavloc import photos`, which sets it) fails
+/// with the reason, removes its staging folder and leaves the dataset it was replacing
+/// (`--force`) as it was.
+#[test]
+fn a_stopped_import_leaves_the_earlier_dataset_and_no_staging_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ds");
+    import_photos(&seneca(), &out, &ImportOptions::default()).unwrap();
+    let snapshot = |d: &Path| -> Vec<(PathBuf, Vec<u8>)> {
+        let mut files: Vec<_> =
+            walk(d).into_iter().map(|p| (p.clone(), std::fs::read(&p).unwrap())).collect();
+        files.sort();
+        files
+    };
+    let before = snapshot(&out);
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let opts = ImportOptions { replace: true, stop: Some(stop), ..Default::default() };
+    let e = import_photos(&sample(), &out, &opts).unwrap_err();
+    assert_eq!(e, mavloc::import::STOPPED);
+    let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names, ["ds"], "a staging folder is left");
+    assert!(snapshot(&out) == before, "the earlier dataset changed");
+}
+
+/// Every file under `d`.
+fn walk(d: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(d).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
