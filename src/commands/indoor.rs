@@ -60,12 +60,18 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 camera_velocity: a.camera_velocity,
                 seed: a.seed,
             };
+            let stop = super::stop_on_ctrl_c()?;
             let bar = Progress::new("indoor", "frames");
-            let s = offline::run(&opts, &settings.indoor, |done, total| {
-                bar.set(done as u64, total as u64);
-            })
-            .map_err(|e| anyhow!(e))?;
+            let progress = |done: usize, total: usize| bar.set(done as u64, total as u64);
+            let s =
+                offline::run_stoppable(&opts, &settings.indoor, progress, &stop).map_err(|e| anyhow!(e))?;
             bar.finish();
+            if !s.complete && s.frames == 0 {
+                return Ok(super::stopped_with_nothing_written(
+                    &opts.out,
+                    "stopped by Ctrl-C before its first frame",
+                ));
+            }
             if s.frames == 0 {
                 anyhow::bail!(
                     "no frame of {} could be used ({} skipped; the log names each and why)",
@@ -75,7 +81,7 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             }
             println!(
                 "{}: {} frames ({} skipped), {:.0} frames/s whole frames: read+decode {:.2} ms, prepare {:.2} ms, localise {:.2} ms per frame; motion model {}, derotation {}",
-                opts.out.display(),
+                s.written_to.display(),
                 s.frames,
                 s.skipped_frames,
                 s.frames_per_s,
@@ -90,6 +96,19 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                     "camera velocity on {n} frame pairs, {} per axis against the true velocity",
                     rms.map_or("no pair".into(), |r| format!("{r:.3} m/s RMS"))
                 );
+            }
+            if !s.complete {
+                eprintln!(
+                    "mavloc indoor run: stopped by Ctrl-C after {} frames; their results are in {} (summary.json: \"complete\": false){}",
+                    s.frames + s.skipped_frames,
+                    s.written_to.display(),
+                    if s.written_to != opts.out {
+                        format!(", beside the complete results {} kept", opts.out.display())
+                    } else {
+                        String::new()
+                    }
+                );
+                return Ok(ExitCode::from(130));
             }
             Ok(ExitCode::SUCCESS)
         }

@@ -12,9 +12,12 @@
 //! `summary.json` are written into a folder beside `--out` and put in its place whole at
 //! the end (`mavloc_data::staged::begin_results`): a run that fails or is killed leaves the
 //! earlier results as they were, and its checkpoints (every `CHECKPOINT_FRAMES` frames) are
-//! kept by the next run as `NAME.interrupted-PID`.
+//! kept by the next run as `NAME.interrupted-PID`. A run stopped on request
+//! ([`run_stoppable`], Ctrl-C in `mavloc indoor run`) puts the frames so far in place, or
+//! beside complete earlier results as `NAME.stopped`.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use nalgebra::{Matrix2, Vector2};
@@ -425,6 +428,10 @@ pub struct RunSummary {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera_velocity_rms_m_s: Option<f64>,
     pub complete: bool,
+    /// Where the results were put: `--out`, or beside it (`NAME.stopped`) for a run
+    /// stopped part way over complete earlier results.
+    #[serde(skip)]
+    pub written_to: PathBuf,
     /// The dataset's telemetry file's CRC-32 (hex): `mavloc eval` refuses to measure the
     /// result against another dataset.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -455,6 +462,18 @@ pub fn model_settings(model: &Model, s: &Indoor) -> Indoor {
 
 /// Runs a model over a flight.
 pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Result<RunSummary, String> {
+    run_stoppable(opts, s, progress, &AtomicBool::new(false))
+}
+
+/// [`run`], ending after the frame in hand once `stop` is set (Ctrl-C), as `mavloc area`
+/// does: the frames so far are the results (`complete: false`), put beside complete
+/// earlier results as `NAME.stopped` instead of over them.
+pub fn run_stoppable(
+    opts: &RunOptions,
+    s: &Indoor,
+    progress: impl Fn(usize, usize),
+    stop: &AtomicBool,
+) -> Result<RunSummary, String> {
     let ds = Dataset::open(&opts.dataset)?;
     let model = Model::load(&opts.model)?;
     let settings = model_settings(&model, s);
@@ -469,6 +488,11 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         );
     }
     let mut loc = Localizer::new(&model, LocalizerParams::from_settings(&settings, opts.seed))?;
+    // Whether --out holds a complete earlier set, which a stopped run must not replace.
+    let earlier_complete = std::fs::read_to_string(opts.out.join("summary.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .is_some_and(|v| v["complete"] == true);
     // Written beside --out and put in place whole at the end, as `mavloc area` does.
     let staged = mavloc_data::staged::begin_results(&opts.out)?;
     let out = staged.path().to_path_buf();
@@ -485,7 +509,12 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
     let mut last_flow: Option<super::flow::FlowFrame> = None;
     let flow = super::flow::Flow::new().map_err(|e| e.to_string())?;
     let (mut flow_n, mut flow_sq) = (0usize, 0.0);
+    let mut stopped = false;
     for (i, r) in ds.records.iter().take(total).enumerate() {
+        if stop.load(Ordering::SeqCst) {
+            stopped = true;
+            break;
+        }
         let t0 = Instant::now();
         let Some(img) = read(&ds, r) else {
             summary.skipped_frames += 1;
@@ -548,11 +577,17 @@ pub fn run(opts: &RunOptions, s: &Indoor, progress: impl Fn(usize, usize)) -> Re
         summary.camera_velocity_frames = Some(flow_n);
         summary.camera_velocity_rms_m_s = (flow_n > 0).then(|| (flow_sq / flow_n as f64).sqrt());
     }
-    summary.complete = true;
+    summary.complete = !stopped;
     write_trajectory(&out, &rows, &summary)?;
     // A run that could use no frame has nothing to stand for: the earlier results stay.
+    // A run stopped part way does not replace complete earlier results either.
+    summary.written_to = opts.out.clone();
     if !rows.is_empty() {
-        staged.commit()?;
+        if stopped && earlier_complete {
+            summary.written_to = staged.commit_beside("stopped")?;
+        } else {
+            staged.commit()?;
+        }
     }
     Ok(summary)
 }

@@ -164,3 +164,56 @@ fn a_model_of_another_version_is_refused_by_run() {
     let err = Model::load(&path).unwrap_err();
     assert!(err.contains("version 0") && err.contains(&path.display().to_string()), "{err}");
 }
+
+/// A run stopped on request (Ctrl-C in `mavloc indoor run` sets the flag; here the
+/// progress callback sets it after 40 frames) ends after the frame in hand: its 40 frames
+/// are the results (`complete: false`), put in place over nothing, and beside complete
+/// earlier results as `NAME.stopped` instead of over them, which stay as they were.
+#[test]
+fn a_stopped_run_puts_the_frames_so_far_beside_complete_earlier_results() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let dir = tempfile::tempdir().unwrap();
+    let flight = crate::fixtures::low_indoor_flight(200);
+    let opts = |out: &str| RunOptions {
+        dataset: flight.clone(),
+        model: crate::fixtures::small_indoor_model().to_path_buf(),
+        out: dir.path().join(out),
+        max_frames: None,
+        no_velocity: false,
+        camera_velocity: false,
+        seed: 1,
+    };
+    let stopped_after_40 = |o: &RunOptions| {
+        let stop = AtomicBool::new(false);
+        let progress = |done: usize, _: usize| {
+            if done == 40 {
+                stop.store(true, Ordering::SeqCst);
+            }
+        };
+        mavloc::indoor::offline::run_stoppable(o, &Indoor::default(), progress, &stop).unwrap()
+    };
+    let summary = |p: &std::path::Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p.join("summary.json")).unwrap()).unwrap()
+    };
+    let rows =
+        |p: &std::path::Path| std::fs::read_to_string(p.join("trajectory.csv")).unwrap().lines().count() - 1;
+
+    // Into a new folder: the frames so far are the results.
+    let fresh = opts("fresh");
+    let s = stopped_after_40(&fresh);
+    assert_eq!((s.frames, s.complete), (40, false), "{s:?}");
+    assert_eq!(s.written_to, fresh.out);
+    assert_eq!(summary(&fresh.out)["complete"], false);
+    assert_eq!(rows(&fresh.out), 40);
+
+    // Over complete results: they stay, the stopped run's go beside.
+    let full = opts("full");
+    let done = run(&full, &Indoor::default(), |_, _| {}).unwrap();
+    assert!(done.complete && done.frames == 200, "{done:?}");
+    let before = std::fs::read(full.out.join("trajectory.csv")).unwrap();
+    let s = stopped_after_40(&full);
+    assert_eq!(s.written_to, dir.path().join("full.stopped"));
+    assert_eq!(std::fs::read(full.out.join("trajectory.csv")).unwrap(), before);
+    assert_eq!(summary(&full.out)["complete"], true);
+    assert_eq!((summary(&s.written_to)["complete"].as_bool(), rows(&s.written_to)), (Some(false), 40));
+}
