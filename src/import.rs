@@ -613,18 +613,27 @@ fn image_up(
     dir: &Path,
     camera: &CameraFile,
     records: &mut [TelemetryRecord],
+    stopped: &dyn Fn() -> bool,
 ) -> Result<(Option<f64>, Vec<usize>), String> {
     use crate::area::imageup;
     let k = camera.intrinsics();
     let pose = |r: &TelemetryRecord| r.measured.camera_pose(camera.chain, camera.gimbal_frame);
     let mut feats = Vec::with_capacity(records.len());
+    // Checked per photo and per pair: decoding and matching full-size photos is most of an
+    // import's time.
     for r in records.iter() {
+        if stopped() {
+            return Err(STOPPED.into());
+        }
         let path = dir.join("frames").join(format!("{:06}.jpg", r.frame));
         let img = crate::imaging::read_image(&path, opencv::imgcodecs::IMREAD_COLOR)?;
         feats.push(imageup::features(&img).map_err(|e| format!("{}: {e}", path.display()))?);
     }
     let mut votes = Vec::new();
     for i in 1..records.len() {
+        if stopped() {
+            return Err(STOPPED.into());
+        }
         let (pa, pb) = (pose(&records[i - 1]), pose(&records[i]));
         if let Some(v) = imageup::vote((i - 1, &feats[i - 1], &pa), (i, &feats[i], &pb), &k, 0.0)
             .map_err(|e| format!("matching photos {} and {}: {e}", i - 1, i))?
@@ -928,10 +937,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     // Which way up: overlapping photos must see the same ground (area::imageup). A photo
     // whose image is turned half a turn from its tags gets its yaw corrected here, before
     // any landmark is estimated from it.
-    let check = image_up(out, &camera, &mut records)?;
-    if stopped() {
-        return Err(STOPPED.into());
-    }
+    let check = image_up(out, &camera, &mut records, &stopped)?;
     report.overlap_median_m = check.0;
     report.turned = check.1.iter().map(|&i| photos[i].2.name.clone()).collect();
     let write = |name: &str, bytes: &[u8]| dataset::write_file(out, name, bytes);
@@ -955,7 +961,10 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     }
     let tags: Vec<&PhotoTags> = photos.iter().map(|(_, _, t)| t).collect();
     write("photos.json", serde_json::to_string_pretty(&tags).map_err(|e| e.to_string())?.as_bytes())?;
-    // Last: its presence marks a complete dataset.
+    // Last: its presence marks a complete dataset. A stop up to here leaves `out` as it was.
+    if stopped() {
+        return Err(STOPPED.into());
+    }
     dataset::write_telemetry(out, &records)?;
     staged.commit()?;
     report.fx_px = fx;

@@ -275,6 +275,10 @@ pub fn render_dataset_until(
         written += 1;
         progress(i + 1, total);
     }
+    // A stop up to here leaves `out` as it was.
+    if stop.load(Ordering::SeqCst) {
+        return Err(STOPPED.into());
+    }
     dataset::write_telemetry(out, &records)?;
     staged.commit()?;
     Ok(RenderSummary { frames: written, dropped, dir: final_dir.to_path_buf() })

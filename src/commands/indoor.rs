@@ -69,7 +69,7 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
             if !s.complete && s.frames == 0 {
                 return Ok(super::stopped_with_nothing_written(
                     &opts.out,
-                    "stopped by Ctrl-C before its first frame",
+                    "stopped by Ctrl-C before any frame was used",
                 ));
             }
             if s.frames == 0 {

@@ -55,8 +55,9 @@ pub(crate) fn writable_file(path: &std::path::Path, what: &str) -> anyhow::Resul
 
 /// Ctrl-C sets the returned flag: the command stops after the frame or photo in hand (an
 /// area run puts its results so far in place; an import or a render removes its staging
-/// folder and leaves `--out` as it was). A second Ctrl-C ends the process at once; the
-/// staging folder it leaves is removed by the next run into the same `--out`.
+/// folder and leaves `--out` as it was). A second Ctrl-C ends the process at once, leaving
+/// the staging folder to the next run into the same `--out`, which removes it (or keeps
+/// an area or indoor run's checkpoint in it as `NAME.interrupted-PID`).
 pub(crate) fn stop_on_ctrl_c() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
     use std::sync::atomic::{AtomicBool, Ordering};
     let stop = std::sync::Arc::new(AtomicBool::new(false));

@@ -18,7 +18,13 @@ pub const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
 
 /// A hash of the files under `dirs` and of `files` (relative to the project root): what a
 /// fixture built from them depends on. A file missed here would leave a stale fixture, so
-/// it is whole folders, not a list of files.
+/// it is whole folders, not a list of files. A file that cannot be read (a dangling link,
+/// an editor's lock) counts by its name and the error.
+///
+/// The files are read when a test first asks, not when this binary was built: if one of
+/// them changed since the build (an edit while the tests run), the binary's identity goes
+/// into the stamp too, so what this binary makes is never taken for what the edited
+/// sources would make.
 fn sources_stamp(dirs: &[&str], files: &[&str]) -> String {
     use std::hash::{Hash, Hasher};
     fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
@@ -37,12 +43,23 @@ fn sources_stamp(dirs: &[&str], files: &[&str]) -> String {
     for dir in dirs {
         walk(&root.join(dir), &mut paths);
     }
+    let exe = std::fs::metadata(std::env::current_exe().unwrap()).unwrap();
+    let built = exe.modified().unwrap();
     let mut h = std::collections::hash_map::DefaultHasher::new();
+    let mut edited_since = false;
     for f in paths {
         f.strip_prefix(root).unwrap().hash(&mut h);
-        std::fs::read(&f).unwrap().hash(&mut h);
+        match std::fs::read(&f) {
+            Ok(bytes) => bytes.hash(&mut h),
+            Err(e) => e.kind().hash(&mut h),
+        }
+        edited_since |= std::fs::metadata(&f).and_then(|m| m.modified()).is_ok_and(|t| t > built);
     }
-    format!("{:016x}", h.finish())
+    if edited_since {
+        format!("{:016x} built {} {built:?}", h.finish(), exe.len())
+    } else {
+        format!("{:016x}", h.finish())
+    }
 }
 
 /// What a rendered dataset depends on: the simulator crate, the geometry and data crates
@@ -62,7 +79,9 @@ fn trainer_stamp() -> &'static str {
     static STAMP: OnceLock<String> = OnceLock::new();
     STAMP.get_or_init(|| {
         let files = ["Cargo.lock", "Cargo.toml", "sim/Cargo.toml"];
-        format!("trainer {}", sources_stamp(&["src", "data", "sim/src"], &files))
+        // The Debian OpenCV it links decodes and filters the frames.
+        let opencv = opencv::core::get_version_string().unwrap();
+        format!("trainer {} opencv {opencv}", sources_stamp(&["src", "data", "sim/src"], &files))
     })
 }
 
@@ -189,15 +208,11 @@ pub fn plain_indoor_model() -> PathBuf {
 fn trained_on_views(key: &str, settings: &mavloc::settings::Indoor) -> PathBuf {
     let views = indoor_views();
     let of_views = std::fs::read_to_string(stamp_of(&views)).unwrap();
-    let stamp = format!("{}\n{settings:?}\nviews: {of_views}", trainer_stamp());
+    let (labelling, seed) = (Labelling::Telemetry, 1);
+    let stamp = format!("{}\n{settings:?}\n{labelling:?} seed {seed}\nviews: {of_views}", trainer_stamp());
     cached(key, &stamp, |out| {
         std::fs::create_dir_all(out).unwrap();
-        let opts = TrainOptions {
-            dataset: views,
-            out: out.join("floor.model"),
-            labelling: Labelling::Telemetry,
-            seed: 1,
-        };
+        let opts = TrainOptions { dataset: views, out: out.join("floor.model"), labelling, seed };
         let report = train(&opts, settings, |_, _| {}).unwrap();
         std::fs::write(out.join("report.json"), serde_json::to_string(&report).unwrap()).unwrap();
     })

@@ -23,14 +23,14 @@ fn median(mut v: Vec<f64>) -> f64 {
 fn trains_on_views_and_tracks_a_flight() {
     let dir = tempfile::tempdir().unwrap();
     let size = Some((320, 240));
-    // Rendered once per build of the tests (see `fixtures`).
+    // Rendered once and cached (see `fixtures`).
     let gap = Appearance { brightness: 15.0, contrast: 0.9, blur_px: 3 };
     let opts = RenderOptions { frames: Some(300), size, appearance: Some(gap), ..Default::default() };
     let flight = crate::fixtures::rendered("indoor-floor-flight-300-320x240-gap", "indoor-floor", &opts);
 
     let settings = Indoor::default();
-    // Trained on the views with the default settings, once per build for every test that
-    // does so (the live flights' model).
+    // Trained on the views with the default settings, once for every test that does so
+    // and cached (the live flights' model).
     let (model_path, report) = crate::fixtures::small_indoor_training().clone();
     assert_eq!((report.images, report.rejected), (400, 0));
     // The nearest neighbour is right for most views (the robust fit's inlier fraction).
@@ -138,7 +138,7 @@ fn a_model_rescaled_to_a_reference_height_tracks_a_flight_below_its_views() {
     assert_eq!(Model::load(&plain_model).unwrap().frame.height_ref_m, None);
     let plain = median_error("plain", plain_model);
     // Rescaled: the default, to the views' median height (the live flights' model, trained
-    // once per build).
+    // once and cached).
     let rescaled_model = crate::fixtures::small_indoor_model().to_path_buf();
     let h = Model::load(&rescaled_model).unwrap().frame.height_ref_m.expect("rescaled by default");
     assert!((0.9..1.1).contains(&h), "reference height {h} m");
@@ -216,4 +216,11 @@ fn a_stopped_run_puts_the_frames_so_far_beside_complete_earlier_results() {
     assert_eq!(std::fs::read(full.out.join("trajectory.csv")).unwrap(), before);
     assert_eq!(summary(&full.out)["complete"], true);
     assert_eq!((summary(&s.written_to)["complete"].as_bool(), rows(&s.written_to)), (Some(false), 40));
+    // Nothing else: no staging folder is left.
+    let mut names: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["fresh", "full", "full.stopped"]);
 }
