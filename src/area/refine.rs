@@ -245,6 +245,58 @@ fn entry(map: &mut Vec<(usize, Matrix3<f64>)>, key: usize) -> &mut Matrix3<f64> 
     &mut map[i].1
 }
 
+/// The reduced system's nonzero 3x3 blocks by (row, column) block index. Up to
+/// [`DENSE_BLOCKS`] blocks a table gives each (row, column) its slot: the Schur complement
+/// adds a block for every pair of a landmark's frames, and hashing each such update was a
+/// fifth of a photo survey's adjustment in the test build (perf). Beyond it (a video lap's
+/// thousand frames, whose table would be megabytes to copy every damping step) they are
+/// hashed.
+#[derive(Clone)]
+enum Blocks {
+    Table { n: usize, slot: Vec<u32>, blocks: Vec<((usize, usize), Matrix3<f64>)> },
+    Hashed(FxHashMap<(usize, usize), Matrix3<f64>>),
+}
+
+/// Block rows up to which [`Blocks`] keeps a table (a 256 KB one).
+const DENSE_BLOCKS: usize = 256;
+
+impl Blocks {
+    fn new(n: usize) -> Blocks {
+        Blocks::table_up_to(n, DENSE_BLOCKS)
+    }
+
+    fn table_up_to(n: usize, limit: usize) -> Blocks {
+        if n <= limit {
+            Blocks::Table { n, slot: vec![u32::MAX; n * n], blocks: Vec::new() }
+        } else {
+            Blocks::Hashed(FxHashMap::default())
+        }
+    }
+
+    /// The block at `key`, zero if it was not there.
+    fn at(&mut self, key: (usize, usize)) -> &mut Matrix3<f64> {
+        match self {
+            Blocks::Table { n, slot, blocks } => {
+                let i = &mut slot[key.0 * *n + key.1];
+                if *i == u32::MAX {
+                    *i = blocks.len() as u32;
+                    blocks.push((key, Matrix3::zeros()));
+                }
+                &mut blocks[*i as usize].1
+            }
+            Blocks::Hashed(map) => map.entry(key).or_insert_with(Matrix3::zeros),
+        }
+    }
+
+    /// Calls `f` with every block there and its key (in no particular order).
+    fn for_each(&self, mut f: impl FnMut((usize, usize), &Matrix3<f64>)) {
+        match self {
+            Blocks::Table { blocks, .. } => blocks.iter().for_each(|(k, m)| f(*k, m)),
+            Blocks::Hashed(map) => map.iter().for_each(|(k, m)| f(*k, m)),
+        }
+    }
+}
+
 /// Huber weight of a residual of `r` SDs.
 fn huber_weight(r: f64, c: f64) -> f64 {
     if r <= c {
@@ -445,7 +497,8 @@ struct Problem<'a> {
     /// A block shared by every frame, after the frames' own.
     shared: bool,
     /// A frame's pose with its own block's and the shared block's parameters; its own block
-    /// turns the pose as `exp(own) R` ([`corrected`]), which [`jacobians`] differentiates.
+    /// turns the pose as `exp(own) R` ([`corrected`]), which [`FrameAt::jacobians`]
+    /// differentiates.
     pose: &'a dyn Fn(u64, &Vec3, &Vec3) -> CameraPose,
     k: &'a Intrinsics,
     params: &'a RefineParams,
@@ -615,8 +668,10 @@ impl Problem<'_> {
             // Normal equations, blockwise: U (blocks, sparse: frames that share landmarks),
             // V (landmarks), W (block x landmark).
             // Fx, not SipHash: a lookup per sighting and round (10 % of a photo survey's run).
-            let mut u: FxHashMap<(usize, usize), Matrix3<f64>> =
-                (0..nb).map(|b| ((b, b), Matrix3::identity() / prior(b).powi(2))).collect();
+            let mut u = Blocks::new(nb);
+            for b in 0..nb {
+                *u.at((b, b)) = Matrix3::identity() / prior(b).powi(2);
+            }
             let mut eu: Vec<Vector3<f64>> =
                 theta.iter().enumerate().map(|(b, d)| d / prior(b).powi(2)).collect();
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
@@ -698,17 +753,17 @@ impl Problem<'_> {
                 let slots = [fr.own, fr.shift, shared_ix];
                 for (i1, b1) in slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b))) {
                     for (i2, b2) in slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b))) {
-                        *u.entry((b1, b2)).or_insert_with(Matrix3::zeros) += parts[i1][i2];
+                        *u.at((b1, b2)) += parts[i1][i2];
                     }
                 }
             }
             // Levenberg-Marquardt: damp, eliminate the landmarks, solve for the blocks.
             let mut improved = false;
             for _ in 0..8 {
-                let mut s: FxHashMap<(usize, usize), Matrix3<f64>> = u.clone();
+                let mut s = u.clone();
                 for bi in 0..nb {
-                    let d = Matrix3::from_diagonal(&u[&(bi, bi)].diagonal()) * lambda;
-                    *s.get_mut(&(bi, bi)).expect("every block has its prior") += d;
+                    let diagonal = s.at((bi, bi));
+                    *diagonal += Matrix3::from_diagonal(&diagonal.diagonal()) * lambda;
                 }
                 let mut rhs = nalgebra::DVector::<f64>::zeros(3 * nb);
                 for (bi, e) in eu.iter().enumerate() {
@@ -726,7 +781,7 @@ impl Problem<'_> {
                         let wv = small::mm(w1, &vi);
                         rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&small::mv(&wv, &ev[j]));
                         for (b2, w2) in &w[j] {
-                            *s.entry((*b1, *b2)).or_insert_with(Matrix3::zeros) -= small::mnt(&wv, w2);
+                            *s.at((*b1, *b2)) -= small::mnt(&wv, w2);
                         }
                     }
                     vinv[j] = Some(vi);
@@ -735,9 +790,7 @@ impl Problem<'_> {
                 // time only, so the reduced system is banded (plus the shared block's row);
                 // dense, 1200 frames took seconds per factorisation.
                 let mut coo = CooMatrix::new(3 * nb, 3 * nb);
-                for (&(b1, b2), m) in &s {
-                    coo.push_matrix(3 * b1, 3 * b2, m);
-                }
+                s.for_each(|(b1, b2), m| coo.push_matrix(3 * b1, 3 * b2, m));
                 let Ok(chol) = CscCholesky::factor(&CscMatrix::from(&coo)) else {
                     lambda *= 10.0;
                     continue;
@@ -838,6 +891,32 @@ mod tests {
                 )
             })
             .collect()
+    }
+
+    proptest! {
+        /// The table and the hash map hold the same blocks after the same updates.
+        #[test]
+        fn blocks_in_a_table_and_hashed_agree(
+            updates in proptest::collection::vec((0usize..6, 0usize..6, -10.0f64..10.0), 0..60),
+        ) {
+            let (mut table, mut hashed) = (Blocks::table_up_to(6, 6), Blocks::table_up_to(6, 5));
+            let kinds = (matches!(table, Blocks::Table { .. }), matches!(hashed, Blocks::Hashed(_)));
+            prop_assert_eq!(kinds, (true, true));
+            for &(r, c, x) in &updates {
+                *table.at((r, c)) += Matrix3::from_element(x);
+                *hashed.at((r, c)) -= Matrix3::from_element(-x);
+            }
+            let held = |b: &Blocks| {
+                let mut v = Vec::new();
+                b.for_each(|k, m| v.push((k, *m)));
+                v.sort_by_key(|e| e.0);
+                v
+            };
+            let (t, h) = (held(&table), held(&hashed));
+            prop_assert_eq!(&t, &h);
+            let keys: std::collections::BTreeSet<_> = updates.iter().map(|u| (u.0, u.1)).collect();
+            prop_assert_eq!(t.len(), keys.len());
+        }
     }
 
     /// Every point each pose sees, where it sees it: (frame, point index, pixel).
