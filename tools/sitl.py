@@ -456,7 +456,12 @@ def attitude_vs_truth(u):
     """EKF2's roll, pitch and yaw against SIH's truth over the airborne time, degrees: mean,
     SD and 90th percentile of the absolute error each, from the parsed flight log `u`. The
     sim camera is turned on the true body as the telemetry says the gimbal is, so this is
-    the camera's attitude error as mavloc sees it."""
+    the camera's attitude error as mavloc sees it.
+
+    Also each error's mean over 20 s windows of the airborne time (`windows_20s`), and how
+    the heading error follows the roll error over them (`yaw_on_roll_20s`: correlation, and
+    the line yaw = slope * roll + intercept): PX4's heading error has come both as a drift
+    with the roll (session 30) and as an offset held from takeoff (session 31)."""
     import numpy as np
     d = {x.name: x.data for x in u.data_list}
     if "vehicle_attitude" not in d or "vehicle_attitude_groundtruth" not in d:
@@ -474,11 +479,31 @@ def attitude_vs_truth(u):
     if air is None or not air.any():
         return None
     out = {}
+    errors = {}
     for name, ea, eg in zip(("roll", "pitch", "yaw"), euler(a), euler(g)):
         truth = np.interp(t, g["timestamp"], np.unwrap(eg))
         e = np.degrees((ea - truth + np.pi) % (2 * np.pi) - np.pi)[air]
+        errors[name] = e
         out[name] = {"mean": round(float(e.mean()), 2), "sd": round(float(e.std()), 2),
                      "p90_abs": round(float(np.percentile(np.abs(e), 90)), 2)}
+    # Seconds of airborne time (landed stretches left out, so windows do not straddle them).
+    dt = np.diff(t, prepend=t[0])[air] * 1e-6
+    ta = np.cumsum(dt)
+    windows = []
+    for start in np.arange(0.0, ta[-1] - 20.0 + 1e-9, 20.0):
+        w = (ta >= start) & (ta < start + 20.0)
+        if w.any():
+            windows.append({"t_s": round(float(start)),
+                            **{n: round(float(errors[n][w].mean()), 2) for n in ("roll", "pitch", "yaw")}})
+    out["windows_20s"] = windows
+    if len(windows) >= 3:
+        roll = np.array([w["roll"] for w in windows])
+        yaw = np.array([w["yaw"] for w in windows])
+        if roll.std() > 0 and yaw.std() > 0:
+            slope, intercept = np.polyfit(roll, yaw, 1)
+            out["yaw_on_roll_20s"] = {"correlation": round(float(np.corrcoef(roll, yaw)[0, 1]), 2),
+                                      "slope": round(float(slope), 2),
+                                      "intercept_deg": round(float(intercept), 2)}
     return out
 
 
