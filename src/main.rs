@@ -19,15 +19,22 @@ fn main() -> ExitCode {
     }
     // OpenCV's and the image decoders' own lines go through `tracing` (logging.rs); the
     // guard restores stderr and drains what is left when main returns.
-    let _native = mavloc::logging::capture_native_stderr();
-    match dispatch(cli) {
+    let native = mavloc::logging::capture_native_stderr();
+    let code = match dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
             // A closed stderr is no reason to panic on the way out.
             let _ = writeln!(mavloc::logging::stderr(), "mavloc: {e:#}");
             ExitCode::FAILURE
         }
+    };
+    if code == ExitCode::from(commands::STOPPED_BY_CTRL_C) {
+        // Stopped by Ctrl-C, its files in place: the stderr lines drained, then ended by
+        // the signal, so a shell script running mavloc stops as well.
+        drop(native);
+        commands::die_by_sigint();
     }
+    code
 }
 
 fn dispatch(cli: Cli) -> anyhow::Result<ExitCode> {

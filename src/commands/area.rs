@@ -71,7 +71,7 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
             "mavloc area: stopped by Ctrl-C before any frame was used; {} left as it was",
             opts.out.display()
         );
-        return Ok(ExitCode::from(130));
+        return Ok(ExitCode::from(super::STOPPED_BY_CTRL_C));
     }
     if summary.frames == 0 {
         // Exit non-zero: a run that looked at nothing has no result to stand for.
@@ -181,7 +181,7 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
                 String::new()
             }
         );
-        return Ok(ExitCode::from(130));
+        return Ok(ExitCode::from(super::STOPPED_BY_CTRL_C));
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -108,7 +108,7 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                         String::new()
                     }
                 );
-                return Ok(ExitCode::from(130));
+                return Ok(ExitCode::from(super::STOPPED_BY_CTRL_C));
             }
             Ok(ExitCode::SUCCESS)
         }

@@ -55,23 +55,57 @@ pub(crate) fn writable_file(path: &std::path::Path, what: &str) -> anyhow::Resul
 
 /// Ctrl-C sets the returned flag: the command stops after the frame or photo in hand (an
 /// area run puts its results so far in place; an import or a render removes its staging
-/// folder and leaves `--out` as it was). A second Ctrl-C ends the process at once, leaving
-/// the staging folder to the next run into the same `--out`, which removes it (or keeps
-/// an area or indoor run's checkpoint in it as `NAME.interrupted-PID`).
+/// folder and leaves `--out` as it was) and returns [`STOPPED_BY_CTRL_C`]. A second Ctrl-C
+/// ends the process at once, leaving the staging folder to the next run into the same
+/// `--out`, which removes it (or keeps an area or indoor run's checkpoint in it as
+/// `NAME.interrupted-PID`). A process started with SIGINT ignored (a background job of a
+/// script) keeps ignoring it: the flag is never set.
 pub(crate) fn stop_on_ctrl_c() -> anyhow::Result<std::sync::Arc<std::sync::atomic::AtomicBool>> {
     use std::sync::atomic::{AtomicBool, Ordering};
     let stop = std::sync::Arc::new(AtomicBool::new(false));
+    // SAFETY: reads the current action only (a null new action changes nothing).
+    let ignored = unsafe {
+        let mut old: libc::sigaction = std::mem::zeroed();
+        libc::sigaction(libc::SIGINT, std::ptr::null(), &mut old) == 0 && old.sa_sigaction == libc::SIG_IGN
+    };
+    if ignored {
+        return Ok(stop);
+    }
     let flag = stop.clone();
-    // SAFETY: the action only swaps an atomic and calls `_exit`, both async-signal-safe.
+    // SAFETY: the action only swaps an atomic and ends the process by signal(2),
+    // sigprocmask(2), raise(3) and _exit(2), all async-signal-safe.
     unsafe {
         signal_hook_registry::register(libc::SIGINT, move || {
             if flag.swap(true, Ordering::SeqCst) {
-                libc::_exit(130);
+                die_by_sigint();
             }
         })
     }
     .map_err(|e| anyhow::anyhow!("cannot handle Ctrl-C: {e}"))?;
     Ok(stop)
+}
+
+/// The exit code a command returns when Ctrl-C stopped it: `main` then ends the process by
+/// SIGINT itself ([`die_by_sigint`]), after the command has put its files in place.
+pub const STOPPED_BY_CTRL_C: u8 = 130;
+
+/// Ends the process as killed by SIGINT, with SIGINT's default action: what a shell expects
+/// of a program that Ctrl-C stopped. A shell that sees an exit code (130) instead takes the
+/// interrupt as handled by the program and goes on with the script (the next command of a
+/// loop over datasets); killed by SIGINT, the script stops too. Safe in a signal handler.
+pub fn die_by_sigint() -> ! {
+    // SAFETY: plain system calls on this process's own signal state; each is
+    // async-signal-safe.
+    unsafe {
+        libc::signal(libc::SIGINT, libc::SIG_DFL);
+        // Inside the handler SIGINT is blocked: unblocked, the raised one is delivered now.
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, libc::SIGINT);
+        libc::sigprocmask(libc::SIG_UNBLOCK, &set, std::ptr::null_mut());
+        libc::raise(libc::SIGINT);
+        libc::_exit(130)
+    }
 }
 
 /// Whether Ctrl-C has set `stop`.
@@ -84,7 +118,7 @@ pub(crate) fn stopped(stop: &std::sync::atomic::AtomicBool) -> bool {
 pub(crate) fn stopped_with_nothing_written(out: &Path, why: &str) -> std::process::ExitCode {
     let state = if out.exists() { "left as it was" } else { "not made" };
     eprintln!("mavloc: {why}; nothing written, {} {state}", out.display());
-    std::process::ExitCode::from(130)
+    std::process::ExitCode::from(STOPPED_BY_CTRL_C)
 }
 
 fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded> {

@@ -727,7 +727,7 @@ fn wait_for_checkpoint(parent: &std::path::Path, name: &str, child: &mut std::pr
 /// part way leaves the earlier set exactly as it was (each file written atomically was
 /// not enough: such a run left a new `landmarks.csv` beside the old `summary.json`), and
 /// its checkpoint is kept by the next run as `r.interrupted-PID`; Ctrl-C ends a run after
-/// its frame, putting the frames so far in place (`complete: false`, exit 130), or beside
+/// its frame, putting the frames so far in place (`complete: false`, ended by SIGINT), or beside
 /// complete earlier results as `r.stopped`; a result is not measured against another
 /// dataset; a folder of other files is refused, not replaced.
 #[test]
@@ -807,7 +807,8 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
             std::thread::sleep(std::time::Duration::from_millis(50));
         };
         let stderr = stderr.join().unwrap();
-        assert_eq!(status.code(), Some(130), "{stderr}");
+        // Ended by SIGINT itself (the shell's 130), so a script running it stops too.
+        assert_eq!(std::os::unix::process::ExitStatusExt::signal(&status), Some(libc::SIGINT), "{stderr}");
         assert!(stderr.contains("stopped by Ctrl-C"), "{stderr}");
         stderr
     };
@@ -842,10 +843,12 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
     assert_eq!(names_in(&other), ["a.txt"]);
 }
 
-/// Ctrl-C stops `mavloc sim render` after the frame in hand: exit 130, the staging folder
-/// with the frames so far removed, and the dataset the render was replacing (`--force`)
-/// left as it was. Before, SIGINT killed the process at once and the hidden
-/// `.NAME.partial-PID` folder stayed until the next render into the same folder.
+/// Ctrl-C stops `mavloc sim render` after the frame in hand: the staging folder with the
+/// frames so far removed, the dataset the render was replacing (`--force`) left as it was,
+/// and the process ended by SIGINT (so a shell script running it stops as well). Before,
+/// SIGINT killed the process at once and the hidden `.NAME.partial-PID` folder stayed
+/// until the next render into the same folder. Started with SIGINT ignored (a background
+/// job of a script), the render keeps ignoring it and completes.
 #[test]
 fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
     let dir = tempfile::tempdir().unwrap();
@@ -885,7 +888,7 @@ fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
         std::thread::sleep(std::time::Duration::from_millis(20));
     };
     let said = stderr.join().unwrap();
-    assert_eq!(status.code(), Some(130), "{said}");
+    assert_eq!(std::os::unix::process::ExitStatusExt::signal(&status), Some(libc::SIGINT), "{said}");
     assert!(said.contains("stopped by Ctrl-C; nothing written") && said.contains("left as it was"), "{said}");
     assert!(!stage.exists(), "the staging folder is left: {:?}", names_in(dir.path()));
     assert_eq!(names_in(dir.path()), ["ds"]);
@@ -895,4 +898,31 @@ fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
         .collect();
     assert!(after == before, "the earlier dataset's frames changed");
     assert_eq!(std::fs::read(out.join("telemetry.jsonl")).unwrap(), telemetry);
+
+    // SIGINT ignored from the start: the signal changes nothing.
+    let mut child = {
+        use std::os::unix::process::CommandExt;
+        let mut c = std::process::Command::new(crate::fixtures::BIN);
+        c.args(render).args(["--frames", "30", "--force", "--out"]).arg(&out);
+        c.env_remove("MAVLOC_CONFIG").stdout(std::process::Stdio::null()).stderr(std::process::Stdio::null());
+        // SAFETY: signal(2) only, between fork and exec.
+        unsafe {
+            c.pre_exec(|| {
+                libc::signal(libc::SIGINT, libc::SIG_IGN);
+                Ok(())
+            })
+        };
+        c.spawn().unwrap()
+    };
+    let stage = dir.path().join(format!(".ds.partial-{}", child.id()));
+    let start = std::time::Instant::now();
+    while std::fs::read_dir(stage.join("frames")).map_or(0, |d| d.count()) < 3 {
+        assert!(child.try_wait().unwrap().is_none(), "the render ended before it was interrupted");
+        assert!(start.elapsed().as_secs() < 60, "no frame rendered after 60 s");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    // SAFETY: a plain kill(2) of our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    assert!(child.wait().unwrap().success());
+    assert_eq!(names_in(&out.join("frames")).len(), 30, "the render went on to its end");
 }
