@@ -727,9 +727,9 @@ fn wait_for_checkpoint(parent: &std::path::Path, name: &str, child: &mut std::pr
 /// part way leaves the earlier set exactly as it was (each file written atomically was
 /// not enough: such a run left a new `landmarks.csv` beside the old `summary.json`), and
 /// its checkpoint is kept by the next run as `r.interrupted-PID`; Ctrl-C ends a run after
-/// its frame, putting the frames so far in place (`complete: false`, ended by SIGINT), or beside
-/// complete earlier results as `r.stopped`; a result is not measured against another
-/// dataset; a folder of other files is refused, not replaced.
+/// its frame, putting the frames so far in place (`complete: false`, ended by SIGINT), or
+/// beside complete earlier results as `r.stopped`; a result is not measured against
+/// another dataset; a folder of other files is refused, not replaced.
 #[test]
 fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one() {
     let short = crate::fixtures::small_flight("coastline", 30);
