@@ -171,17 +171,8 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         println!("frame {f}: residuals say its recorded yaw is off by about 180 deg");
     }
     if !summary.complete {
-        eprintln!(
-            "mavloc area: stopped by Ctrl-C after {} frames; their results are in {} (summary.json: \"complete\": false){}",
-            summary.frames + summary.skipped_frames,
-            summary.written_to.display(),
-            if summary.written_to != opts.out {
-                format!(", beside the complete results {} kept", opts.out.display())
-            } else {
-                String::new()
-            }
-        );
-        return Ok(ExitCode::from(super::STOPPED_BY_CTRL_C));
+        let frames = (summary.frames + summary.skipped_frames) as usize;
+        return Ok(super::stopped_with_results("area", frames, &summary.written_to, &opts.out));
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -98,17 +98,8 @@ pub fn run(command: IndoorCommand, global: Global) -> anyhow::Result<ExitCode> {
                 );
             }
             if !s.complete {
-                eprintln!(
-                    "mavloc indoor run: stopped by Ctrl-C after {} frames; their results are in {} (summary.json: \"complete\": false){}",
-                    s.frames + s.skipped_frames,
-                    s.written_to.display(),
-                    if s.written_to != opts.out {
-                        format!(", beside the complete results {} kept", opts.out.display())
-                    } else {
-                        String::new()
-                    }
-                );
-                return Ok(ExitCode::from(super::STOPPED_BY_CTRL_C));
+                let frames = s.frames + s.skipped_frames;
+                return Ok(super::stopped_with_results("indoor run", frames, &s.written_to, &opts.out));
             }
             Ok(ExitCode::SUCCESS)
         }

@@ -121,6 +121,27 @@ pub(crate) fn stopped_with_nothing_written(out: &Path, why: &str) -> std::proces
     std::process::ExitCode::from(STOPPED_BY_CTRL_C)
 }
 
+/// Says that `command`, stopped by Ctrl-C after `frames` frames, put their results in
+/// `written_to` (`out` itself, or beside complete results kept in `out`), and gives
+/// [`STOPPED_BY_CTRL_C`].
+pub(crate) fn stopped_with_results(
+    command: &str,
+    frames: usize,
+    written_to: &Path,
+    out: &Path,
+) -> std::process::ExitCode {
+    let beside = if written_to != out {
+        format!(", beside the complete results {} kept", out.display())
+    } else {
+        String::new()
+    };
+    eprintln!(
+        "mavloc {command}: stopped by Ctrl-C after {frames} frames; their results are in {} (summary.json: \"complete\": false){beside}",
+        written_to.display()
+    );
+    std::process::ExitCode::from(STOPPED_BY_CTRL_C)
+}
+
 fn load(file: Option<PathBuf>, overrides: Vec<String>) -> anyhow::Result<Loaded> {
     Ok(settings::load(&Layers::from_process(file, overrides))?)
 }

@@ -872,14 +872,7 @@ fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
     let stderr = crate::fixtures::read_in_background(child.stderr.take().unwrap());
     let stage = dir.path().join(format!(".ds.partial-{}", child.id()));
     let start = std::time::Instant::now();
-    // Some frames rendered into the staging folder, not yet the whole flight.
-    while std::fs::read_dir(stage.join("frames")).map_or(0, |d| d.count()) < 3 {
-        assert!(child.try_wait().unwrap().is_none(), "the render ended before it was interrupted");
-        assert!(start.elapsed().as_secs() < 60, "no frame rendered after 60 s");
-        std::thread::sleep(std::time::Duration::from_millis(10));
-    }
-    // SAFETY: a plain kill(2) of our own child.
-    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    interrupt_after_three_frames(&stage, &mut child);
     let status = loop {
         if let Some(s) = child.try_wait().unwrap() {
             break s;
@@ -914,7 +907,14 @@ fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
         };
         c.spawn().unwrap()
     };
-    let stage = dir.path().join(format!(".ds.partial-{}", child.id()));
+    interrupt_after_three_frames(&dir.path().join(format!(".ds.partial-{}", child.id())), &mut child);
+    assert!(child.wait().unwrap().success());
+    assert_eq!(names_in(&out.join("frames")).len(), 30, "the render went on to its end");
+}
+
+/// Sends SIGINT to a render once it has some frames in its staging folder `stage`, not yet
+/// the whole flight.
+fn interrupt_after_three_frames(stage: &std::path::Path, child: &mut std::process::Child) {
     let start = std::time::Instant::now();
     while std::fs::read_dir(stage.join("frames")).map_or(0, |d| d.count()) < 3 {
         assert!(child.try_wait().unwrap().is_none(), "the render ended before it was interrupted");
@@ -923,6 +923,4 @@ fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
     }
     // SAFETY: a plain kill(2) of our own child.
     assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
-    assert!(child.wait().unwrap().success());
-    assert_eq!(names_in(&out.join("frames")).len(), 30, "the render went on to its end");
 }
