@@ -376,7 +376,7 @@ def estimate_vs_truth(ulg):
     from pyulog import ULog
     u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_land_detected",
                    "estimator_status_flags", "vehicle_attitude", "vehicle_attitude_groundtruth",
-                   "estimator_states"])
+                   "estimator_states", "vehicle_magnetometer"])
     d = {x.name: x.data for x in u.data_list}
     est, gt = d["vehicle_local_position"], d["vehicle_local_position_groundtruth"]
     t = gt["timestamp"]
@@ -495,7 +495,21 @@ def attitude_vs_truth(u):
         if w.any():
             windows.append({"t_s": round(float(start)),
                             **{n: round(float(errors[n][w].mean()), 2) for n in ("roll", "pitch", "yaw")}})
+    # The heading the magnetometer gives when it is levelled with EKF2's own roll and pitch,
+    # minus the heading it gives levelled with the true ones: the part of a magnetic heading
+    # error that a tilt error makes (the field is steep, so about tan(inclination) times the
+    # tilt error about the north axis). The declination cancels.
+    mag = tilt_made_heading_error(d, air, t, ta, euler)
+    if mag is not None:
+        for w, m in zip(windows, mag):
+            w["mag_tilt_yaw"] = m
     out["windows_20s"] = windows
+    if len(windows) >= 3 and all("mag_tilt_yaw" in w for w in windows):
+        yaw = np.array([w["yaw"] for w in windows])
+        made = np.array([w["mag_tilt_yaw"] for w in windows])
+        if yaw.std() > 0 and made.std() > 0:
+            out["yaw_on_mag_tilt_20s"] = {"correlation": round(float(np.corrcoef(made, yaw)[0, 1]), 2),
+                                          "mag_tilt_yaw_mean_deg": round(float(made.mean()), 2)}
     if len(windows) >= 3:
         roll = np.array([w["roll"] for w in windows])
         yaw = np.array([w["yaw"] for w in windows])
@@ -505,6 +519,43 @@ def attitude_vs_truth(u):
                                       "slope": round(float(slope), 2),
                                       "intercept_deg": round(float(intercept), 2)}
     return out
+
+
+def tilt_made_heading_error(d, air, t, ta, euler):
+    """Per 20 s window of airborne time (as in `attitude_vs_truth`): the mean of the heading
+    the logged magnetometer (`vehicle_magnetometer`, body frame) gives levelled with EKF2's
+    roll and pitch, minus the heading it gives levelled with SIH's true ones, degrees."""
+    import numpy as np
+    if "vehicle_magnetometer" not in d:
+        return None
+    m = d["vehicle_magnetometer"]
+    a, g = d["vehicle_attitude"], d["vehicle_attitude_groundtruth"]
+    b = [np.interp(t, m["timestamp"], m[f"magnetometer_ga[{i}]"]) for i in range(3)]
+
+    def level_heading(roll, pitch):
+        cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+        bx = b[0] * cp + (b[1] * sr + b[2] * cr) * sp
+        by = b[1] * cr - b[2] * sr
+        return -np.arctan2(by, bx)
+
+    ea, eg = euler(a), euler(g)
+    true_tilt = [np.interp(t, g["timestamp"], np.unwrap(x)) for x in eg[:2]]
+    diff = level_heading(ea[0], ea[1]) - level_heading(*true_tilt)
+    e = np.degrees((diff + np.pi) % (2 * np.pi) - np.pi)[air]
+    out = []
+    for start in np.arange(0.0, ta[-1] - 20.0 + 1e-9, 20.0):
+        w = (ta >= start) & (ta < start + 20.0)
+        if w.any():
+            out.append(round(float(e[w].mean()), 2))
+    return out
+
+
+def analyse(ulg):
+    """`--analyse px4.ulg`: the attitude and EKF2 state figures of a flight already flown."""
+    from pyulog import ULog
+    u = ULog(ulg)
+    print(json.dumps({"attitude_error_deg": attitude_vs_truth(u), "ekf_bias_states": ekf_bias_states(u)},
+                     indent=1))
 
 
 INDOOR_ORIGIN = (52.0, 4.37, 0.0)  # sim/scenarios/indoor-floor.toml
@@ -671,8 +722,10 @@ def issue_bar(r, indoor):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--px4", required=True)
-    ap.add_argument("--mavloc", required=True)
+    ap.add_argument("--px4")
+    ap.add_argument("--mavloc")
+    ap.add_argument("--analyse", metavar="PX4_ULG",
+                    help="print the attitude and EKF2 state figures of a flight log already flown, and exit")
     ap.add_argument("--out", default=os.path.join(ROOT, "results", "sitl"))
     ap.add_argument("--max-s", type=float, default=600)
     ap.add_argument("--scenario", action="append", choices=["indoor", "coastline-border", "coastline-mission"],
@@ -687,6 +740,10 @@ def main():
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a mavloc setting on top of config/sitl*.toml, as `mavloc --set` takes it (repeatable)")
     a = ap.parse_args()
+    if a.analyse:
+        return analyse(a.analyse)
+    if not a.px4 or not a.mavloc:
+        ap.error("--px4 and --mavloc are needed to fly")
     try:
         a.px4_param = dict(kv.split("=", 1) for kv in a.px4_param)
     except ValueError:

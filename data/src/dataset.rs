@@ -20,7 +20,6 @@
 //! truth travels with the data: evaluation reads it from here and never rebuilds the world.
 
 use std::fs;
-use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 use mavloc_geometry::{GimbalAngles, GimbalChain, Intrinsics, LocalFrame, Vec3};
@@ -303,16 +302,21 @@ impl Dataset {
         camera.origin.validate().map_err(|e| format!("{}: origin: {e}", dir.join(CAMERA_FILE).display()))?;
 
         let tpath = dir.join(TELEMETRY_FILE);
-        let f = fs::File::open(&tpath)
+        let text = fs::read_to_string(&tpath)
             .map_err(|e| format!("{}: {e} (an interrupted render leaves no telemetry)", tpath.display()))?;
+        let lines: Vec<&str> = text.split_inclusive('\n').collect();
         let mut records = Vec::new();
-        for (n, line) in std::io::BufReader::new(f).lines().enumerate() {
-            let line = line.map_err(|e| format!("{}: {e}", tpath.display()))?;
+        for (n, line) in lines.iter().enumerate() {
             if line.trim().is_empty() {
                 continue;
             }
-            let r: TelemetryRecord = serde_json::from_str(&line)
-                .map_err(|e| format!("{} line {}: {e}", tpath.display(), n + 1))?;
+            let r: TelemetryRecord = match serde_json::from_str(line) {
+                Ok(r) => r,
+                // A recording's telemetry is appended a line at a time: a crash can tear
+                // the last line (no newline yet). That frame was never recorded whole.
+                Err(_) if n + 1 == lines.len() && !line.ends_with('\n') => break,
+                Err(e) => return Err(format!("{} line {}: {e}", tpath.display(), n + 1)),
+            };
             records.push(r);
         }
 
@@ -406,6 +410,34 @@ mod tests {
             "{csv}"
         );
         assert_eq!(ds.frame_path(&recs[0]), d.join("frames/000000.png"));
+    }
+
+    /// A recording appends its telemetry a line at a time: a crash mid-append leaves a last
+    /// line without its newline, which is skipped; the same damage anywhere else, or a bad
+    /// line that is complete, is an error naming the line.
+    #[test]
+    fn a_torn_last_line_is_skipped_and_any_other_bad_line_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        write_camera(d, &camera()).unwrap();
+        let pose = PoseRecord {
+            position: [1.0, 2.0, -30.0],
+            attitude_deg: [0.0; 3],
+            gimbal_deg: [0.0; 3],
+            velocity: [0.0; 3],
+        };
+        let rec =
+            |frame| TelemetryRecord { frame, t: frame as f64, truth: pose, measured: pose, appearance: None };
+        let line = |frame| serde_json::to_string(&rec(frame)).unwrap();
+        let torn = &line(2)[..30];
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n{}\n{torn}", line(0), line(1))).unwrap();
+        assert_eq!(Dataset::open(d).unwrap().records, vec![rec(0), rec(1)]);
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n{torn}\n{}\n", line(0), line(1))).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("telemetry.jsonl line 2"), "{e}");
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n{torn}\n", line(0))).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("telemetry.jsonl line 2"), "a complete bad last line is an error: {e}");
     }
 
     #[test]

@@ -22,6 +22,7 @@
 
 pub mod core;
 pub mod live;
+pub mod record;
 pub mod worker;
 
 use std::collections::VecDeque;
@@ -90,6 +91,8 @@ struct Live {
     truth_track: camera::sim::TruthTrack,
     next_drop_log: Mono,
     dropped_logged: u64,
+    /// The flight recorder (`daemon.record`).
+    recorder: Option<record::Recorder>,
 }
 
 impl Live {
@@ -118,6 +121,7 @@ impl Live {
             sim_origin: std::cell::OnceCell::new(),
             next_drop_log: Mono::ZERO + Duration::from_secs(10),
             dropped_logged: 0,
+            recorder: None,
         }
     }
 
@@ -191,6 +195,33 @@ struct Status<'a> {
     gps_denied_origin: Option<String>,
     /// The newest autopilot EVENTs in words (PX4's refusals).
     autopilot_events: Vec<String>,
+    /// The flight recorder (`daemon.record`), when it is on.
+    recording: Option<RecordingJson>,
+}
+
+#[derive(serde::Serialize)]
+struct RecordingJson {
+    dir: String,
+    frames: u64,
+    /// Not recorded: pushed out by newer frames (a slow disk) or before the origin was known.
+    dropped: u64,
+    /// What stopped the recording (a full disk), if something did.
+    error: Option<String>,
+}
+
+impl RecordingJson {
+    fn of(r: &record::Recorder) -> RecordingJson {
+        RecordingJson::from_stats(&r.dir, &r.stats)
+    }
+
+    fn from_stats(dir: &Path, stats: &record::RecordStats) -> RecordingJson {
+        RecordingJson {
+            dir: dir.display().to_string(),
+            frames: stats.recorded.load(Ordering::Relaxed),
+            dropped: stats.dropped.load(Ordering::Relaxed),
+            error: stats.failed.lock().expect("record stats").clone(),
+        }
+    }
 }
 
 #[derive(serde::Serialize)]
@@ -280,7 +311,14 @@ impl Shell {
             }
             // Status and the pipeline's results; the ACK says whether both were written.
             Action::Snapshot { token } => {
-                let status = write_status(&self.dir, core, &self.link, &self.link_state, now);
+                let status = write_status(
+                    &self.dir,
+                    core,
+                    &self.link,
+                    &self.link_state,
+                    now,
+                    self.live.recorder.as_ref().map(RecordingJson::of),
+                );
                 let results = snapshot(&self.live);
                 let result = match (status, results) {
                     (Ok(()), Ok(_)) => Ok(()),
@@ -316,7 +354,14 @@ impl Shell {
                     }
                 }
                 core.handle(Input::Stats { now, stats });
-                let _ = write_status(&self.dir, core, &self.link, &self.link_state, now);
+                let _ = write_status(
+                    &self.dir,
+                    core,
+                    &self.link,
+                    &self.link_state,
+                    now,
+                    self.live.recorder.as_ref().map(RecordingJson::of),
+                );
             }
             Action::Watchdog => notify(&[sd_notify::NotifyState::Watchdog]),
         }
@@ -455,7 +500,8 @@ pub async fn run(
     let (camera_tx, camera_rx) = tokio::sync::mpsc::channel(4);
     let camera_thread = (settings.camera.source != CameraSource::None)
         .then(|| camera::spawn(settings.clone(), ctx.clone(), camera_tx));
-    let live = Live::new(dir.join("results"), ctx, camera_rx, camera_thread);
+    let mut live = Live::new(dir.join("results"), ctx, camera_rx, camera_thread);
+    live.recorder = start_recorder(&settings, &dir, &live.run).map_err(unusable)?;
 
     let mut watchdog_usec = 0u64;
     let watchdog = sd_notify::watchdog_enabled(false, &mut watchdog_usec)
@@ -487,8 +533,20 @@ pub async fn run(
         tokio::task::block_in_place(|| w.stop());
         tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display());
     }
+    let recording = live.recorder.take().map(|r| {
+        let dir = r.dir.clone();
+        let stats = tokio::task::block_in_place(|| r.stop());
+        let json = RecordingJson::from_stats(&dir, &stats);
+        tracing::info!(
+            "recording ended: {} frames in {} ({} not recorded)",
+            json.frames,
+            json.dir,
+            json.dropped
+        );
+        json
+    });
     let now = Mono(started.elapsed().as_micros() as u64);
-    let _ = write_status(&dir, &core, &link, "shutting down", now);
+    let _ = write_status(&dir, &core, &link, "shutting down", now, recording);
     let _ = shutdown_tx.send(());
     if tokio::time::timeout(Duration::from_millis(1500), &mut link.task).await.is_err() {
         tracing::warn!("link task did not stop within 1.5 s; leaving it");
@@ -682,10 +740,35 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
             truth: c.truth,
             motion_only: c.pose.is_none() && core.too_low(),
         };
+        if let Some(r) = &live.recorder {
+            let g = &core.settings().gimbal;
+            r.offer(&frame, [g.yaw_offset_deg, g.pitch_offset_deg, g.roll_offset_deg]);
+        }
         if let Some((_, w)) = &live.worker {
             w.offer(frame);
         }
     }
+}
+
+/// Starts the flight recorder when `daemon.record` names a folder (relative: in the state
+/// directory). A recorder that cannot start is an error the start-up reports, as a
+/// setting the daemon cannot honour.
+fn start_recorder(settings: &Settings, state: &Path, run: &str) -> Result<Option<record::Recorder>, String> {
+    let d = &settings.daemon;
+    if d.record.is_empty() {
+        return Ok(None);
+    }
+    let root = state.join(&d.record);
+    std::fs::create_dir_all(&root)
+        .map_err(|e| format!("daemon.record = {}: cannot create {}: {e}", d.record, root.display()))?;
+    let intrinsics = camera::intrinsics(settings).map_err(|e| format!("daemon.record: {e}"))?;
+    Ok(Some(record::Recorder::start(record::RecordSpec {
+        dir: root.join(run),
+        format: d.record_format,
+        intrinsics,
+        chain: settings.gimbal.chain,
+        source_origin: camera::origin(settings),
+    })))
 }
 
 /// Asks the worker for its results now (between frames); waits at most 3 s.
@@ -721,6 +804,7 @@ fn write_status(
     link: &transport::LinkHandle,
     link_state: &str,
     now: Mono,
+    recording: Option<RecordingJson>,
 ) -> std::io::Result<()> {
     use std::sync::atomic::Ordering::Relaxed;
     let s = *link.stats.skipped.lock().expect("stats");
@@ -755,6 +839,7 @@ fn write_status(
             .enabled()
             .then(|| format!("{:?}", core.gps_denied().origin_state())),
         autopilot_events: core.autopilot_events().recent().map(|e| e.text.clone()).collect(),
+        recording,
     };
     let json = serde_json::to_string_pretty(&status).expect("status serialises");
     crate::output::write_atomic(&dir.join("status.json"), json.as_bytes())

@@ -189,6 +189,7 @@ fn parse_loose(raw: &str) -> toml::Value {
 /// each name deserialises, so this list cannot drift from the schema's enums.
 pub const ENUM_KEYS: &[(&str, &[&str])] = &[
     ("daemon.pipeline", &["area", "indoor", "none"]),
+    ("daemon.record_format", &["jpg", "png"]),
     ("camera.source", &["v4l2", "file", "dataset", "sim", "none"]),
     ("gimbal.chain", &["yaw-pitch-roll", "yaw-roll-pitch"]),
     ("gimbal.aim", &["mission", "border"]),

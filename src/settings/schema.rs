@@ -43,6 +43,19 @@ pub struct Daemon {
     pub state_dir: String,
     pub log: String,
     pub max_frame_age_s: f64,
+    /// The flight recorder's folder (`daemon::record`); empty = off.
+    pub record: String,
+    pub record_format: RecordFormat,
+}
+
+/// How the flight recorder stores frames.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RecordFormat {
+    /// JPEG at quality 95: a fraction of PNG's size, and fast to encode.
+    Jpg,
+    /// Lossless PNG: a replay sees exactly the live pixels.
+    Png,
 }
 
 impl Default for Daemon {
@@ -52,6 +65,8 @@ impl Default for Daemon {
             state_dir: "/var/lib/mavloc".into(),
             log: "info".into(),
             max_frame_age_s: 0.5,
+            record: String::new(),
+            record_format: RecordFormat::Jpg,
         }
     }
 }

@@ -352,6 +352,55 @@ fn dataset_replay_gives_the_offline_landmarks() {
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
 
+/// The flight recorder (`daemon.record`): the daemon replays a flight with a gimbal pitch
+/// offset configured and records what its pipeline is given; `mavloc area` on the
+/// recording, with the same offset, gives the live landmarks back. So the recording holds
+/// every frame with the pose the pipeline used (the offset taken out once and put back
+/// once, not twice), and `status.json` counts them.
+#[test]
+fn a_recorded_flight_run_offline_gives_the_live_landmarks() {
+    let ds = crate::fixtures::small_flight("coastline", 60);
+    let frames = mavloc_data::Dataset::open(&ds).unwrap().records.len();
+    let dir = tempfile::tempdir().unwrap();
+    let state = dir.path().join("state");
+    let common = ["area.downscale=1", "area.band_px=13", "gimbal.pitch_offset_deg=1.5"];
+    let mut sets: Vec<String> = common.iter().map(|s| s.to_string()).collect();
+    sets.extend([
+        "camera.source=dataset".into(),
+        format!("camera.path={}", ds.display()),
+        "camera.realtime=false".into(),
+        "daemon.record=recordings".into(),
+        "daemon.record_format=png".into(),
+    ]);
+    let mut child = daemon(&state, &sets);
+    wait_for(&state.join("mavloc.log"), "camera source ended", Duration::from_secs(60));
+    assert!(sigterm(&mut child).success());
+    let status: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(state.join("status.json")).unwrap()).unwrap();
+    let rec = PathBuf::from(status["recording"]["dir"].as_str().unwrap_or_else(|| panic!("{status}")));
+    assert!(rec.starts_with(state.join("recordings")), "{rec:?}");
+    assert_eq!(status["recording"]["frames"], frames as u64, "{status}");
+    assert_eq!(status["recording"]["error"], serde_json::Value::Null, "{status}");
+    assert_eq!(mavloc_data::Dataset::open(&rec).unwrap().records.len(), frames);
+
+    let offline = dir.path().join("offline");
+    let mut cmd = Command::new(BIN);
+    cmd.arg("area");
+    for s in common {
+        cmd.args(["--set", s]);
+    }
+    let out = cmd.arg("--dataset").arg(&rec).arg("--out").arg(&offline).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let read = |p: PathBuf| parse_landmarks_csv(&std::fs::read_to_string(&p).unwrap(), "csv").unwrap();
+    let (live, again) = (read(state.join("results/area/landmarks.csv")), read(offline.join("landmarks.csv")));
+    assert!(!live.is_empty());
+    assert_eq!(live.len(), again.len(), "same landmarks");
+    for (x, y) in live.iter().zip(&again) {
+        assert_eq!(x.id, y.id);
+        assert!((x.position - y.position).norm() < 1e-3, "{x:?} vs {y:?}");
+    }
+}
+
 #[test]
 fn a_missing_v4l2_device_is_named_and_the_daemon_stays_up() {
     let dir = tempfile::tempdir().unwrap();

@@ -1,0 +1,539 @@
+//! `daemon.record`: the flight recorder. Every frame the live pipeline is given goes, with
+//! the pose it was given, into a dataset (README, "The simulated world and the dataset
+//! format") in `<daemon.record>/<run>/`, the run id the results of the same start carry.
+//! A flight can then be replayed (`camera.source = "dataset"`) or run again offline with
+//! other settings and the bundle adjustment (`mavloc area --dataset`).
+//!
+//! - **Never in the pipeline's way.** The recorder is a thread of its own with a short
+//!   mailbox; a disk slower than the camera pushes out the oldest waiting frame (counted
+//!   as not recorded), never a live one.
+//! - **A readable dataset at every moment.** `camera.toml` is written first; each frame's
+//!   image is written whole under a hidden name and renamed into place before its line is
+//!   appended to `telemetry.jsonl`. A crash leaves at most an image without its line, or a
+//!   torn last line, which [`mavloc_data::Dataset::open`] skips. Images are not synced one
+//!   by one (two syncs a frame would cap an SD card's rate); the telemetry is synced at the
+//!   end.
+//! - **A full disk stops the recording, not the daemon**: one error naming the file, and
+//!   the pipeline goes on.
+//! - **The pose as the pipeline had it.** The camera attitude is written as earth-frame
+//!   angles in `gimbal.chain` with the gimbal offsets in force taken back out, so a replay
+//!   with the same offsets gives the live attitude back exactly (and a replay with offsets
+//!   found later by `mavloc calibrate gimbal` applies those instead). Positions stay in the
+//!   first frame's local origin if the autopilot moves its origin during the flight.
+//!   A recording has no ground truth: each record's `true` pose repeats the measured one,
+//!   as in imported photo sets.
+
+use std::collections::VecDeque;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+
+use mavloc_data::dataset::{CameraFile, GimbalFrame, PoseRecord, TelemetryRecord};
+use mavloc_geometry::{GimbalChain, Intrinsics, LocalFrame};
+
+use opencv::prelude::*;
+
+use super::worker::LiveFrame;
+use crate::geometry::Geodetic;
+pub use crate::settings::RecordFormat;
+
+/// Frames waiting for the disk: about a second of a live area pipeline's frames.
+const DEPTH: usize = 8;
+
+/// JPEG quality of recorded frames (`daemon.record_format = "jpg"`).
+const JPEG_QUALITY: i32 = 95;
+
+fn extension(format: RecordFormat) -> &'static str {
+    match format {
+        RecordFormat::Jpg => "jpg",
+        RecordFormat::Png => "png",
+    }
+}
+
+/// What the recorder needs to know once, at start.
+#[derive(Clone, Debug)]
+pub struct RecordSpec {
+    /// The recording's folder (`<daemon.record>/<run>`); created with the first frame.
+    pub dir: PathBuf,
+    pub format: RecordFormat,
+    pub intrinsics: Intrinsics,
+    /// The chain the camera's angles are written in (`gimbal.chain`).
+    pub chain: GimbalChain,
+    /// The camera source's own origin (a replayed dataset's, a scenario's), for frames
+    /// that come before (or without) the autopilot's; as the live pipeline takes it.
+    pub source_origin: Option<Geodetic>,
+}
+
+/// Counters the daemon logs and reports.
+#[derive(Debug, Default)]
+pub struct RecordStats {
+    pub recorded: AtomicU64,
+    /// Frames pushed out of the mailbox by newer ones (a slow disk), or offered before the
+    /// autopilot gave an origin.
+    pub dropped: AtomicU64,
+    /// The error that stopped the recording, if one did.
+    pub failed: Mutex<Option<String>>,
+}
+
+struct Item {
+    image: opencv::core::Mat,
+    mask: Option<opencv::core::Mat>,
+    capture_s: f64,
+    pose: crate::align::AlignedPose,
+    origin: Geodetic,
+    offsets_deg: [f64; 3],
+}
+
+#[derive(Default)]
+struct Mailbox {
+    items: VecDeque<Item>,
+    stop: bool,
+}
+
+/// The daemon's handle on the recorder thread.
+pub struct Recorder {
+    shared: Arc<(Mutex<Mailbox>, Condvar)>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    pub stats: Arc<RecordStats>,
+    pub dir: PathBuf,
+    source_origin: Option<Geodetic>,
+}
+
+impl Recorder {
+    pub fn start(spec: RecordSpec) -> Recorder {
+        let shared = Arc::new((Mutex::new(Mailbox::default()), Condvar::new()));
+        let stats = Arc::new(RecordStats::default());
+        let (s2, st2, dir, source_origin) =
+            (shared.clone(), stats.clone(), spec.dir.clone(), spec.source_origin);
+        let thread = std::thread::Builder::new()
+            .name("mavloc-record".into())
+            .spawn(move || run(spec, s2, st2))
+            .expect("spawn recorder thread");
+        Recorder { shared, thread: Some(thread), stats, dir, source_origin }
+    }
+
+    /// Offers a copy of a frame the pipeline is given, with the gimbal offsets (yaw,
+    /// pitch, roll, degrees) that were added to its camera attitude. Returns at once.
+    pub fn offer(&self, frame: &LiveFrame, offsets_deg: [f64; 3]) {
+        if self.stats.failed.lock().expect("record stats").is_some() {
+            return;
+        }
+        let Some(origin) = frame.origin.or(self.source_origin) else {
+            self.stats.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
+        // The worker owns the frame's image; a copy (a few hundred kB at the usual sizes)
+        // costs less than making every pipeline share its frames.
+        let (Ok(image), Ok(mask)) =
+            (frame.image.try_clone(), frame.mask.as_ref().map(|m| m.try_clone()).transpose())
+        else {
+            self.stats.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        };
+        let item = Item { image, mask, capture_s: frame.capture_s, pose: frame.pose, origin, offsets_deg };
+        let (m, cv) = &*self.shared;
+        let mut mb = m.lock().expect("record mailbox");
+        if mb.items.len() >= DEPTH {
+            mb.items.pop_front();
+            self.stats.dropped.fetch_add(1, Ordering::Relaxed);
+        }
+        mb.items.push_back(item);
+        cv.notify_one();
+    }
+
+    /// Writes what is waiting, syncs the telemetry and ends the thread.
+    pub fn stop(mut self) -> Arc<RecordStats> {
+        self.finish();
+        self.stats.clone()
+    }
+
+    fn finish(&mut self) {
+        {
+            let (m, cv) = &*self.shared;
+            m.lock().expect("record mailbox").stop = true;
+            cv.notify_one();
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        self.finish();
+    }
+}
+
+fn run(spec: RecordSpec, shared: Arc<(Mutex<Mailbox>, Condvar)>, stats: Arc<RecordStats>) {
+    let mut writer: Option<Writer> = None;
+    loop {
+        let item = {
+            let (m, cv) = &*shared;
+            let mut mb = m.lock().expect("record mailbox");
+            loop {
+                if let Some(i) = mb.items.pop_front() {
+                    break Some(i);
+                }
+                if mb.stop {
+                    break None;
+                }
+                mb = cv.wait(mb).expect("record mailbox");
+            }
+        };
+        let Some(item) = item else { break };
+        let result = match &mut writer {
+            Some(w) => w.write(&item),
+            None => Writer::create(&spec, &item).and_then(|w| {
+                tracing::info!("recording the frames the pipeline is given to {}", spec.dir.display());
+                writer.insert(w).write(&item)
+            }),
+        };
+        match result {
+            Ok(()) => {
+                stats.recorded.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(e) => {
+                tracing::error!(
+                    "recording stopped: {e}; the pipeline goes on, the recording keeps the frames before"
+                );
+                *stats.failed.lock().expect("record stats") = Some(e);
+                // Frames still waiting will not be written.
+                let (m, _) = &*shared;
+                let left = std::mem::take(&mut m.lock().expect("record mailbox").items);
+                stats.dropped.fetch_add(left.len() as u64, Ordering::Relaxed);
+                break;
+            }
+        }
+    }
+    if let Some(w) = writer {
+        if let Err(e) = w.telemetry.sync_all() {
+            tracing::warn!("recording: cannot sync {}: {e}", w.telemetry_path.display());
+        }
+    }
+}
+
+/// An open recording.
+struct Writer {
+    dir: PathBuf,
+    format: RecordFormat,
+    chain: GimbalChain,
+    frame: LocalFrame,
+    origin: Geodetic,
+    first_capture_s: f64,
+    next: u64,
+    telemetry: std::fs::File,
+    telemetry_path: PathBuf,
+}
+
+impl Writer {
+    fn create(spec: &RecordSpec, first: &Item) -> Result<Writer, String> {
+        let dir = &spec.dir;
+        if dir.join(mavloc_data::dataset::TELEMETRY_FILE).exists() {
+            // Run ids are unique per start: an existing recording is never appended to.
+            return Err(format!("{} already holds a recording", dir.display()));
+        }
+        for sub in ["frames", "masks"] {
+            let d = dir.join(sub);
+            std::fs::create_dir_all(&d).map_err(|e| format!("cannot create {}: {e}", d.display()))?;
+        }
+        let k = spec.intrinsics;
+        let camera = CameraFile {
+            width: k.width,
+            height: k.height,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            chain: spec.chain,
+            gimbal_frame: GimbalFrame::Earth,
+            origin: first.origin,
+        };
+        mavloc_data::dataset::write_camera(dir, &camera)?;
+        let telemetry_path = dir.join(mavloc_data::dataset::TELEMETRY_FILE);
+        let telemetry = std::fs::OpenOptions::new()
+            .create_new(true)
+            .append(true)
+            .open(&telemetry_path)
+            .map_err(|e| format!("cannot create {}: {e}", telemetry_path.display()))?;
+        Ok(Writer {
+            dir: dir.clone(),
+            format: spec.format,
+            chain: spec.chain,
+            frame: LocalFrame::new(first.origin),
+            origin: first.origin,
+            first_capture_s: first.capture_s,
+            next: 0,
+            telemetry,
+            telemetry_path,
+        })
+    }
+
+    fn write(&mut self, item: &Item) -> Result<(), String> {
+        let n = self.next;
+        let image = self.dir.join("frames").join(format!("{n:06}.{}", extension(self.format)));
+        write_image(&image, &item.image, self.format)?;
+        if let Some(mask) = &item.mask {
+            write_image(&self.dir.join("masks").join(format!("{n:06}.png")), mask, RecordFormat::Png)?;
+        }
+        let pose = pose_record(&item.pose, self.chain, item.offsets_deg, |p| {
+            if item.origin == self.origin {
+                p
+            } else {
+                self.frame.to_ned(&LocalFrame::new(item.origin).to_geodetic(&p))
+            }
+        });
+        let record = TelemetryRecord {
+            frame: n,
+            t: item.capture_s - self.first_capture_s,
+            truth: pose,
+            measured: pose,
+            appearance: None,
+        };
+        let mut line = serde_json::to_string(&record).map_err(|e| e.to_string())?;
+        line.push('\n');
+        // One write of a whole line: a crash tears at most this last line.
+        self.telemetry
+            .write_all(line.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", self.telemetry_path.display()))?;
+        self.next += 1;
+        Ok(())
+    }
+}
+
+/// Encodes in memory, then writes under a hidden name and renames: a reader never sees
+/// half an image.
+fn write_image(path: &Path, image: &opencv::core::Mat, format: RecordFormat) -> Result<(), String> {
+    use opencv::core::Vector;
+    let mut params = Vector::<i32>::new();
+    if format == RecordFormat::Jpg {
+        params.push(opencv::imgcodecs::IMWRITE_JPEG_QUALITY);
+        params.push(JPEG_QUALITY);
+    } else {
+        // Fast compression: a recording is written during the flight.
+        params.push(opencv::imgcodecs::IMWRITE_PNG_COMPRESSION);
+        params.push(1);
+    }
+    let mut bytes = Vector::<u8>::new();
+    let ext = format!(".{}", extension(format));
+    match opencv::imgcodecs::imencode(&ext, image, &mut bytes, &params) {
+        Ok(true) => {}
+        Ok(false) => return Err(format!("cannot encode {}", path.display())),
+        Err(e) => return Err(format!("cannot encode {}: {e}", path.display())),
+    }
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.tmp"));
+    let result = std::fs::write(&tmp, bytes.as_slice()).and_then(|()| std::fs::rename(&tmp, path));
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(format!("cannot write {}: {e}", path.display()));
+    }
+    Ok(())
+}
+
+/// The dataset record of an aligned pose: the vehicle as the telemetry had it, the camera
+/// as earth-frame angles in `chain` with `offsets_deg` taken out (the dataset reader adds
+/// the configured offsets back), the position through `place` (into the recording's
+/// origin).
+pub fn pose_record(
+    pose: &crate::align::AlignedPose,
+    chain: GimbalChain,
+    offsets_deg: [f64; 3],
+    place: impl Fn(mavloc_geometry::Vec3) -> mavloc_geometry::Vec3,
+) -> PoseRecord {
+    let (roll, pitch, yaw) = pose.vehicle.attitude.euler_angles();
+    let a = chain.angles(&pose.camera.attitude);
+    let position = place(pose.camera.position);
+    PoseRecord {
+        position: position.into(),
+        attitude_deg: [roll.to_degrees(), pitch.to_degrees(), yaw.to_degrees()],
+        gimbal_deg: [
+            a.yaw.to_degrees() - offsets_deg[0],
+            a.pitch.to_degrees() - offsets_deg[1],
+            a.roll.to_degrees() - offsets_deg[2],
+        ],
+        velocity: pose.vehicle.velocity.into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::align::{AlignedPose, VehicleSample};
+    use mavloc_geometry::{CameraPose, GimbalAngles, Vec3};
+    use nalgebra::UnitQuaternion;
+    use proptest::prelude::*;
+
+    fn aligned(camera: CameraPose, vehicle_rpy: (f64, f64, f64)) -> AlignedPose {
+        AlignedPose {
+            autopilot_time: 12.0,
+            vehicle: VehicleSample {
+                position: camera.position,
+                velocity: Vec3::new(1.0, -2.0, 0.5),
+                attitude: UnitQuaternion::from_euler_angles(vehicle_rpy.0, vehicle_rpy.1, vehicle_rpy.2),
+            },
+            camera,
+            from_gimbal: true,
+        }
+    }
+
+    fn frame(index: u64, origin: Option<Geodetic>) -> LiveFrame {
+        let image = opencv::core::Mat::new_rows_cols_with_default(
+            48,
+            64,
+            opencv::core::CV_8UC3,
+            opencv::core::Scalar::all(index as f64 * 10.0),
+        )
+        .unwrap();
+        let camera = CameraPose::from_gimbal(
+            Vec3::new(index as f64, 2.0, -30.0),
+            GimbalChain::YawPitchRoll,
+            GimbalAngles::from_degrees(10.0, -70.0, 0.0),
+            mavloc_geometry::Mount::Earth,
+        );
+        LiveFrame {
+            index,
+            capture_s: 100.0 + index as f64 * 0.25,
+            pose: aligned(camera, (0.0, 0.0, 0.3)),
+            image,
+            mask: None,
+            origin,
+            truth: None,
+            motion_only: false,
+        }
+    }
+
+    fn spec(dir: &Path, format: RecordFormat) -> RecordSpec {
+        RecordSpec {
+            dir: dir.to_path_buf(),
+            format,
+            intrinsics: Intrinsics { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5 },
+            chain: GimbalChain::YawPitchRoll,
+            source_origin: None,
+        }
+    }
+
+    /// Frames offered before any origin is known are counted, not recorded; the
+    /// rest become a dataset that opens, with lossless pixels in PNG, its times from the
+    /// first recorded frame, and each frame's pose.
+    #[test]
+    fn a_recording_is_a_dataset_of_the_frames_offered() {
+        let dir = tempfile::tempdir().unwrap();
+        let rec_dir = dir.path().join("run-1");
+        let r = Recorder::start(spec(&rec_dir, RecordFormat::Png));
+        let origin = Geodetic::new(57.0, 10.0, 12.0);
+        r.offer(&frame(0, None), [0.0; 3]);
+        // Fewer than the mailbox holds: none is pushed out, however slow the disk.
+        for i in 1..=5 {
+            r.offer(&frame(i, Some(origin)), [0.0; 3]);
+        }
+        let stats = r.stop();
+        assert_eq!(stats.recorded.load(Ordering::Relaxed), 5);
+        assert_eq!(stats.dropped.load(Ordering::Relaxed), 1);
+        let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
+        assert_eq!(ds.records.len(), 5);
+        assert_eq!(ds.camera.origin, origin);
+        assert_eq!(ds.records[0].t, 0.0);
+        assert!((ds.records[4].t - 1.0).abs() < 1e-12);
+        let img = crate::imaging::read_image(&ds.frame_path(&ds.records[2]), opencv::imgcodecs::IMREAD_COLOR)
+            .unwrap();
+        use opencv::prelude::*;
+        assert_eq!(
+            *img.at_2d::<opencv::core::Vec3b>(10, 10).unwrap(),
+            opencv::core::Vec3b::from([30, 30, 30])
+        );
+        let pose = ds.camera_pose(&ds.records[2].measured, [0.0; 3]);
+        assert!((pose.position - Vec3::new(3.0, 2.0, -30.0)).norm() < 1e-9);
+        // Nothing half written is left.
+        let hidden: Vec<_> = std::fs::read_dir(rec_dir.join("frames"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with('.'))
+            .collect();
+        assert!(hidden.is_empty(), "{hidden:?}");
+    }
+
+    /// A write that fails (here the frames' folder is a file; a full disk fails the same
+    /// way) stops the recording with an error naming the file; the frames before stay a
+    /// readable dataset and later offers are ignored.
+    #[test]
+    fn a_failed_write_stops_the_recording_and_keeps_the_frames_before() {
+        let dir = tempfile::tempdir().unwrap();
+        let rec_dir = dir.path().join("run-1");
+        let r = Recorder::start(spec(&rec_dir, RecordFormat::Jpg));
+        let origin = Some(Geodetic::new(57.0, 10.0, 12.0));
+        r.offer(&frame(0, origin), [0.0; 3]);
+        let start = std::time::Instant::now();
+        while r.stats.recorded.load(Ordering::Relaxed) < 1 {
+            assert!(start.elapsed().as_secs() < 10, "the first frame was not recorded");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        std::fs::remove_dir_all(rec_dir.join("frames")).unwrap();
+        std::fs::write(rec_dir.join("frames"), b"not a folder").unwrap();
+        r.offer(&frame(1, origin), [0.0; 3]);
+        while r.stats.failed.lock().unwrap().is_none() {
+            assert!(start.elapsed().as_secs() < 10, "the failure was not reported");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        r.offer(&frame(2, origin), [0.0; 3]);
+        let stats = r.stop();
+        let e = stats.failed.lock().unwrap().clone().unwrap();
+        assert!(e.contains("frames/000001.jpg"), "{e}");
+        assert_eq!(stats.recorded.load(Ordering::Relaxed), 1);
+        let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
+        assert_eq!(ds.records.len(), 1);
+    }
+
+    /// A position in another origin (the autopilot moved its EKF origin during the flight)
+    /// is written in the recording's first origin.
+    #[test]
+    fn positions_stay_in_the_first_origin() {
+        let dir = tempfile::tempdir().unwrap();
+        let rec_dir = dir.path().join("run-1");
+        let r = Recorder::start(spec(&rec_dir, RecordFormat::Jpg));
+        let first = Geodetic::new(57.0, 10.0, 12.0);
+        r.offer(&frame(0, Some(first)), [0.0; 3]);
+        // 100 m north of the first origin: frame 1's position (1, 2, -30) there is (101, 2, -30).
+        let moved = LocalFrame::new(first).to_geodetic(&Vec3::new(100.0, 0.0, 0.0));
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        r.offer(&frame(1, Some(moved)), [0.0; 3]);
+        r.stop();
+        let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
+        let p = Vec3::from(ds.records[1].measured.position);
+        assert!((p - Vec3::new(101.0, 2.0, -30.0)).norm() < 0.01, "{p:?}");
+    }
+
+    proptest! {
+        /// What the replay of a recording computes (`Dataset::camera_pose` with the offsets
+        /// configured) is the attitude the live pipeline had, for either chain and any
+        /// offsets: the recorder takes out exactly what the reader puts back.
+        #[test]
+        fn a_recorded_pose_replays_as_the_live_attitude(
+            yaw in -180.0..180.0f64, pitch in -89.0..89.0f64, roll in -60.0..60.0f64,
+            oy in -5.0..5.0f64, op in -5.0..5.0f64, or in -5.0..5.0f64,
+            ryp in any::<bool>(),
+        ) {
+            let chain = if ryp { GimbalChain::YawRollPitch } else { GimbalChain::YawPitchRoll };
+            let live = CameraPose::from_gimbal(
+                Vec3::new(10.0, -4.0, -30.0),
+                chain,
+                GimbalAngles::from_degrees(yaw, pitch, roll),
+                mavloc_geometry::Mount::Earth,
+            );
+            let rec = pose_record(&aligned(live, (0.1, -0.05, 1.0)), chain, [oy, op, or], |p| p);
+            let camera = CameraFile {
+                width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5, chain,
+                gimbal_frame: GimbalFrame::Earth, origin: Geodetic::new(57.0, 10.0, 12.0),
+            };
+            let ds = mavloc_data::Dataset {
+                dir: PathBuf::new(), camera, records: Vec::new(), ground_truth: Vec::new(),
+            };
+            let replayed = ds.camera_pose(&rec, [oy, op, or]);
+            // Matrices, not `angle()`: its arccos cannot resolve below about 1e-8 rad.
+            let off = (replayed.attitude.matrix() - live.attitude.matrix()).norm();
+            prop_assert!(off < 1e-9, "replayed attitude {off:e} off the live one");
+            prop_assert!((replayed.position - live.position).norm() < 1e-9);
+        }
+    }
+}
