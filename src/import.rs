@@ -931,6 +931,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             truth: pose,
             measured: pose,
             appearance: None,
+            autopilot_time: None,
         });
         report.imported.push(t.name.clone());
     }

@@ -7,8 +7,9 @@ RECORDING: a flight recorded by `daemon.record` during `make sitl`; PX4_ULG: tha
 `px4.ulg` (the harness copies it beside the report); ATTITUDE_CSV: `attitude.csv` of
 `mavloc area --trace --set area.attitude_prior_deg=... --dataset RECORDING`.
 
-The recording's times are mavloc's, not PX4's: they are joined by the vehicle yaw both
-hold (the offset with the smallest mean difference, on a 20 ms grid). PX4's error is its
+Each record's `autopilot_time` is PX4's clock, the log's; a recording without it (before
+session 32) is joined by the vehicle yaw both hold (the offset with the smallest mean
+difference, on a 20 ms grid). PX4's error is its
 attitude estimate against SIH's truth, as a small rotation in NED (estimate = exp(e)
 truth); a correction d turns the recorded attitude by exp(d), so a perfect one is d = -e.
 Prints, about north, east and down: both means and SDs, their correlation over the
@@ -48,8 +49,12 @@ def main(rec, ulg, att):
         cost = float(np.mean(np.abs(e)))
         if best is None or cost < best[0]:
             best = (cost, tau)
-    print(f"joined at PX4 time = recording time + {best[1]:.2f} s (yaw {np.degrees(best[0]):.2f} deg apart on average)")
+    print(f"by the yaw: PX4 time = recording time + {best[1]:.2f} s (yaw {np.degrees(best[0]):.2f} deg apart on average)")
     ts = t + best[1]
+    if all(r.get("autopilot_time") is not None for r in records):
+        # Recordings since session 32 carry PX4's own clock (the log's), which needs no guess.
+        ts = np.array([r["autopilot_time"] for r in records])
+        print(f"joined by autopilot_time (recording time + {np.median(ts - t):.2f} s)")
     E = np.einsum("nij,nkj->nik", rotations(a, ts), rotations(g, ts))
     err = np.degrees(np.stack([(E[:, 2, 1] - E[:, 1, 2]) / 2, (E[:, 0, 2] - E[:, 2, 0]) / 2,
                                (E[:, 1, 0] - E[:, 0, 1]) / 2], -1))

@@ -115,6 +115,10 @@ pub struct TelemetryRecord {
     /// Photometric change applied to the frame, when there was one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub appearance: Option<Appearance>,
+    /// The autopilot's clock at the capture (s since its boot, as its telemetry stamps
+    /// it), in recordings (`daemon.record`): what joins a frame to the autopilot's log.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub autopilot_time: Option<f64>,
 }
 
 /// `camera.toml`.
@@ -393,7 +397,14 @@ mod tests {
             velocity: [0.0; 3],
         };
         let a = Some(Appearance { brightness: 3.0, ..Appearance::default() });
-        let recs = vec![TelemetryRecord { frame: 0, t: 0.5, truth: pose, measured: pose, appearance: a }];
+        let recs = vec![TelemetryRecord {
+            frame: 0,
+            t: 0.5,
+            truth: pose,
+            measured: pose,
+            appearance: a,
+            autopilot_time: None,
+        }];
         write_telemetry(d, &recs).unwrap();
         let ds = Dataset::open(d).unwrap();
         assert_eq!(ds.camera, camera());
@@ -426,8 +437,14 @@ mod tests {
             gimbal_deg: [0.0; 3],
             velocity: [0.0; 3],
         };
-        let rec =
-            |frame| TelemetryRecord { frame, t: frame as f64, truth: pose, measured: pose, appearance: None };
+        let rec = |frame| TelemetryRecord {
+            frame,
+            t: frame as f64,
+            truth: pose,
+            measured: pose,
+            appearance: None,
+            autopilot_time: None,
+        };
         let line = |frame| serde_json::to_string(&rec(frame)).unwrap();
         let torn = &line(2)[..30];
         fs::write(d.join(TELEMETRY_FILE), format!("{}\n{}\n{torn}", line(0), line(1))).unwrap();

@@ -269,8 +269,14 @@ pub fn render_dataset_until(
         for (g, w) in measured.gimbal_deg.iter_mut().zip(wander) {
             *g += w;
         }
-        let record =
-            TelemetryRecord { frame: i as u64, t: truth.t, truth: pose_record(truth), measured, appearance };
+        let record = TelemetryRecord {
+            frame: i as u64,
+            t: truth.t,
+            truth: pose_record(truth),
+            measured,
+            appearance,
+            autopilot_time: None,
+        };
         records.push(record);
         written += 1;
         progress(i + 1, total);

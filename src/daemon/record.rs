@@ -290,6 +290,7 @@ impl Writer {
             truth: pose,
             measured: pose,
             appearance: None,
+            autopilot_time: Some(item.pose.autopilot_time),
         };
         let mut line = serde_json::to_string(&record).map_err(|e| e.to_string())?;
         line.push('\n');
@@ -392,10 +393,12 @@ mod tests {
             GimbalAngles::from_degrees(10.0, -70.0, 0.0),
             mavloc_geometry::Mount::Earth,
         );
+        let mut pose = aligned(camera, (0.0, 0.0, 0.3));
+        pose.autopilot_time = 50.0 + index as f64 * 0.25;
         LiveFrame {
             index,
             capture_s: 100.0 + index as f64 * 0.25,
-            pose: aligned(camera, (0.0, 0.0, 0.3)),
+            pose,
             image,
             mask: None,
             origin,
@@ -436,6 +439,7 @@ mod tests {
         assert_eq!(ds.camera.origin, origin);
         assert_eq!(ds.records[0].t, 0.0);
         assert!((ds.records[4].t - 1.0).abs() < 1e-12);
+        assert_eq!(ds.records[4].autopilot_time, Some(51.25), "the autopilot's clock at frame 5's capture");
         let img = crate::imaging::read_image(&ds.frame_path(&ds.records[2]), opencv::imgcodecs::IMREAD_COLOR)
             .unwrap();
         use opencv::prelude::*;
