@@ -489,12 +489,8 @@ def attitude_vs_truth(u):
     # Seconds of airborne time (landed stretches left out, so windows do not straddle them).
     dt = np.diff(t, prepend=t[0])[air] * 1e-6
     ta = np.cumsum(dt)
-    windows = []
-    for start in np.arange(0.0, ta[-1] - 20.0 + 1e-9, 20.0):
-        w = (ta >= start) & (ta < start + 20.0)
-        if w.any():
-            windows.append({"t_s": round(float(start)),
-                            **{n: round(float(errors[n][w].mean()), 2) for n in ("roll", "pitch", "yaw")}})
+    windows = [{"t_s": round(float(start)), **{n: round(float(errors[n][w].mean()), 2) for n in ("roll", "pitch", "yaw")}}
+               for start, w in windows_20s(ta)]
     # The heading the magnetometer gives when it is levelled with EKF2's own roll and pitch,
     # minus the heading it gives levelled with the true ones: the part of a magnetic heading
     # error that a tilt error makes (the field is steep, so about tan(inclination) times the
@@ -542,12 +538,16 @@ def tilt_made_heading_error(d, air, t, ta, euler):
     true_tilt = [np.interp(t, g["timestamp"], np.unwrap(x)) for x in eg[:2]]
     diff = level_heading(ea[0], ea[1]) - level_heading(*true_tilt)
     e = np.degrees((diff + np.pi) % (2 * np.pi) - np.pi)[air]
-    out = []
+    return [round(float(e[w].mean()), 2) for _, w in windows_20s(ta)]
+
+
+def windows_20s(ta):
+    """(start, mask) of each non-empty 20 s window of airborne time `ta` (s)."""
+    import numpy as np
     for start in np.arange(0.0, ta[-1] - 20.0 + 1e-9, 20.0):
         w = (ta >= start) & (ta < start + 20.0)
         if w.any():
-            out.append(round(float(e[w].mean()), 2))
-    return out
+            yield start, w
 
 
 def analyse(ulg):

@@ -138,6 +138,25 @@ pub struct CameraFile {
 }
 
 impl CameraFile {
+    pub fn new(
+        k: Intrinsics,
+        chain: GimbalChain,
+        gimbal_frame: GimbalFrame,
+        origin: mavloc_geometry::Geodetic,
+    ) -> Self {
+        CameraFile {
+            width: k.width,
+            height: k.height,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            chain,
+            gimbal_frame,
+            origin,
+        }
+    }
+
     pub fn intrinsics(&self) -> Intrinsics {
         Intrinsics {
             width: self.width,

@@ -193,17 +193,7 @@ pub fn render_dataset_until(
     let k = scenario.intrinsics();
 
     // Static files first; telemetry last marks completeness.
-    let camera = CameraFile {
-        width: k.width,
-        height: k.height,
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        chain: scenario.camera.chain,
-        gimbal_frame: mission.gimbal_frame,
-        origin: scenario.origin,
-    };
+    let camera = CameraFile::new(k, scenario.camera.chain, mission.gimbal_frame, scenario.origin);
     dataset::write_camera(out, &camera)?;
     dataset::write_file(
         out,

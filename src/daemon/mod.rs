@@ -251,6 +251,12 @@ struct Shell {
 }
 
 impl Shell {
+    /// Rewrites `status.json` with the daemon's state now.
+    fn write_status(&self, core: &Core, now: Mono) -> std::io::Result<()> {
+        let recording = self.live.recorder.as_ref().map(RecordingJson::of);
+        write_status(&self.dir, core, &self.link, &self.link_state, now, recording)
+    }
+
     fn now(&self) -> Mono {
         self.mono(tokio::time::Instant::now())
     }
@@ -311,14 +317,7 @@ impl Shell {
             }
             // Status and the pipeline's results; the ACK says whether both were written.
             Action::Snapshot { token } => {
-                let status = write_status(
-                    &self.dir,
-                    core,
-                    &self.link,
-                    &self.link_state,
-                    now,
-                    self.live.recorder.as_ref().map(RecordingJson::of),
-                );
+                let status = self.write_status(core, now);
                 let results = snapshot(&self.live);
                 let result = match (status, results) {
                     (Ok(()), Ok(_)) => Ok(()),
@@ -354,14 +353,7 @@ impl Shell {
                     }
                 }
                 core.handle(Input::Stats { now, stats });
-                let _ = write_status(
-                    &self.dir,
-                    core,
-                    &self.link,
-                    &self.link_state,
-                    now,
-                    self.live.recorder.as_ref().map(RecordingJson::of),
-                );
+                let _ = self.write_status(core, now);
             }
             Action::Watchdog => notify(&[sd_notify::NotifyState::Watchdog]),
         }

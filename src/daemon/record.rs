@@ -314,22 +314,13 @@ impl Writer {
             // Run ids are unique per start: an existing recording is never appended to.
             return Err(format!("{} already holds a recording", dir.display()));
         }
-        for sub in ["frames", "masks"] {
-            let d = dir.join(sub);
-            std::fs::create_dir_all(&d).map_err(|e| format!("cannot create {}: {e}", d.display()))?;
-        }
-        let k = spec.intrinsics;
-        let camera = CameraFile {
-            width: k.width,
-            height: k.height,
-            fx: k.fx,
-            fy: k.fy,
-            cx: k.cx,
-            cy: k.cy,
-            chain: spec.chain,
-            gimbal_frame: GimbalFrame::Earth,
-            origin: first.origin.unwrap_or(NO_ORIGIN),
-        };
+        mavloc_data::dataset::prepare(dir)?;
+        let camera = CameraFile::new(
+            spec.intrinsics,
+            spec.chain,
+            GimbalFrame::Earth,
+            first.origin.unwrap_or(NO_ORIGIN),
+        );
         mavloc_data::dataset::write_camera(dir, &camera)?;
         let telemetry_path = dir.join(mavloc_data::dataset::TELEMETRY_FILE);
         let telemetry = std::fs::OpenOptions::new()
@@ -654,10 +645,8 @@ mod tests {
                 mavloc_geometry::Mount::Earth,
             );
             let rec = pose_record(&aligned(live, (0.1, -0.05, 1.0)), chain, [oy, op, or], |p| p);
-            let camera = CameraFile {
-                width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5, chain,
-                gimbal_frame: GimbalFrame::Earth, origin: Geodetic::new(57.0, 10.0, 12.0),
-            };
+            let camera = CameraFile::new(spec(Path::new(""), RecordFormat::Jpg).intrinsics, chain,
+                GimbalFrame::Earth, Geodetic::new(57.0, 10.0, 12.0));
             let ds = mavloc_data::Dataset {
                 dir: PathBuf::new(), camera, records: Vec::new(), ground_truth: Vec::new(),
             };
