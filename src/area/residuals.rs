@@ -6,8 +6,8 @@
 //! Observations are every match a frame made to a landmark, accepted by the Mahalanobis
 //! gate or not: a frame whose pose is badly wrong has its matches refused, and those
 //! refusals are exactly what must show. A frame whose residuals drop by a factor of three
-//! or more when its yaw is turned by 180 deg is reported as "yaw off by about 180 deg"
-//! (it happens in real DJI logs).
+//! or more when its yaw is turned by 180 deg, to a fit as close as a recorded pose's error
+//! allows, is reported as "yaw off by about 180 deg" (it happens in real DJI logs).
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -19,6 +19,18 @@ use mavloc_data::results::LandmarkRecord;
 
 /// Residuals above this (pixels at full resolution) are worth a yaw check.
 const SUSPECT_PX: f64 = 20.0;
+
+/// Fewer sightings than this cannot tell a turned yaw from one bad match: on two recorded
+/// PX4 SITL flights of about 1870 frames, one frame each, with a single sighting
+/// reprojecting 73709 px and off-image, read 1793 and 7159 px turned, "three times better",
+/// and was flagged, though neither gimbal ever turned.
+const FLIP_MIN_LANDMARKS: usize = 3;
+
+/// A turned pose must fit its sightings to within this share of the image width (full
+/// resolution): a real half-turn leaves only the recorded attitude's error, a few degrees
+/// (3 deg is 4 % of the width at a 75 deg field of view), while a frame that is wrong in
+/// another way fits no better turned than a random pose.
+const FLIP_FIT_OF_WIDTH: f64 = 0.05;
 
 /// One frame's residuals, pixels at the frame's full resolution.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -72,7 +84,8 @@ pub fn per_frame(
             let mut f: Vec<f64> = errors(&turned, k, &obs).into_iter().map(|x| x * scale).collect();
             let m = quantile(&mut f, 0.5);
             flipped = Some(m);
-            off = m * 3.0 <= median;
+            let fits = m <= FLIP_FIT_OF_WIDTH * k.width as f64 * scale;
+            off = obs.len() >= FLIP_MIN_LANDMARKS && fits && m * 3.0 <= median;
         }
         out.push(FrameResiduals {
             frame,
@@ -195,5 +208,59 @@ mod tests {
         assert!(r[1].median_px > 100.0 && r[1].yaw_off_180, "{:?}", r[1]);
         assert!(r[1].median_yaw180_px.unwrap() < 1e-6);
         assert!(csv(&r).lines().nth(2).unwrap().ends_with(",1"));
+    }
+
+    /// What the recorded PX4 flights showed: a frame with one sighting far off (a bad match
+    /// near the image plane) that reads "better" turned, but only from absurd to absurd, and
+    /// a frame of several sightings that a half turn brings nowhere near a fit. Neither is a
+    /// turned yaw.
+    #[test]
+    fn one_bad_sighting_or_a_turn_that_fits_nothing_is_not_a_half_turn() {
+        let k = Intrinsics::from_hfov(800, 600, 1.2);
+        let pose = |yaw: f64| {
+            CameraPose::from_gimbal(
+                Vec3::new(0.0, 0.0, -40.0),
+                GimbalChain::YawPitchRoll,
+                GimbalAngles { yaw, pitch: -1.2, roll: 0.0 },
+                Mount::Earth,
+            )
+        };
+        let landmark = |id: u64, x: f64, y: f64| LandmarkRecord {
+            id,
+            position: Vec3::new(x, y, 0.0),
+            sigma_max_m: 0.2,
+            observations: 3,
+            first_frame: 0,
+            last_frame: 1,
+        };
+        let truth = pose(0.3);
+        let turned = pose(0.3 + std::f64::consts::PI);
+        // Frame 0: one landmark seen where the turned pose puts it, 30 px off.
+        let lone = landmark(0, 25.0, 5.0);
+        let at = turned.project(&k, &lone.position).unwrap();
+        let mut seen = vec![(0, 0, Pixel::new(at.u + 30.0, at.v))];
+        // Frame 1: ten landmarks, each sighting where the turned pose puts it, shifted by
+        // 100 px (an eighth of the width): a sixth of the recorded pose's error, still no fit.
+        let many: Vec<LandmarkRecord> =
+            (1..11).map(|i| landmark(i, 20.0 + i as f64, -8.0 + i as f64)).collect();
+        for l in &many {
+            let p = turned.project(&k, &l.position).unwrap();
+            seen.push((1, l.id, Pixel::new(p.u + 100.0, p.v)));
+        }
+        let mut all = vec![lone];
+        all.extend(many);
+        let poses = BTreeMap::from([(0, truth), (1, truth)]);
+        let r = per_frame(&seen, &all, &poses, &k, 1.0);
+        assert_eq!(r.len(), 2);
+        for f in &r {
+            let turned_px = f.median_yaw180_px.expect("suspect, so checked");
+            assert!(turned_px * 3.0 <= f.median_px, "turned reads better: {f:?}");
+            assert!(!f.yaw_off_180, "not a half turn: {f:?}");
+        }
+        // The same ten sightings exactly where the turned pose puts them: a half turn.
+        for s in seen.iter_mut().filter(|s| s.0 == 1) {
+            s.2.u -= 100.0;
+        }
+        assert!(per_frame(&seen, &all, &poses, &k, 1.0)[1].yaw_off_180);
     }
 }
