@@ -253,6 +253,69 @@ fn stages(c: &mut Criterion) {
         });
     }
 
+    // The same adjustment over a video flight (what `mavloc area --trace` runs on a
+    // recorded PX4 flight of 1874 frames): 600 frames a metre apart along a line at 60 m,
+    // the camera 30 deg off nadir, each frame's attitude 1 deg off, 1500 tracks each seen
+    // by the 40-90 frames that pass over it: a banded reduced system of 600 blocks.
+    {
+        use mavloc::area::refine::{corrected, refine, RefineParams};
+        use mavloc::geometry::{GimbalAngles, GimbalChain, Intrinsics, Mount, Pixel};
+        use mavloc_data::results::LandmarkRecord;
+        use rand::{Rng, SeedableRng};
+        use std::collections::BTreeMap;
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let k = Intrinsics { width: 640, height: 360, fx: 420.0, fy: 420.0, cx: 319.5, cy: 179.5 };
+        let truth: BTreeMap<u64, CameraPose> = (0..600u64)
+            .map(|i| {
+                let angles = GimbalAngles { yaw: 0.0, pitch: -60f64.to_radians(), roll: 0.0 };
+                let position = Vec3::new(i as f64, 0.0, -60.0);
+                (i, CameraPose::from_gimbal(position, GimbalChain::YawPitchRoll, angles, Mount::Earth))
+            })
+            .collect();
+        let unit = |rng: &mut rand::rngs::StdRng| {
+            Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
+                .normalize()
+        };
+        let tagged: BTreeMap<u64, CameraPose> =
+            truth.iter().map(|(&f, p)| (f, corrected(p, &(unit(&mut rng) * 1f64.to_radians())))).collect();
+        let points: Vec<Vec3> = (0..1500)
+            .map(|_| {
+                Vec3::new(
+                    rng.random_range(30.0..700.0),
+                    rng.random_range(-30.0..30.0),
+                    rng.random_range(-2.0..2.0),
+                )
+            })
+            .collect();
+        // A track lives while its point is in view, up to 90 frames (the library's turnover).
+        let mut sightings: Vec<(u64, u64, Pixel)> = Vec::new();
+        for (j, x) in points.iter().enumerate() {
+            let seen = truth
+                .iter()
+                .filter_map(|(&f, p)| p.project(&k, x).filter(|px| k.contains(*px)).map(|px| (f, px)));
+            sightings.extend(seen.take(90).map(|(f, px)| (f, j as u64, px)));
+        }
+        let start: Vec<LandmarkRecord> = points
+            .iter()
+            .enumerate()
+            .map(|(j, x)| LandmarkRecord {
+                id: j as u64,
+                position: x + unit(&mut rng) * 1.0,
+                sigma_max_m: 0.5,
+                observations: 3,
+                first_frame: 0,
+                last_frame: 0,
+            })
+            .collect();
+        let params = RefineParams::new(1.5);
+        let mut group = c.benchmark_group("area_refine_video");
+        group.sample_size(10);
+        group.bench_function("area_refine_video_600_frames_1500_tracks", |b| {
+            b.iter(|| refine(&sightings, &start, &tagged, &k, &params))
+        });
+        group.finish();
+    }
+
     // Purge 20 of 220 landmarks.
     let descriptor = vec![0.5f32; 128];
     c.bench_function("area_purge_220_to_180", |b| {

@@ -9,7 +9,10 @@
 //!
 //! Solved jointly by Levenberg-Marquardt with the landmarks eliminated by the Schur
 //! complement, as bundle adjusters do: each landmark's 3x3 block is inverted, leaving a
-//! dense system of 3 unknowns per frame (a few hundred), solved by Cholesky. Written here
+//! system of 3 unknowns per frame, solved by Cholesky: `nalgebra-sparse`'s, whose symbolic
+//! factorisation is kept while the system's pattern holds ([`Reduced`]; over a video flight
+//! of 1874 frames the system is banded, and its symbolic analysis, redone at every step,
+//! was half the time). Written here
 //! on nalgebra rather than through a solver crate: the dense least-squares crates would
 //! form the full Jacobian (thousands of columns), and the sparse ones bring a sparse
 //! linear-algebra stack for what the Schur complement does in a page. (Alternating
@@ -20,8 +23,8 @@ use std::collections::{BTreeMap, HashSet};
 use std::ops::AddAssign;
 
 use nalgebra::{Matrix3, Vector3};
-use nalgebra_sparse::factorization::CscCholesky;
-use nalgebra_sparse::{CooMatrix, CscMatrix};
+use nalgebra_sparse::factorization::{CscCholesky, CscSymbolicCholesky};
+use nalgebra_sparse::pattern::SparsityPattern;
 use rustc_hash::FxHashMap;
 
 use crate::geometry::{CameraPose, Intrinsics, Pixel, Rot3, Vec3};
@@ -245,55 +248,127 @@ fn entry(map: &mut Vec<(usize, Matrix3<f64>)>, key: usize) -> &mut Matrix3<f64> 
     &mut map[i].1
 }
 
-/// The reduced system's nonzero 3x3 blocks by (row, column) block index. Up to
-/// [`DENSE_BLOCKS`] blocks a table gives each (row, column) its slot: the Schur complement
-/// adds a block for every pair of a landmark's frames, and hashing each such update was a
-/// fifth of a photo survey's adjustment in the test build (perf). Beyond it (a video lap's
-/// thousand frames, whose table would be megabytes to copy every damping step) they are
-/// hashed.
-#[derive(Clone)]
-enum Blocks {
-    Table { n: usize, slot: Vec<u32>, blocks: Vec<((usize, usize), Matrix3<f64>)> },
-    Hashed(FxHashMap<(usize, usize), Matrix3<f64>>),
+/// The reduced system's nonzero 3x3 blocks, each with a slot in a flat vector of
+/// blocks, and the system in the form the sparse Cholesky takes. The pattern is the same
+/// from round to round of a solve (the frames two landmarks link do not change), so
+/// everything that depends on it alone is worked out once:
+/// - a block's slot, looked up once per landmark and round, not once per damping step:
+///   hashed, the lookups were a quarter of a recorded 1874-frame PX4 flight's adjustment
+///   (perf, session 33);
+/// - where each block's nine values go in the CSC arrays;
+/// - the symbolic factorisation (the factor's pattern), which `CscCholesky::factor` works
+///   out again on every call: half of that flight's adjustment.
+struct Reduced {
+    index: BlockIndex,
+    /// (row, column) block by slot.
+    keys: Vec<(usize, usize)>,
+    /// The CSC pattern of the slots in `keys` (its length when made), where each slot's
+    /// values go in it (`[slot][row * 3 + column]`) and its symbolic factorisation.
+    csc: Option<(usize, SparsityPattern, Vec<[u32; 9]>, CscSymbolicCholesky)>,
 }
 
-/// Block rows up to which [`Blocks`] keeps a table (a 256 KB one).
+impl Reduced {
+    fn new(n: usize) -> Reduced {
+        Reduced { index: BlockIndex::table_up_to(n, DENSE_BLOCKS), keys: Vec::new(), csc: None }
+    }
+
+    /// The slot of block `key`, made if it is not there yet.
+    fn slot(&mut self, key: (usize, usize)) -> usize {
+        self.index.slot(key, &mut self.keys)
+    }
+
+    /// The Cholesky factor of the symmetric matrix of `n` block rows whose blocks are
+    /// `blocks` (by slot), or `None` if it is not positive definite.
+    fn factor(&mut self, n: usize, blocks: &[Matrix3<f64>]) -> Option<CscCholesky<f64>> {
+        debug_assert_eq!(blocks.len(), self.keys.len());
+        if self.csc.as_ref().is_none_or(|c| c.0 != self.keys.len()) {
+            let (pattern, at) = csc_pattern(n, &self.keys);
+            let symbolic = CscSymbolicCholesky::factor(pattern.clone());
+            self.csc = Some((self.keys.len(), pattern, at, symbolic));
+        }
+        let (_, pattern, at, symbolic) = self.csc.as_ref().expect("made above");
+        let mut values = vec![0.0; pattern.nnz()];
+        for (m, at) in blocks.iter().zip(at) {
+            for r in 0..3 {
+                for c in 0..3 {
+                    values[at[r * 3 + c] as usize] = m[(r, c)];
+                }
+            }
+        }
+        CscCholesky::factor_numerical(symbolic.clone(), &values).ok()
+    }
+}
+
+/// A landmark's blocks and, for each pair of them in order (b1 <= b2), the slots of the
+/// pair's block and of its mirror.
+type PairSlots = (Vec<usize>, Vec<(u32, u32)>);
+
+/// The CSC pattern (3n x 3n) of the 3x3 blocks at `keys`, and where each block's values
+/// go in it (`[slot][row * 3 + column]`).
+fn csc_pattern(n: usize, keys: &[(usize, usize)]) -> (SparsityPattern, Vec<[u32; 9]>) {
+    // The blocks of each block column, by block row.
+    let mut columns: Vec<Vec<(usize, usize)>> = vec![Vec::new(); n];
+    for (slot, &(r, c)) in keys.iter().enumerate() {
+        columns[c].push((r, slot));
+    }
+    let mut offsets = Vec::with_capacity(3 * n + 1);
+    let mut rows = Vec::with_capacity(9 * keys.len());
+    let mut at = vec![[0u32; 9]; keys.len()];
+    offsets.push(0);
+    for col in &mut columns {
+        col.sort_unstable();
+        for c in 0..3 {
+            for &(br, slot) in col.iter() {
+                for r in 0..3 {
+                    at[slot][r * 3 + c] = rows.len() as u32;
+                    rows.push(3 * br + r);
+                }
+            }
+            offsets.push(rows.len());
+        }
+    }
+    let pattern = SparsityPattern::try_from_offsets_and_indices(3 * n, 3 * n, offsets, rows)
+        .expect("sorted, in range, no duplicate: one slot per block");
+    (pattern, at)
+}
+
+/// A block's slot by its (row, column). Up to [`DENSE_BLOCKS`] block rows a table holds
+/// every (row, column)'s slot; beyond it (a video lap's thousand frames, whose table would
+/// be megabytes) they are hashed.
+enum BlockIndex {
+    Table { n: usize, slot: Vec<u32> },
+    Hashed(FxHashMap<(usize, usize), u32>),
+}
+
+/// Block rows up to which [`BlockIndex`] keeps a table (a 256 KB one).
 const DENSE_BLOCKS: usize = 256;
 
-impl Blocks {
-    fn new(n: usize) -> Blocks {
-        Blocks::table_up_to(n, DENSE_BLOCKS)
-    }
-
-    fn table_up_to(n: usize, limit: usize) -> Blocks {
+impl BlockIndex {
+    fn table_up_to(n: usize, limit: usize) -> BlockIndex {
         if n <= limit {
-            Blocks::Table { n, slot: vec![u32::MAX; n * n], blocks: Vec::new() }
+            BlockIndex::Table { n, slot: vec![u32::MAX; n * n] }
         } else {
-            Blocks::Hashed(FxHashMap::default())
+            BlockIndex::Hashed(FxHashMap::default())
         }
     }
 
-    /// The block at `key`, zero if it was not there.
-    fn at(&mut self, key: (usize, usize)) -> &mut Matrix3<f64> {
-        match self {
-            Blocks::Table { n, slot, blocks } => {
-                let i = &mut slot[key.0 * *n + key.1];
-                if *i == u32::MAX {
-                    *i = blocks.len() as u32;
-                    blocks.push((key, Matrix3::zeros()));
+    /// The slot of `key`; a new key gets the next slot and is pushed on `keys`.
+    fn slot(&mut self, key: (usize, usize), keys: &mut Vec<(usize, usize)>) -> usize {
+        let next = keys.len() as u32;
+        let s = match self {
+            BlockIndex::Table { n, slot } => {
+                let s = &mut slot[key.0 * *n + key.1];
+                if *s == u32::MAX {
+                    *s = next;
                 }
-                &mut blocks[*i as usize].1
+                *s
             }
-            Blocks::Hashed(map) => map.entry(key).or_insert_with(Matrix3::zeros),
+            BlockIndex::Hashed(map) => *map.entry(key).or_insert(next),
+        };
+        if s == next {
+            keys.push(key);
         }
-    }
-
-    /// Calls `f` with every block there and its key (in no particular order).
-    fn for_each(&self, mut f: impl FnMut((usize, usize), &Matrix3<f64>)) {
-        match self {
-            Blocks::Table { blocks, .. } => blocks.iter().for_each(|(k, m)| f(*k, m)),
-            Blocks::Hashed(map) => map.iter().for_each(|(k, m)| f(*k, m)),
-        }
+        s as usize
     }
 }
 
@@ -664,14 +739,12 @@ impl Problem<'_> {
         let median_before_px = median(errs);
         let mut lambda = 1e-3;
         let mut last_s: Option<CscCholesky<f64>> = None;
+        let mut reduced = Reduced::new(nb);
+        let mut pairs: Vec<PairSlots> = vec![(Vec::new(), Vec::new()); xs.len()];
         for _ in 0..p.rounds {
             // Normal equations, blockwise: U (blocks, sparse: frames that share landmarks),
             // V (landmarks), W (block x landmark).
             // Fx, not SipHash: a lookup per sighting and round (10 % of a photo survey's run).
-            let mut u = Blocks::new(nb);
-            for b in 0..nb {
-                *u.at((b, b)) = Matrix3::identity() / prior(b).powi(2);
-            }
             let mut eu: Vec<Vector3<f64>> =
                 theta.iter().enumerate().map(|(b, d)| d / prior(b).powi(2)).collect();
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
@@ -749,21 +822,45 @@ impl Problem<'_> {
                     }
                 }
             }
-            for ((fr, parts), _) in frames.iter().zip(&uf).zip(&seen_in).filter(|(_, seen)| **seen) {
+            // Slots first (a new block may appear, and the values follow the slots), then U.
+            let diagonal: Vec<usize> = (0..nb).map(|b| reduced.slot((b, b))).collect();
+            let mut u_at: Vec<(usize, usize, usize)> = Vec::new(); // (frame, i1 * 3 + i2, slot)
+            for (fi, fr) in frames.iter().enumerate().filter(|(fi, _)| seen_in[*fi]) {
                 let slots = [fr.own, fr.shift, shared_ix];
                 for (i1, b1) in slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b))) {
                     for (i2, b2) in slots.iter().enumerate().filter_map(|(i, b)| b.map(|b| (i, b))) {
-                        *u.at((b1, b2)) += parts[i1][i2];
+                        u_at.push((fi, i1 * 3 + i2, reduced.slot((b1, b2))));
                     }
                 }
+            }
+            // Each landmark's pairs of blocks (b1 <= b2 in its list's order) and their two
+            // slots, kept from the last round while its blocks are the same.
+            for (j, wj) in w.iter().enumerate() {
+                let blocks: Vec<usize> = wj.iter().map(|e| e.0).collect();
+                if pairs[j].0 != blocks {
+                    let mut slots = Vec::with_capacity(blocks.len() * (blocks.len() + 1) / 2);
+                    for (i1, &b1) in blocks.iter().enumerate() {
+                        for &b2 in &blocks[i1..] {
+                            slots.push((reduced.slot((b1, b2)) as u32, reduced.slot((b2, b1)) as u32));
+                        }
+                    }
+                    pairs[j] = (blocks, slots);
+                }
+            }
+            let mut u = vec![Matrix3::<f64>::zeros(); reduced.keys.len()];
+            for (b, &d) in diagonal.iter().enumerate() {
+                u[d] = Matrix3::identity() / prior(b).powi(2);
+            }
+            for &(fi, part, slot) in &u_at {
+                u[slot] += uf[fi][part / 3][part % 3];
             }
             // Levenberg-Marquardt: damp, eliminate the landmarks, solve for the blocks.
             let mut improved = false;
             for _ in 0..8 {
                 let mut s = u.clone();
-                for bi in 0..nb {
-                    let diagonal = s.at((bi, bi));
-                    *diagonal += Matrix3::from_diagonal(&diagonal.diagonal()) * lambda;
+                for &d in &diagonal {
+                    let damped = Matrix3::from_diagonal(&s[d].diagonal()) * lambda;
+                    s[d] += damped;
                 }
                 let mut rhs = nalgebra::DVector::<f64>::zeros(3 * nb);
                 for (bi, e) in eu.iter().enumerate() {
@@ -777,11 +874,19 @@ impl Problem<'_> {
                     let vd =
                         v[j] + Matrix3::from_diagonal(&v[j].diagonal()) * lambda + Matrix3::identity() * 1e-9;
                     let Some(vi) = vd.try_inverse() else { continue };
-                    for (b1, w1) in &w[j] {
+                    // Each pair once, its transpose in the mirrored block: S stays exactly
+                    // symmetric, at half the products.
+                    let mut slots = pairs[j].1.iter();
+                    for (i1, (b1, w1)) in w[j].iter().enumerate() {
                         let wv = small::mm(w1, &vi);
                         rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&small::mv(&wv, &ev[j]));
-                        for (b2, w2) in &w[j] {
-                            *s.at((*b1, *b2)) -= small::mnt(&wv, w2);
+                        for (_, w2) in &w[j][i1..] {
+                            let (here, mirrored) = slots.next().expect("a pair of slots per pair of blocks");
+                            let m = small::mnt(&wv, w2);
+                            s[*here as usize] -= m;
+                            if here != mirrored {
+                                s[*mirrored as usize] -= m.transpose();
+                            }
                         }
                     }
                     vinv[j] = Some(vi);
@@ -789,9 +894,7 @@ impl Problem<'_> {
                 // Sparse: over a video lap a frame shares landmarks with its neighbours in
                 // time only, so the reduced system is banded (plus the shared block's row);
                 // dense, 1200 frames took seconds per factorisation.
-                let mut coo = CooMatrix::new(3 * nb, 3 * nb);
-                s.for_each(|(b1, b2), m| coo.push_matrix(3 * b1, 3 * b2, m));
-                let Ok(chol) = CscCholesky::factor(&CscMatrix::from(&coo)) else {
+                let Some(chol) = reduced.factor(nb, &s) else {
                     lambda *= 10.0;
                     continue;
                 };
@@ -894,28 +997,78 @@ mod tests {
     }
 
     proptest! {
-        /// The table and the hash map hold the same blocks after the same updates.
+        /// The table and the hash map give the same slots to the same keys, one per key.
         #[test]
-        fn blocks_in_a_table_and_hashed_agree(
-            updates in proptest::collection::vec((0usize..6, 0usize..6, -10.0f64..10.0), 0..60),
-        ) {
-            let (mut table, mut hashed) = (Blocks::table_up_to(6, 6), Blocks::table_up_to(6, 5));
-            let kinds = (matches!(table, Blocks::Table { .. }), matches!(hashed, Blocks::Hashed(_)));
+        fn slots_in_a_table_and_hashed_agree(keys in proptest::collection::vec((0usize..6, 0usize..6), 0..60)) {
+            let (mut table, mut hashed) = (BlockIndex::table_up_to(6, 6), BlockIndex::table_up_to(6, 5));
+            let kinds = (matches!(table, BlockIndex::Table { .. }), matches!(hashed, BlockIndex::Hashed(_)));
             prop_assert_eq!(kinds, (true, true));
-            for &(r, c, x) in &updates {
-                *table.at((r, c)) += Matrix3::from_element(x);
-                *hashed.at((r, c)) -= Matrix3::from_element(-x);
+            let (mut tk, mut hk) = (Vec::new(), Vec::new());
+            for &key in &keys {
+                let (t, h) = (table.slot(key, &mut tk), hashed.slot(key, &mut hk));
+                prop_assert_eq!(t, h);
+                prop_assert_eq!(tk[t], key);
             }
-            let held = |b: &Blocks| {
-                let mut v = Vec::new();
-                b.for_each(|k, m| v.push((k, *m)));
-                v.sort_by_key(|e| e.0);
-                v
-            };
-            let (t, h) = (held(&table), held(&hashed));
-            prop_assert_eq!(&t, &h);
-            let keys: std::collections::BTreeSet<_> = updates.iter().map(|u| (u.0, u.1)).collect();
-            prop_assert_eq!(t.len(), keys.len());
+            prop_assert_eq!(&tk, &hk);
+            let unique: std::collections::BTreeSet<_> = keys.iter().copied().collect();
+            prop_assert_eq!(tk.len(), unique.len());
+        }
+
+        /// The reduced system factored through its slots solves as a dense Cholesky does:
+        /// a random symmetric positive definite matrix of 3x3 blocks, some of them absent,
+        /// its slots made in any order, factored twice with new values (the cached pattern).
+        #[test]
+        fn the_reduced_system_solves_as_a_dense_cholesky(
+            n in 1usize..7,
+            links in proptest::collection::vec((0usize..7, 0usize..7), 0..20),
+            values in proptest::collection::vec(-1.0f64..1.0, 9 * 49 * 2),
+            rhs in proptest::collection::vec(-5.0f64..5.0, 21),
+        ) {
+            let mut reduced = Reduced::new(n);
+            let mut keys: Vec<(usize, usize)> = (0..n).map(|b| (b, b)).collect();
+            for &(a, b) in &links {
+                if a < n && b < n && a != b {
+                    keys.extend([(a, b), (b, a)]);
+                }
+            }
+            for &key in keys.iter().rev() {
+                reduced.slot(key);
+            }
+            for round in 0..2 {
+                // A = B B^T + 3n I on the blocks there, zero elsewhere: symmetric,
+                // diagonally dominant enough to be positive definite.
+                let mut dense = nalgebra::DMatrix::<f64>::zeros(3 * n, 3 * n);
+                for &(a, b) in &reduced.keys {
+                    if a <= b {
+                        let m = Matrix3::from_fn(|r, c| values[round * 441 + (a * 7 + b) * 9 + r * 3 + c]);
+                        dense.view_mut((3 * a, 3 * b), (3, 3)).copy_from(&m);
+                        dense.view_mut((3 * b, 3 * a), (3, 3)).copy_from(&m.transpose());
+                    }
+                }
+                dense = &dense * dense.transpose() + nalgebra::DMatrix::identity(3 * n, 3 * n) * (3 * n) as f64;
+                // Only the pattern's blocks: B B^T fills in, so the matrix factored is the
+                // dense one masked to the pattern, made dominant on its diagonal.
+                let mut masked = nalgebra::DMatrix::<f64>::zeros(3 * n, 3 * n);
+                let blocks: Vec<Matrix3<f64>> = reduced
+                    .keys
+                    .iter()
+                    .map(|&(a, b)| Matrix3::from_fn(|r, c| dense[(3 * a + r, 3 * b + c)]))
+                    .collect();
+                for (&(a, b), m) in reduced.keys.iter().zip(&blocks) {
+                    masked.view_mut((3 * a, 3 * b), (3, 3)).copy_from(m);
+                }
+                let extra: f64 = masked.row_iter().map(|r| r.abs().sum()).fold(0.0, f64::max);
+                masked += nalgebra::DMatrix::identity(3 * n, 3 * n) * extra;
+                let blocks: Vec<Matrix3<f64>> = reduced
+                    .keys
+                    .iter()
+                    .map(|&(a, b)| Matrix3::from_fn(|r, c| masked[(3 * a + r, 3 * b + c)]))
+                    .collect();
+                let b = nalgebra::DVector::from_column_slice(&rhs[..3 * n]);
+                let ours = reduced.factor(n, &blocks).expect("positive definite").solve(&b);
+                let theirs = masked.clone().cholesky().expect("positive definite").solve(&b);
+                prop_assert!((ours.column(0) - &theirs).norm() <= 1e-9 * (1.0 + theirs.norm()));
+            }
         }
     }
 
