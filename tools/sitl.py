@@ -692,10 +692,17 @@ def run_scenario(a, name, out):
                 report["median_m"] = ev["median_m"]
             if a.refine:
                 report["refined"] = refine_recording(a, config, state, out, truth)
+        elif a.refine:
+            report["refined"] = "not run: the live flight made no landmarks"
     report["bar"] = issue_bar(report, indoor)
     report["meets_bar"] = bool(report["bar"]) and all(report["bar"].values())
     json.dump(report, open(os.path.join(out, "report.json"), "w"), indent=2)
     return report
+
+
+# A recorded flight's offline run with the bundle adjustment took 172 s (1874 frames,
+# session 33); an hour means something is wrong.
+REFINE_TIMEOUT_S = 3600
 
 
 def refine_recording(a, config, state, out, truth):
@@ -707,32 +714,49 @@ def refine_recording(a, config, state, out, truth):
         return "not run: no recording in " + os.path.join(state, "recordings")
     rec = os.path.dirname(recs[-1])
     result = os.path.join(out, "refined")
-    cmd = [a.mavloc, "--config", config, "--set", f"area.attitude_prior_deg={a.refine_prior_deg}"]
+    cmd = [a.mavloc, "--config", config]
     for kv in a.set:
         if not kv.startswith("daemon."):
             cmd += ["--set", kv]
+    # Last, so that it is the one in force (`--refine-prior-deg`).
+    cmd += ["--set", f"area.attitude_prior_deg={a.refine_prior_deg}"]
     cmd += ["area", "--trace", "--dataset", rec, "--out", result]
     print("sitl: refining the recorded flight:", " ".join(cmd), flush=True)
     t0 = time.time()
-    with open(os.path.join(out, "refined.log"), "w") as log:
-        r = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        with open(os.path.join(out, "refined.log"), "w") as log:
+            r = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=REFINE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        return f"not run: mavloc area took more than {REFINE_TIMEOUT_S} s (refined.log)"
     if r.returncode != 0:
         return f"not run: mavloc area exited {r.returncode} (refined.log)"
     refined = {"recording": os.path.relpath(rec, out), "elapsed_s": round(time.time() - t0, 1)}
-    summary = json.load(open(os.path.join(result, "summary.json")))
+    try:
+        summary = json.load(open(os.path.join(result, "summary.json")))
+    except (OSError, ValueError) as e:
+        refined["evaluation"] = f"failed: no summary.json in {result}: {e}"
+        return refined
     for k in ("frames", "landmarks", "refined_median_before_px", "refined_median_after_px",
               "attitude_correction_median_deg", "cross_line_median_m", "cross_line_refined_median_m"):
         if summary.get(k) is not None:
             refined[k] = summary[k]
     # The result was made from the recording, not from the truth dataset, whose CRC
-    # `mavloc eval` would ask it to carry: a copy without it is measured (same world).
+    # `mavloc eval` would ask it to carry: a copy without it is measured (same world), and
+    # the plots eval draws into it are kept beside the result.
     with tempfile.TemporaryDirectory() as tmp:
         copy = os.path.join(tmp, "refined")
-        shutil.copytree(result, copy)
+        shutil.copytree(result, copy, ignore=shutil.ignore_patterns("trace.csv"))
         summary.pop("dataset_crc32", None)
         json.dump(summary, open(os.path.join(copy, "summary.json"), "w"))
-        r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", copy, "--json"],
-                           capture_output=True, text=True)
+        try:
+            r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", copy, "--json"],
+                               capture_output=True, text=True, timeout=120)
+        except subprocess.TimeoutExpired:
+            refined["evaluation"] = "failed: mavloc eval took more than 120 s"
+            return refined
+        if r.returncode == 0:
+            for png in glob.glob(os.path.join(copy, "*.png")):
+                shutil.copy(png, os.path.join(result, "eval-" + os.path.basename(png)))
     if r.returncode == 0:
         ev = json.loads(r.stdout)
         refined["mean_m"] = ev["mean_m"]

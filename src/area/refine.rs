@@ -287,6 +287,7 @@ impl Reduced {
             self.csc = Some((self.keys.len(), pattern, at, symbolic));
         }
         let (_, pattern, at, symbolic) = self.csc.as_ref().expect("made above");
+        assert_eq!(at.len(), blocks.len(), "a place in the pattern for every block");
         let mut values = vec![0.0; pattern.nnz()];
         for (m, at) in blocks.iter().zip(at) {
             for r in 0..3 {
@@ -302,6 +303,37 @@ impl Reduced {
 /// A landmark's blocks and, for each pair of them in order (b1 <= b2), the slots of the
 /// pair's block and of its mirror.
 type PairSlots = (Vec<usize>, Vec<(u32, u32)>);
+
+/// Eliminates one landmark from the reduced system (its part of the Schur complement):
+/// `S -= W V^-1 W^T` and `rhs += W V^-1 e`, where `w` holds its `W` blocks by block
+/// (sorted, as `entry` keeps them), `slots` the slots of each pair of them in that order
+/// (the pair's block, its mirror: [`PairSlots`]), `vi` its `V^-1` and `ev` its `e`. Each
+/// pair is computed once and its transpose goes into the mirrored block, so `S` stays
+/// exactly symmetric at half the products (the factorisation reads one triangle, but which
+/// one is the crate's business).
+fn eliminate(
+    s: &mut [Matrix3<f64>],
+    rhs: &mut nalgebra::DVector<f64>,
+    w: &[(usize, Matrix3<f64>)],
+    slots: &[(u32, u32)],
+    vi: &Matrix3<f64>,
+    ev: &Vector3<f64>,
+) {
+    assert_eq!(slots.len(), w.len() * (w.len() + 1) / 2, "a pair of slots per pair of blocks");
+    let mut slots = slots.iter();
+    for (i1, (b1, w1)) in w.iter().enumerate() {
+        let wv = small::mm(w1, vi);
+        rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&small::mv(&wv, ev));
+        for (_, w2) in &w[i1..] {
+            let (here, mirrored) = slots.next().expect("counted above");
+            let m = small::mnt(&wv, w2);
+            s[*here as usize] -= m;
+            if here != mirrored {
+                s[*mirrored as usize] -= m.transpose();
+            }
+        }
+    }
+}
 
 /// The CSC pattern (3n x 3n) of the 3x3 blocks at `keys`, and where each block's values
 /// go in it (`[slot][row * 3 + column]`).
@@ -874,21 +906,7 @@ impl Problem<'_> {
                     let vd =
                         v[j] + Matrix3::from_diagonal(&v[j].diagonal()) * lambda + Matrix3::identity() * 1e-9;
                     let Some(vi) = vd.try_inverse() else { continue };
-                    // Each pair once, its transpose in the mirrored block: S stays exactly
-                    // symmetric, at half the products.
-                    let mut slots = pairs[j].1.iter();
-                    for (i1, (b1, w1)) in w[j].iter().enumerate() {
-                        let wv = small::mm(w1, &vi);
-                        rhs.fixed_rows_mut::<3>(3 * b1).add_assign(&small::mv(&wv, &ev[j]));
-                        for (_, w2) in &w[j][i1..] {
-                            let (here, mirrored) = slots.next().expect("a pair of slots per pair of blocks");
-                            let m = small::mnt(&wv, w2);
-                            s[*here as usize] -= m;
-                            if here != mirrored {
-                                s[*mirrored as usize] -= m.transpose();
-                            }
-                        }
-                    }
+                    eliminate(&mut s, &mut rhs, &w[j], &pairs[j].1, &vi, &ev[j]);
                     vinv[j] = Some(vi);
                 }
                 // Sparse: over a video lap a frame shares landmarks with its neighbours in
@@ -1025,16 +1043,21 @@ mod tests {
             rhs in proptest::collection::vec(-5.0f64..5.0, 21),
         ) {
             let mut reduced = Reduced::new(n);
+            let pairs = |links: &[(usize, usize)]| -> Vec<(usize, usize)> {
+                links.iter().filter(|(a, b)| *a < n && *b < n && a != b).flat_map(|&(a, b)| [(a, b), (b, a)]).collect()
+            };
             let mut keys: Vec<(usize, usize)> = (0..n).map(|b| (b, b)).collect();
-            for &(a, b) in &links {
-                if a < n && b < n && a != b {
-                    keys.extend([(a, b), (b, a)]);
-                }
-            }
+            keys.extend(pairs(&links[..links.len() / 2]));
             for &key in keys.iter().rev() {
                 reduced.slot(key);
             }
             for round in 0..2 {
+                if round == 1 {
+                    // Blocks that appear after a first factorisation: the pattern is made again.
+                    for key in pairs(&links[links.len() / 2..]) {
+                        reduced.slot(key);
+                    }
+                }
                 // A = B B^T + 3n I on the blocks there, zero elsewhere: symmetric,
                 // diagonally dominant enough to be positive definite.
                 let mut dense = nalgebra::DMatrix::<f64>::zeros(3 * n, 3 * n);
@@ -1069,6 +1092,55 @@ mod tests {
                 let theirs = masked.clone().cholesky().expect("positive definite").solve(&b);
                 prop_assert!((ours.column(0) - &theirs).norm() <= 1e-9 * (1.0 + theirs.norm()));
             }
+        }
+    }
+
+    proptest! {
+        /// One landmark's elimination through its pairs' slots is the dense Schur
+        /// complement: `S - W V^-1 W^T` in every block (both triangles), `rhs + W V^-1 e`.
+        #[test]
+        fn eliminating_a_landmark_is_the_dense_schur_complement(
+            seen_by in proptest::collection::btree_set(0usize..6, 1..5),
+            values in proptest::collection::vec(-1.0f64..1.0, 9 * 6 + 9 + 3),
+        ) {
+            let nb = 6;
+            let w: Vec<(usize, Matrix3<f64>)> = seen_by
+                .iter()
+                .map(|&b| (b, Matrix3::from_fn(|r, c| values[b * 9 + r * 3 + c])))
+                .collect();
+            let a = Matrix3::from_fn(|r, c| values[54 + r * 3 + c]);
+            let vi = (a * a.transpose() + Matrix3::identity()).try_inverse().unwrap();
+            let ev = Vector3::new(values[63], values[64], values[65]);
+            let mut reduced = Reduced::new(nb);
+            // Every block there, in an order of its own, with some starting value.
+            for b1 in (0..nb).rev() {
+                for b2 in 0..nb {
+                    reduced.slot((b1, b2));
+                }
+            }
+            let start = |(b1, b2): (usize, usize)| Matrix3::from_fn(|r, c| (b1 * 100 + b2 * 10 + r * 3 + c) as f64);
+            let mut s: Vec<Matrix3<f64>> = reduced.keys.iter().map(|&k| start(k)).collect();
+            let mut slots = Vec::new();
+            for (i1, (b1, _)) in w.iter().enumerate() {
+                for (b2, _) in &w[i1..] {
+                    slots.push((reduced.slot((*b1, *b2)) as u32, reduced.slot((*b2, *b1)) as u32));
+                }
+            }
+            let mut rhs = nalgebra::DVector::<f64>::from_fn(3 * nb, |i, _| i as f64);
+            eliminate(&mut s, &mut rhs, &w, &slots, &vi, &ev);
+            let mut big_w = nalgebra::DMatrix::<f64>::zeros(3 * nb, 3);
+            for (b, m) in &w {
+                big_w.view_mut((3 * b, 0), (3, 3)).copy_from(m);
+            }
+            let vi_d = nalgebra::DMatrix::from_fn(3, 3, |r, c| vi[(r, c)]);
+            let schur = &big_w * &vi_d * big_w.transpose();
+            for (&(b1, b2), m) in reduced.keys.iter().zip(&s) {
+                let expected = start((b1, b2)) - Matrix3::from_fn(|r, c| schur[(3 * b1 + r, 3 * b2 + c)]);
+                prop_assert!((m - expected).abs().max() <= 1e-12, "block ({b1}, {b2})");
+            }
+            let ev_d = nalgebra::DVector::from_column_slice(ev.as_slice());
+            let expected_rhs = nalgebra::DVector::<f64>::from_fn(3 * nb, |i, _| i as f64) + &big_w * &vi_d * ev_d;
+            prop_assert!((rhs - expected_rhs).abs().max() <= 1e-12);
         }
     }
 

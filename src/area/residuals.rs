@@ -262,5 +262,13 @@ mod tests {
             s.2.u -= 100.0;
         }
         assert!(per_frame(&seen, &all, &poses, &k, 1.0)[1].yaw_off_180);
+        // 30 px off it in the pipeline's pixels, at half the frame's resolution: 60 px of
+        // the full 1600 px width, within its 5 % (80 px), though not within 5 % of 800.
+        for s in seen.iter_mut().filter(|s| s.0 == 1) {
+            s.2.u += 30.0;
+        }
+        let half = per_frame(&seen, &all, &poses, &k, 2.0);
+        assert!((half[1].median_yaw180_px.unwrap() - 60.0).abs() < 1e-6, "{:?}", half[1]);
+        assert!(half[1].yaw_off_180, "{:?}", half[1]);
     }
 }
