@@ -772,7 +772,7 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
 
     // Killed part way through a longer run, after its first checkpoint.
     let spawn = |to: &std::path::Path| {
-        std::process::Command::new(crate::fixtures::BIN)
+        crate::fixtures::ctrl_c_reaches(&mut std::process::Command::new(crate::fixtures::BIN))
             .args(["area", "--dataset"])
             .arg(&long)
             .arg("--out")
@@ -860,7 +860,7 @@ fn ctrl_c_stops_a_render_leaving_the_earlier_dataset_and_no_staging_folder() {
         .map(|n| (n.clone(), std::fs::read(out.join("frames").join(&n)).unwrap()))
         .collect();
     let telemetry = std::fs::read(out.join("telemetry.jsonl")).unwrap();
-    let mut child = std::process::Command::new(crate::fixtures::BIN)
+    let mut child = crate::fixtures::ctrl_c_reaches(&mut std::process::Command::new(crate::fixtures::BIN))
         .args(render)
         .args(["--frames", "2000", "--force", "--out"])
         .arg(&out)

@@ -16,6 +16,22 @@ use mavloc_sim::{render_dataset, RenderOptions, Scenario};
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_mavloc");
 
+/// `c` with SIGINT at its default action in the child, as Ctrl-C at a terminal finds it. A
+/// test that interrupts a command must not depend on how the suite was started: a
+/// background job of a script starts with SIGINT ignored, which the child inherits, and
+/// mavloc then keeps ignoring it as a background job should (CI started that way failed
+/// both Ctrl-C tests, session 33).
+pub fn ctrl_c_reaches(c: &mut std::process::Command) -> &mut std::process::Command {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: signal(2) only, between fork and exec.
+    unsafe {
+        c.pre_exec(|| {
+            libc::signal(libc::SIGINT, libc::SIG_DFL);
+            Ok(())
+        })
+    }
+}
+
 /// A hash of the files under `dirs` and of `files` (relative to the project root): what a
 /// fixture built from them depends on. A file missed here would leave a stale fixture, so
 /// it is whole folders, not a list of files. A file that cannot be read (a dangling link,
