@@ -17,6 +17,61 @@ use nalgebra::{Matrix3, Vector2};
 use opencv::core::Mat;
 use opencv::prelude::*;
 
+/// The bundle adjustment benches' data: recorded attitudes, ground points and the
+/// filters' starting tracks, drawn in that order from the caller's generator.
+mod refine_data {
+    use mavloc::area::refine::corrected;
+    use mavloc::geometry::{CameraPose, Vec3};
+    use mavloc_data::results::LandmarkRecord;
+    use rand::rngs::StdRng;
+    use rand::Rng;
+    use std::collections::BTreeMap;
+    use std::ops::Range;
+
+    fn unit(rng: &mut StdRng) -> Vec3 {
+        Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
+            .normalize()
+    }
+
+    /// Each pose turned `deg` degrees about an axis of its own.
+    pub fn tagged(
+        truth: &BTreeMap<u64, CameraPose>,
+        rng: &mut StdRng,
+        deg: f64,
+    ) -> BTreeMap<u64, CameraPose> {
+        truth.iter().map(|(&f, p)| (f, corrected(p, &(unit(rng) * deg.to_radians())))).collect()
+    }
+
+    /// `n` points over `x` by `y`, within 2 m of the ground plane.
+    pub fn points(rng: &mut StdRng, n: usize, x: Range<f64>, y: Range<f64>) -> Vec<Vec3> {
+        (0..n)
+            .map(|_| {
+                Vec3::new(
+                    rng.random_range(x.clone()),
+                    rng.random_range(y.clone()),
+                    rng.random_range(-2.0..2.0),
+                )
+            })
+            .collect()
+    }
+
+    /// A track per point, starting `m` metres off it in a direction of its own.
+    pub fn tracks_off(points: &[Vec3], rng: &mut StdRng, m: f64) -> Vec<LandmarkRecord> {
+        points
+            .iter()
+            .enumerate()
+            .map(|(j, x)| LandmarkRecord {
+                id: j as u64,
+                position: x + unit(rng) * m,
+                sigma_max_m: 0.5,
+                observations: 3,
+                first_frame: 0,
+                last_frame: 0,
+            })
+            .collect()
+    }
+}
+
 struct Frame {
     grey: Mat,
     mask: Mat,
@@ -197,10 +252,9 @@ fn stages(c: &mut Criterion) {
     // the tie points): 18 nadir photos in three lines of six at 70 m, 4000 tie points over
     // their ground, each photo's attitude 2 deg off and every track starting 2 m off.
     {
-        use mavloc::area::refine::{corrected, refine, RefineParams};
+        use mavloc::area::refine::{refine, RefineParams};
         use mavloc::geometry::{GimbalAngles, GimbalChain, Intrinsics, Mount, Pixel};
-        use mavloc_data::results::LandmarkRecord;
-        use rand::{Rng, SeedableRng};
+        use rand::SeedableRng;
         use std::collections::BTreeMap;
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         let k = Intrinsics { width: 1600, height: 900, fx: 1300.0, fy: 1300.0, cx: 799.5, cy: 449.5 };
@@ -212,21 +266,8 @@ fn stages(c: &mut Criterion) {
                 (i, CameraPose::from_gimbal(position, GimbalChain::YawPitchRoll, angles, Mount::Earth))
             })
             .collect();
-        let unit = |rng: &mut rand::rngs::StdRng| {
-            Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
-                .normalize()
-        };
-        let tagged: BTreeMap<u64, CameraPose> =
-            truth.iter().map(|(&f, p)| (f, corrected(p, &(unit(&mut rng) * 2f64.to_radians())))).collect();
-        let points: Vec<Vec3> = (0..4000)
-            .map(|_| {
-                Vec3::new(
-                    rng.random_range(-40.0..165.0),
-                    rng.random_range(-30.0..120.0),
-                    rng.random_range(-2.0..2.0),
-                )
-            })
-            .collect();
+        let tagged = refine_data::tagged(&truth, &mut rng, 2.0);
+        let points = refine_data::points(&mut rng, 4000, -40.0..165.0, -30.0..120.0);
         let mut sightings: Vec<(u64, u64, Pixel)> = Vec::new();
         for (&f, p) in &truth {
             for (j, x) in points.iter().enumerate() {
@@ -235,18 +276,7 @@ fn stages(c: &mut Criterion) {
                 }
             }
         }
-        let start: Vec<LandmarkRecord> = points
-            .iter()
-            .enumerate()
-            .map(|(j, x)| LandmarkRecord {
-                id: j as u64,
-                position: x + unit(&mut rng) * 2.0,
-                sigma_max_m: 0.5,
-                observations: 3,
-                first_frame: 0,
-                last_frame: 0,
-            })
-            .collect();
+        let start = refine_data::tracks_off(&points, &mut rng, 2.0);
         let params = RefineParams::new(2.0);
         c.bench_function("area_refine_18_photos_4000_tracks", |b| {
             b.iter(|| refine(&sightings, &start, &tagged, &k, &params))
@@ -258,10 +288,9 @@ fn stages(c: &mut Criterion) {
     // the camera 30 deg off nadir, each frame's attitude 1 deg off, 1500 tracks each seen
     // by the 40-90 frames that pass over it: a banded reduced system of 600 blocks.
     {
-        use mavloc::area::refine::{corrected, refine, RefineParams};
+        use mavloc::area::refine::{refine, RefineParams};
         use mavloc::geometry::{GimbalAngles, GimbalChain, Intrinsics, Mount, Pixel};
-        use mavloc_data::results::LandmarkRecord;
-        use rand::{Rng, SeedableRng};
+        use rand::SeedableRng;
         use std::collections::BTreeMap;
         let mut rng = rand::rngs::StdRng::seed_from_u64(11);
         let k = Intrinsics { width: 640, height: 360, fx: 420.0, fy: 420.0, cx: 319.5, cy: 179.5 };
@@ -272,21 +301,8 @@ fn stages(c: &mut Criterion) {
                 (i, CameraPose::from_gimbal(position, GimbalChain::YawPitchRoll, angles, Mount::Earth))
             })
             .collect();
-        let unit = |rng: &mut rand::rngs::StdRng| {
-            Vec3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
-                .normalize()
-        };
-        let tagged: BTreeMap<u64, CameraPose> =
-            truth.iter().map(|(&f, p)| (f, corrected(p, &(unit(&mut rng) * 1f64.to_radians())))).collect();
-        let points: Vec<Vec3> = (0..1500)
-            .map(|_| {
-                Vec3::new(
-                    rng.random_range(30.0..700.0),
-                    rng.random_range(-30.0..30.0),
-                    rng.random_range(-2.0..2.0),
-                )
-            })
-            .collect();
+        let tagged = refine_data::tagged(&truth, &mut rng, 1.0);
+        let points = refine_data::points(&mut rng, 1500, 30.0..700.0, -30.0..30.0);
         // A track lives while its point is in view, up to 90 frames (the library's turnover).
         let mut sightings: Vec<(u64, u64, Pixel)> = Vec::new();
         for (j, x) in points.iter().enumerate() {
@@ -295,18 +311,7 @@ fn stages(c: &mut Criterion) {
                 .filter_map(|(&f, p)| p.project(&k, x).filter(|px| k.contains(*px)).map(|px| (f, px)));
             sightings.extend(seen.take(90).map(|(f, px)| (f, j as u64, px)));
         }
-        let start: Vec<LandmarkRecord> = points
-            .iter()
-            .enumerate()
-            .map(|(j, x)| LandmarkRecord {
-                id: j as u64,
-                position: x + unit(&mut rng) * 1.0,
-                sigma_max_m: 0.5,
-                observations: 3,
-                first_frame: 0,
-                last_frame: 0,
-            })
-            .collect();
+        let start = refine_data::tracks_off(&points, &mut rng, 1.0);
         let params = RefineParams::new(1.5);
         let mut group = c.benchmark_group("area_refine_video");
         group.sample_size(10);

@@ -171,28 +171,34 @@ mod tests {
     use super::*;
     use crate::geometry::{GimbalAngles, GimbalChain, Mount};
 
+    /// A camera 40 m up looking nearly level along `yaw` (radians).
+    fn pose(yaw: f64) -> CameraPose {
+        CameraPose::from_gimbal(
+            Vec3::new(0.0, 0.0, -40.0),
+            GimbalChain::YawPitchRoll,
+            GimbalAngles { yaw, pitch: -1.2, roll: 0.0 },
+            Mount::Earth,
+        )
+    }
+
+    /// A landmark on the ground at (`x`, `y`).
+    fn landmark(id: u64, x: f64, y: f64) -> LandmarkRecord {
+        LandmarkRecord {
+            id,
+            position: Vec3::new(x, y, 0.0),
+            sigma_max_m: 0.2,
+            observations: 3,
+            first_frame: 0,
+            last_frame: 1,
+        }
+    }
+
     #[test]
     fn a_yaw_off_by_half_a_turn_is_named_and_a_good_pose_is_quiet() {
         let k = Intrinsics::from_hfov(800, 600, 1.2);
-        let pose = |yaw: f64| {
-            CameraPose::from_gimbal(
-                Vec3::new(0.0, 0.0, -40.0),
-                GimbalChain::YawPitchRoll,
-                GimbalAngles { yaw, pitch: -1.2, roll: 0.0 },
-                Mount::Earth,
-            )
-        };
         let truth = pose(0.3);
-        let landmarks: Vec<LandmarkRecord> = (0..20)
-            .map(|i| LandmarkRecord {
-                id: i,
-                position: Vec3::new(20.0 + i as f64, -10.0 + 1.3 * i as f64, 0.0),
-                sigma_max_m: 0.2,
-                observations: 3,
-                first_frame: 0,
-                last_frame: 1,
-            })
-            .collect();
+        let landmarks: Vec<LandmarkRecord> =
+            (0..20).map(|i| landmark(i, 20.0 + i as f64, -10.0 + 1.3 * i as f64)).collect();
         let seen: Vec<(u64, u64, Pixel)> = landmarks
             .iter()
             .flat_map(|l| {
@@ -217,22 +223,6 @@ mod tests {
     #[test]
     fn one_bad_sighting_or_a_turn_that_fits_nothing_is_not_a_half_turn() {
         let k = Intrinsics::from_hfov(800, 600, 1.2);
-        let pose = |yaw: f64| {
-            CameraPose::from_gimbal(
-                Vec3::new(0.0, 0.0, -40.0),
-                GimbalChain::YawPitchRoll,
-                GimbalAngles { yaw, pitch: -1.2, roll: 0.0 },
-                Mount::Earth,
-            )
-        };
-        let landmark = |id: u64, x: f64, y: f64| LandmarkRecord {
-            id,
-            position: Vec3::new(x, y, 0.0),
-            sigma_max_m: 0.2,
-            observations: 3,
-            first_frame: 0,
-            last_frame: 1,
-        };
         let truth = pose(0.3);
         let turned = pose(0.3 + std::f64::consts::PI);
         // Frame 0: one landmark seen where the turned pose puts it, 30 px off.
