@@ -11,7 +11,10 @@ around the lake, its ROI items pointing the gimbal; mavloc runs the area pipelin
 frames rendered from PX4's ground truth (HIL_STATE_QUATERNION). `--aim border`
 (`coastline-border`): mavloc points the gimbal at the border it segments. Writes
 results/sitl/<scenario>/: report.json, PX4's flight log (.ulg), mavloc's and PX4's logs
-and mavloc's state folder.
+and mavloc's state folder. After the landing it waits for mavloc's adjustment of the map
+(config/sitl.toml's `area.attitude_prior_deg`) and reports the filters' map at the
+touchdown (copied to filters/; the live figures and the bar) and the adjusted one
+(`adjustment`).
 
 Usage: sitl.py --px4 DIR --mavloc BIN [--out DIR] [--max-s S] [--aim mission|border]
 """
@@ -616,6 +619,7 @@ def run_scenario(a, name, out):
             fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started, os.path.join(state, "status.json"))
         else:
             fly_coastline(m, a.max_s, report["events"], aim)
+            report["adjustment"] = await_adjustment(state, out, os.path.join(out, "mavloc.log"), report["events"])
         report["ok"] = True
     except Exception as e:  # the report says what failed; the logs are kept
         report["ok"] = False
@@ -674,7 +678,12 @@ def run_scenario(a, name, out):
         # Over every gimbal report while airborne (the counter of the last minute ends on
         # the ground, where PX4 holds the camera in its landing range).
         report["gimbal_error_median_deg"] = report.get("mavloc_counters", {}).get("gimbal_error_flight_median_deg")
-        lm = os.path.join(state, "results", "area", "landmarks.csv")
+        # The live figures are the filters' map as it stood at the touchdown (copied before
+        # mavloc's adjustment after landing replaced it), else the daemon's last set.
+        results = os.path.join(state, "results", "area")
+        filters = os.path.join(out, "filters")
+        live = filters if os.path.exists(os.path.join(filters, "landmarks.csv")) else results
+        lm = os.path.join(live, "landmarks.csv")
         if os.path.exists(lm):
             report["landmarks"] = max(0, sum(1 for _ in open(lm)) - 1)
         if report.get("landmarks"):
@@ -683,13 +692,15 @@ def run_scenario(a, name, out):
             truth = os.path.join(out, "truth")
             subprocess.run([a.mavloc, "sim", "render", "--scenario", "coastline", "--frames", "1", "--width", "320",
                             "--height", "180", "--out", truth, "--force"], capture_output=True, check=True)
-            r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result",
-                                os.path.join(state, "results", "area"), "--json"], capture_output=True, text=True)
+            r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", live, "--json"],
+                               capture_output=True, text=True)
             if r.returncode == 0:
                 ev = json.loads(r.stdout)
                 report["evaluation"] = ev
                 report["mean_m"] = ev["mean_m"]
                 report["median_m"] = ev["median_m"]
+            if isinstance(report.get("adjustment"), dict) and live == filters:
+                report["adjustment"].update(evaluate_adjusted(a, results, truth))
             if a.refine:
                 report["refined"] = refine_recording(a, config, state, out, truth)
         elif a.refine:
@@ -703,6 +714,79 @@ def run_scenario(a, name, out):
 # A recorded flight's offline run with the bundle adjustment took 172 s (1874 frames,
 # session 33); an hour means something is wrong.
 REFINE_TIMEOUT_S = 3600
+# The adjustment after landing alone took about 70 s of that.
+ADJUST_TIMEOUT_S = 900
+
+
+def await_adjustment(state, out, log_path, events):
+    """After the touchdown mavloc adjusts its map (`area.attitude_prior_deg`, README "The
+    map adjusted after landing"). The filters' set it writes at the touchdown is copied to
+    OUT/filters (the live figures), then the adjusted set is awaited. What happened, as a
+    dict, or why there is nothing to wait for."""
+    def log_has(*needles):
+        try:
+            text = open(log_path).read()
+        except OSError:
+            return None
+        return next((n for n in needles if n in text), None)
+    t0 = time.time()
+    while log_has("area: landed;") is None:
+        if time.time() - t0 > 30:
+            return "not started: mavloc said nothing of a landing within 30 s of the disarm"
+        time.sleep(0.5)
+    if log_has("area: landed; the map is not adjusted") is not None:
+        return "not adjusted (mavloc.log says why)"
+    results = os.path.join(state, "results", "area")
+    filters = os.path.join(out, "filters")
+    for attempt in range(5):
+        shutil.rmtree(filters, ignore_errors=True)
+        try:
+            # The set the link points at is removed when the next one is published.
+            shutil.copytree(os.path.realpath(results), filters)
+            summary = json.load(open(os.path.join(filters, "summary.json")))
+        except (OSError, ValueError, shutil.Error):
+            time.sleep(0.2)
+            continue
+        if summary.get("refined_frames") is not None:
+            shutil.rmtree(filters, ignore_errors=True)
+            return "not measured: the adjustment ended before the filters' set was copied"
+        break
+    else:
+        return "not measured: the filters' set could not be copied"
+    t0 = time.time()
+    while True:
+        said = log_has("area: map adjusted", "area: the adjustment after landing failed")
+        if said is not None:
+            break
+        if time.time() - t0 > ADJUST_TIMEOUT_S:
+            return f"not ended within {ADJUST_TIMEOUT_S} s"
+        time.sleep(1)
+    events.append(f"mavloc: {said} {time.time() - t0:.0f} s after the filters' set was copied")
+    return {"waited_s": round(time.time() - t0, 1)} if said == "area: map adjusted" else "failed (mavloc.log)"
+
+
+def evaluate_adjusted(a, results, truth):
+    """The daemon's set after its adjustment, against the true shore."""
+    adjusted = {}
+    try:
+        summary = json.load(open(os.path.join(results, "summary.json")))
+    except (OSError, ValueError) as e:
+        return {"evaluation": f"failed: {e}"}
+    for k in ("landmarks", "refined_frames", "refined_elapsed_s", "refined_median_before_px",
+              "refined_median_after_px", "attitude_correction_median_deg", "refined_gimbal_offset_deg"):
+        if summary.get(k) is not None:
+            adjusted[k] = summary[k]
+    if "refined_frames" not in adjusted:
+        return {"evaluation": "failed: the daemon's last set is not an adjusted one"}
+    r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", results, "--json"],
+                       capture_output=True, text=True, timeout=120)
+    if r.returncode == 0:
+        ev = json.loads(r.stdout)
+        adjusted["mean_m"] = ev["mean_m"]
+        adjusted["median_m"] = ev["median_m"]
+    else:
+        adjusted["evaluation"] = "failed: " + r.stderr.strip()[-300:]
+    return adjusted
 
 
 def refine_recording(a, config, state, out, truth):
@@ -856,7 +940,7 @@ def main():
             out = os.path.join(out_root, name) if a.repeat == 1 else os.path.join(out_root, name, f"run-{k + 1}")
             r = run_scenario(a, name, out)
             keys = ["scenario", "ok", "meets_bar", "error", "zone", "touchdown", "touchdown_error_m", "mavloc_rms_m",
-                    "mavloc_max_m", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg", "refined",
+                    "mavloc_max_m", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg", "adjustment", "refined",
                     "machine"]
             print(json.dumps({k2: r[k2] for k2 in keys if k2 in r}, indent=2), flush=True)
             reports.append(r)

@@ -145,6 +145,11 @@ impl AreaPipeline {
         self
     }
 
+    /// [`AreaPipeline::with_trace`] on a running pipeline.
+    pub fn set_trace(&mut self, on: bool) {
+        self.trace = on;
+    }
+
     pub fn intrinsics(&self) -> &Intrinsics {
         &self.k
     }

@@ -86,6 +86,14 @@ pub struct RunSummary {
     /// Sightings the refinement left out as false matches (`area::refine`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refined_left_out: Option<usize>,
+    /// Live, the adjustment after the last landing (`daemon::flightlog`): the frames and
+    /// landmarks it adjusted and how long it took (seconds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_frames: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_landmarks: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_elapsed_s: Option<f64>,
     /// The static gimbal offset the refinement found beside the per-frame corrections
     /// (yaw, pitch, roll, degrees, to add to `gimbal.*_offset_deg`) and its SD from the
     /// sightings.

@@ -31,7 +31,8 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector2;
 
 use super::core::Warning;
-use super::worker::{LiveFrame, LivePipeline, PositionEstimate, Report, VelocityEstimate};
+use super::flightlog::{Adjusted, FlightLog, Poll};
+use super::worker::{LiveFrame, LivePipeline, PipelineEvent, PositionEstimate, Report, VelocityEstimate};
 use crate::area::features::prepare;
 use crate::area::offline::{write_results, RunSummary};
 use crate::area::{AreaPipeline, FrameInput};
@@ -103,6 +104,15 @@ pub struct AreaLive {
     /// The smoothed aim, earth-frame (yaw, pitch), radians; it waits through frames with
     /// no border in view.
     aimed: Option<(f64, f64)>,
+    /// `area.attitude_prior_deg > 0`: the run's sightings and poses, for the bundle
+    /// adjustment after each landing ([`super::flightlog`]).
+    log: Option<FlightLog>,
+    /// The last adjustment's landmarks, by id: they stand for the filters' in every set
+    /// written after it (landmarks that converge later are the filters' until the next
+    /// landing).
+    refined: std::collections::BTreeMap<u64, LandmarkRecord>,
+    /// The last adjustment, for `summary.json`.
+    adjusted: Option<Adjusted>,
 }
 
 impl AreaLive {
@@ -117,7 +127,10 @@ impl AreaLive {
         run: &str,
     ) -> Result<AreaLive, String> {
         let downscale = s.area.downscale.max(1);
-        let pipeline = AreaPipeline::new(&s.area, k_full.downscaled(downscale)).map_err(|e| e.to_string())?;
+        let refining = s.area.attitude_prior_deg > 0.0;
+        let pipeline = AreaPipeline::new(&s.area, k_full.downscaled(downscale))
+            .map_err(|e| e.to_string())?
+            .with_trace(refining);
         let sets = ResultSets::open(link, run)
             .map_err(|e| format!("cannot open results {}: {e}", link.display()))?;
         // A new run starts empty. This run's own last set exists only when the pipeline is
@@ -149,13 +162,22 @@ impl AreaLive {
             settings: s.area.clone(),
             aim: s.gimbal.aim == crate::settings::GimbalAim::Border,
             aimed: None,
+            log: refining.then(|| FlightLog::new(s.gimbal.chain)),
+            refined: Default::default(),
+            adjusted: None,
         })
     }
 
-    /// Everything converged so far: purged results and converged landmarks still tracked.
+    /// Everything converged so far: purged results and converged landmarks still tracked,
+    /// as the last adjustment left them where it moved them.
     fn all_landmarks(&self) -> Vec<LandmarkRecord> {
         let mut all = self.results.clone();
         all.extend(self.pipeline.converged_now().into_iter().map(|l| self.shifted(l)));
+        for l in &mut all {
+            if let Some(r) = self.refined.get(&l.id) {
+                *l = r.clone();
+            }
+        }
         all
     }
 
@@ -187,6 +209,21 @@ impl AreaLive {
             complete: self.finished,
             ..RunSummary::default()
         };
+        if let Some(a) = &self.adjusted {
+            let r = &a.refined;
+            let scale = self.downscale as f64;
+            summary.refined_median_before_px = Some(r.median_before_px * scale);
+            summary.refined_median_after_px = Some(r.median_after_px * scale);
+            summary.refined_left_out = Some(r.left_out);
+            summary.refined_frames = Some(a.frames as u64);
+            summary.refined_landmarks = Some(r.landmarks.len());
+            summary.refined_elapsed_s = Some((a.elapsed_s * 10.0).round() / 10.0);
+            if let Some((o, sd)) = r.offset_deg {
+                summary.refined_gimbal_offset_deg = Some(o);
+                summary.refined_gimbal_offset_sd_deg = Some(sd);
+            }
+            summary.attitude_correction_median_deg = median_correction_deg(r);
+        }
         let frame = LocalFrame::new(self.origin);
         let mut lines = Vec::new();
         self.sets.write(|dir| {
@@ -291,6 +328,15 @@ impl LivePipeline for AreaLive {
                 return report;
             }
         };
+        if let Some(log) = self.log.as_mut() {
+            let offset = self.id_offset;
+            if log.add(self.frames, &frame.pose, r.sightings.iter().map(|&(id, px)| (id + offset, px))) {
+                report.events.push(format!(
+                    "area: {} sightings kept for the adjustment after landing, the most it keeps; later frames are not in it",
+                    super::flightlog::MAX_SIGHTINGS
+                ));
+            }
+        }
         self.frames += 1;
         self.prepare += prepared;
         self.timing += r.timing;
@@ -344,6 +390,12 @@ impl LivePipeline for AreaLive {
     }
 
     fn apply(&mut self, s: &Settings) {
+        // Turned on in flight: the sightings from now on; turned off: none kept.
+        let refining = s.area.attitude_prior_deg > 0.0;
+        if refining != self.log.is_some() {
+            self.log = refining.then(|| FlightLog::new(s.gimbal.chain));
+            self.pipeline.set_trace(refining);
+        }
         self.settings = s.area.clone();
         self.aim = s.gimbal.aim == crate::settings::GimbalAim::Border;
         self.downscale = s.area.downscale.max(1);
@@ -358,8 +410,82 @@ impl LivePipeline for AreaLive {
 
     fn finish(&mut self) -> io::Result<Vec<PathBuf>> {
         self.finished = true;
+        // An adjustment that has just finished goes into the last set; one still running
+        // is left (a stop must not wait a minute).
+        for e in self.poll() {
+            match e {
+                PipelineEvent::WriteFailed(line) => tracing::warn!("{line}"),
+                PipelineEvent::Note(line) => tracing::info!("{line}"),
+                other => tracing::info!("{other:?}"),
+            }
+        }
+        if self.log.as_ref().is_some_and(FlightLog::running) {
+            tracing::warn!(
+                "area: stopped while the map was being adjusted after landing; the last set holds the filters' landmarks"
+            );
+        }
         self.write_results()
     }
+
+    /// The vehicle touched down: the run's map adjusted on a thread of its own
+    /// ([`super::flightlog`]); [`LivePipeline::poll`] writes it when it is done.
+    fn landed(&mut self) -> Vec<PipelineEvent> {
+        let landmarks = self.all_landmarks();
+        let k = *self.pipeline.intrinsics();
+        let (prior, noise) = (self.settings.attitude_prior_deg, self.settings.bearing_noise_deg);
+        if self.log.is_none() {
+            return Vec::new();
+        }
+        // The filters' map at the touchdown, whole, before the adjustment replaces it.
+        let mut events = Vec::new();
+        if let Err(e) = self.write() {
+            events.push(PipelineEvent::WriteFailed(format!("area: cannot write results: {e}")));
+        }
+        let log = self.log.as_mut().expect("checked");
+        let line = match log.start(&landmarks, &k, prior, noise) {
+            Ok((frames, n)) => format!("area: landed; adjusting the map: {n} landmarks over {frames} frames"),
+            Err(why) => format!("area: landed; the map is not adjusted: {why}"),
+        };
+        events.push(PipelineEvent::Note(line));
+        events
+    }
+
+    fn poll(&mut self) -> Vec<PipelineEvent> {
+        let Some(log) = self.log.as_mut() else { return Vec::new() };
+        let adjusted = match log.poll() {
+            Poll::Idle | Poll::Running => return Vec::new(),
+            Poll::Failed(why) => {
+                return vec![PipelineEvent::Note(format!("area: the adjustment after landing failed: {why}"))]
+            }
+            Poll::Done(a) => a,
+        };
+        let r = &adjusted.refined;
+        let scale = self.downscale as f64;
+        let mut line = format!(
+            "area: map adjusted in {:.0} s: {} landmarks, sightings {:.2} -> {:.2} px, frames turned {:.2} deg (medians)",
+            adjusted.elapsed_s,
+            r.landmarks.len(),
+            r.median_before_px * scale,
+            r.median_after_px * scale,
+            median_correction_deg(r).unwrap_or(0.0),
+        );
+        if let Some((o, _)) = r.offset_deg {
+            line.push_str(&format!("; gimbal offset yaw {:.2} pitch {:.2} roll {:.2} deg", o[0], o[1], o[2]));
+        }
+        self.refined = r.landmarks.iter().map(|l| (l.id, l.clone())).collect();
+        self.adjusted = Some(adjusted);
+        let mut events = vec![PipelineEvent::Note(line)];
+        if let Err(e) = self.write() {
+            events.push(PipelineEvent::WriteFailed(format!("area: cannot write the adjusted results: {e}")));
+        }
+        events
+    }
+}
+
+/// The median of the frames' attitude corrections, degrees.
+fn median_correction_deg(r: &crate::area::refine::Refined) -> Option<f64> {
+    let mut a: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
+    (!a.is_empty()).then(|| crate::area::residuals::quantile(&mut a, 0.5))
 }
 
 /// Weight of a frame's aim in the smoothed one (about 1 s at 6 frames/s).

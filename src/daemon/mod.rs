@@ -21,6 +21,7 @@
 //! to write its results, saves status and signing timestamp, and returns within 2 s.
 
 pub mod core;
+pub mod flightlog;
 pub mod live;
 pub mod record;
 pub mod worker;
@@ -315,6 +316,11 @@ impl Shell {
                     w.request(Request::Apply(s));
                 }
             }
+            Action::Worker(WorkerRequest::Landed) => {
+                if let Some((_, w)) = &self.live.worker {
+                    w.request(Request::Landed);
+                }
+            }
             // Status and the pipeline's results; the ACK says whether both were written.
             Action::Snapshot { token } => {
                 let status = self.write_status(core, now);
@@ -400,7 +406,7 @@ impl Shell {
             // The frame is done: the camera may deliver the next (lossless replay).
             PipelineEvent::Report { .. } | PipelineEvent::Panicked { .. } => self.live.give_credit(),
             PipelineEvent::Failed(_) => self.live.worker = None,
-            PipelineEvent::WriteFailed(_) => {}
+            PipelineEvent::WriteFailed(_) | PipelineEvent::Note(_) => {}
         }
         core.handle(Input::Pipeline { now, event });
     }

@@ -50,7 +50,20 @@ pub trait LivePipeline: Send {
     fn finish(&mut self) -> std::io::Result<Vec<PathBuf>> {
         self.write_results()
     }
+    /// The vehicle has touched down (the area pipeline adjusts its map then).
+    fn landed(&mut self) -> Vec<PipelineEvent> {
+        Vec::new()
+    }
+    /// Called at least every [`POLL_PERIOD`], frames or not: work the pipeline finished
+    /// outside a frame (the adjustment after landing).
+    fn poll(&mut self) -> Vec<PipelineEvent> {
+        Vec::new()
+    }
 }
+
+/// The worker calls [`LivePipeline::poll`] at least this often, also when no frame comes
+/// (a camera that stopped after the landing).
+pub const POLL_PERIOD: std::time::Duration = std::time::Duration::from_millis(500);
 
 /// Builds a fresh pipeline (at start, reset, and after a panic).
 pub type Factory = Box<dyn Fn(&Settings) -> Result<Box<dyn LivePipeline>, String> + Send>;
@@ -60,6 +73,8 @@ pub enum Request {
     Apply(Box<Settings>),
     Reset,
     Snapshot(std::sync::mpsc::Sender<Result<Vec<PathBuf>, String>>),
+    /// The vehicle has touched down.
+    Landed,
     Stop,
 }
 
@@ -175,10 +190,15 @@ fn run(
     loop {
         let (frame, requests) = {
             let mut mb = m.lock().expect("mailbox");
-            while mb.frames.is_empty() && mb.requests.is_empty() {
-                mb = cv.wait(mb).expect("mailbox");
+            if mb.frames.is_empty() && mb.requests.is_empty() {
+                mb = cv.wait_timeout(mb, POLL_PERIOD).expect("mailbox").0;
             }
             (mb.frames.pop_front(), std::mem::take(&mut mb.requests))
+        };
+        let send = |list: Vec<PipelineEvent>| {
+            for e in list {
+                let _ = events.try_send(Event::Pipeline(e));
+            }
         };
         for r in requests {
             match r {
@@ -196,6 +216,7 @@ fn run(
                 Request::Snapshot(reply) => {
                     let _ = reply.send(pipeline.write_results().map_err(|e| e.to_string()));
                 }
+                Request::Landed => send(pipeline.landed()),
                 Request::Stop => {
                     let files = pipeline.finish().unwrap_or_else(|e| {
                         // Logged here too: at shutdown nobody reads the event.
@@ -209,6 +230,7 @@ fn run(
                 }
             }
         }
+        send(pipeline.poll());
         if let Some(f) = frame {
             match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
                 Ok(report) => {
@@ -382,5 +404,58 @@ mod tests {
             assert_eq!(w.dropped.load(std::sync::atomic::Ordering::Relaxed), 5 - (kept.len() as u64 - 1));
             w.stop();
         }
+    }
+
+    /// Says when it hears of the landing, and that it is done at the second poll after.
+    struct Lands {
+        polls: Option<u32>,
+    }
+
+    impl LivePipeline for Lands {
+        fn process(&mut self, _: &LiveFrame) -> Report {
+            Report::default()
+        }
+        fn apply(&mut self, _: &Settings) {}
+        fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+            Ok(Vec::new())
+        }
+        fn landed(&mut self) -> Vec<PipelineEvent> {
+            self.polls = Some(0);
+            vec![PipelineEvent::Note("landed".into())]
+        }
+        fn poll(&mut self) -> Vec<PipelineEvent> {
+            let Some(n) = self.polls.as_mut() else { return Vec::new() };
+            *n += 1;
+            if *n < 2 {
+                return Vec::new();
+            }
+            self.polls = None;
+            vec![PipelineEvent::Note("done".into())]
+        }
+    }
+
+    /// A landing reaches the pipeline, and what it finishes afterwards goes out with no
+    /// frame or request coming (a camera that stopped after the landing): the worker
+    /// polls on its own.
+    #[test]
+    fn a_landing_reaches_the_pipeline_and_its_later_work_goes_out_without_frames() {
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+        let factory: Factory = Box::new(|_| Ok(Box::new(Lands { polls: None }) as Box<dyn LivePipeline>));
+        let w = Worker::start(factory, Settings::default(), 1, tx);
+        w.request(Request::Landed);
+        let t0 = std::time::Instant::now();
+        let mut notes = Vec::new();
+        while notes.len() < 2 {
+            match rx.try_recv() {
+                Ok(Event::Pipeline(PipelineEvent::Note(n))) => notes.push(n),
+                Ok(e) => panic!("{e:?}"),
+                Err(_) => {
+                    assert!(t0.elapsed() < 4 * POLL_PERIOD, "{notes:?}");
+                    std::thread::sleep(std::time::Duration::from_millis(10));
+                }
+            }
+        }
+        assert_eq!(notes, ["landed", "done"]);
+        w.stop();
     }
 }

@@ -278,7 +278,8 @@ pub struct Area {
     pub ground_down_m: f64,
     pub max_descriptors: u32,
     /// SD of the recorded attitude, degrees: the prior of the attitude refinement run
-    /// after the landmark filters offline (`area::refine`); 0 = no refinement.
+    /// after the landmark filters (`area::refine`): offline, and live after each
+    /// touchdown (`daemon::flightlog`); 0 = no refinement.
     pub attitude_prior_deg: f64,
     /// SD of the recorded attitude, degrees, for aligning the photos to each other by
     /// their tie points before the landmark filters run (`area::align`); 0 = off.

@@ -586,27 +586,6 @@ fn contact_sheets_show_every_frame_twelve_to_a_page() {
     assert_eq!((first.rows(), second.rows()), (12 * tile_h, 2 * tile_h), "12 frames, then the other 2");
 }
 
-/// A coastline flight with exact telemetry but a static gimbal offset (yaw 1.5, pitch -2,
-/// roll 0.5 deg), rendered once per build of the tests.
-fn offset_flight() -> std::path::PathBuf {
-    let noise = mavloc_sim::scenario::NoiseSpec {
-        gimbal_yaw_sd_deg: 0.0,
-        gimbal_pitch_sd_deg: 0.0,
-        position_sd_m: [0.0; 3],
-        gimbal_offset_deg: [1.5, -2.0, 0.5],
-        ..Default::default()
-    };
-    let opts = mavloc_sim::RenderOptions {
-        frames: Some(100),
-        size: Some((960, 540)),
-        noise: Some(noise),
-        ..Default::default()
-    };
-    // The photo-noise flight's frames (area_pipeline.rs), under this noise's telemetry.
-    let frames = crate::fixtures::coastline_photo_noise_flight();
-    crate::fixtures::renoised("coastline-100-960x540-gimbal-offset", &frames, "coastline", &opts)
-}
-
 /// The value and the SD of `gimbal.KEY` in `calibrate gimbal`'s output.
 fn calibrated(out: &str, key: &str) -> (f64, f64) {
     let line =
@@ -623,7 +602,7 @@ fn calibrated(out: &str, key: &str) -> (f64, f64) {
 #[test]
 fn calibrate_gimbal_recovers_a_static_offset_and_writes_it() {
     let dir = tempfile::tempdir().unwrap();
-    let ds = offset_flight();
+    let ds = crate::fixtures::offset_flight();
     let config = dir.path().join("mavloc.toml");
     std::fs::write(
         &config,

@@ -176,6 +176,27 @@ pub fn coastline_photo_noise_flight() -> PathBuf {
     rendered("coastline-100-960x540-photo-noise", "coastline", &opts)
 }
 
+/// A coastline flight with exact telemetry but a static gimbal offset (yaw 1.5, pitch -2,
+/// roll 0.5 deg), rendered once per build of the tests.
+pub fn offset_flight() -> std::path::PathBuf {
+    let noise = mavloc_sim::scenario::NoiseSpec {
+        gimbal_yaw_sd_deg: 0.0,
+        gimbal_pitch_sd_deg: 0.0,
+        position_sd_m: [0.0; 3],
+        gimbal_offset_deg: [1.5, -2.0, 0.5],
+        ..Default::default()
+    };
+    let opts = mavloc_sim::RenderOptions {
+        frames: Some(100),
+        size: Some((960, 540)),
+        noise: Some(noise),
+        ..Default::default()
+    };
+    // The photo-noise flight's frames (`coastline_photo_noise_flight`), under this noise's telemetry.
+    let frames = crate::fixtures::coastline_photo_noise_flight();
+    crate::fixtures::renoised("coastline-100-960x540-gimbal-offset", &frames, "coastline", &opts)
+}
+
 /// A flight over the indoor floor at 0.5 m instead of 1 m (0.4-0.6 m with its swing), the
 /// heights a vehicle climbs and descends through, 320x240.
 pub fn low_indoor_flight(frames: usize) -> PathBuf {

@@ -28,11 +28,13 @@ pub struct Autopilot {
     timeout: Duration,
     armed: bool,
     landed: Option<MavLandedState>,
+    /// In the air since the last touchdown.
+    flew: bool,
 }
 
 impl Autopilot {
     pub fn new(timeout: Duration) -> Autopilot {
-        Autopilot { state: ApState::Absent, timeout, armed: false, landed: None }
+        Autopilot { state: ApState::Absent, timeout, armed: false, landed: None, flew: false }
     }
 
     pub fn state(&self) -> ApState {
@@ -67,8 +69,19 @@ impl Autopilot {
         found.then_some(ApNotice::Found { sys, what })
     }
 
-    pub fn on_landed_state(&mut self, s: MavLandedState) {
+    /// The autopilot's landed state; true on a touchdown: on the ground after it was in
+    /// the air (PX4 passes through `LANDING` on the way down; a first `ON_GROUND` after
+    /// mavloc starts, or one repeated, is no touchdown).
+    pub fn on_landed_state(&mut self, s: MavLandedState) -> bool {
+        if s == MavLandedState::MAV_LANDED_STATE_IN_AIR {
+            self.flew = true;
+        }
         self.landed = Some(s);
+        let touchdown = s == MavLandedState::MAV_LANDED_STATE_ON_GROUND && self.flew;
+        if touchdown {
+            self.flew = false;
+        }
+        touchdown
     }
 
     pub fn deadline(&self) -> Option<Mono> {

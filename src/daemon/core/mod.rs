@@ -163,6 +163,8 @@ pub enum PipelineEvent {
     Failed(String),
     /// Writing the results failed outside a frame (when the pipeline stopped).
     WriteFailed(String),
+    /// Something the pipeline did outside a frame (the map adjusted after landing).
+    Note(String),
 }
 
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -222,6 +224,8 @@ pub enum WorkerRequest {
     Reset,
     /// Settings changed over MAVLink; hand them to the running pipeline.
     Apply(Box<Settings>),
+    /// The vehicle touched down after a flight.
+    Landed,
 }
 
 /// Something the shell must do besides sending messages.
@@ -806,8 +810,11 @@ impl Core {
                 self.update_gps_phase();
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
-                self.autopilot.on_landed_state(e.landed_state);
+                let touched_down = self.autopilot.on_landed_state(e.landed_state);
                 self.update_gps_phase();
+                if touched_down && matches!(self.pipeline, PipelineState::Running(_)) {
+                    self.actions.push_back(Action::Worker(WorkerRequest::Landed));
+                }
                 if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
                     self.landing.landed();
                 }
@@ -1313,6 +1320,7 @@ impl Core {
                 self.notes.error(&format!("pipeline failed: {e}"));
             }
             PipelineEvent::WriteFailed(e) => self.write_failed(now, &e),
+            PipelineEvent::Note(line) => self.notes.info(&line),
         }
     }
 

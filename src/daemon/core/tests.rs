@@ -1048,3 +1048,45 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
         down.first()
     );
 }
+
+/// The pipeline hears of each touchdown once (the area map is adjusted then): not of the
+/// vehicle standing when mavloc starts, nor of each landed-state report on the ground
+/// after. What it says of its work outside a frame goes to the ground as INFO.
+#[test]
+fn each_touchdown_reaches_the_pipeline_once_and_its_notes_reach_the_ground() {
+    let mut s = Settings::default();
+    s.daemon.pipeline = PipelineKind::Area;
+    let mut sim = Sim::new(s);
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    let landed = |sim: &Sim| {
+        sim.actions
+            .iter()
+            .filter(|(_, a)| *a == Action::Worker(WorkerRequest::Landed))
+            .map(|(t, _)| *t)
+            .collect::<Vec<_>>()
+    };
+    sim.run_until(secs(10));
+    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area));
+    assert!(landed(&sim).is_empty(), "standing at the start is no touchdown");
+    for (up, down) in [(10, 40), (60, 90)] {
+        sim.ap.armed = true;
+        sim.ap.in_air = true;
+        sim.run_until(secs(down));
+        assert_eq!(landed(&sim).len(), if up == 10 { 0 } else { 1 }, "none in the air");
+        sim.ap.in_air = false;
+        sim.ap.armed = false;
+        sim.run_until(secs(down + 20));
+    }
+    let at = landed(&sim);
+    assert_eq!(at.len(), 2, "two touchdowns: {at:?}");
+    assert!(at[0] >= secs(40) && at[0] < secs(42) && at[1] >= secs(90) && at[1] < secs(92), "{at:?}");
+
+    let line = "area: map adjusted in 70 s";
+    sim.input(Input::Pipeline { now: sim.now, event: PipelineEvent::Note(line.into()) });
+    sim.run_for(Duration::from_secs(1));
+    let said = sim.sent.iter().any(|(_, m)| {
+        matches!(m, MavMessage::STATUSTEXT(t) if t.severity == MavSeverity::MAV_SEVERITY_INFO
+            && String::from_utf8_lossy(&t.text[..]).contains(line))
+    });
+    assert!(said, "{:?}", sim.statustexts());
+}
