@@ -31,7 +31,7 @@ use crate::geometry::{CameraPose, Intrinsics, Pixel, Rot3, Vec3};
 use mavloc_data::results::LandmarkRecord;
 
 /// Settings of a refinement.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct RefineParams {
     /// SD of the prior on each frame's rotation correction, radians.
     pub prior: f64,
@@ -53,6 +53,9 @@ pub struct RefineParams {
     /// sighting pull with a constant force, and those few turned every frame to make the
     /// map worse: 4.2 -> 13.1 m).
     pub outlier_sds: f64,
+    /// Set from another thread to stop at the next round (the daemon's adjustment after
+    /// landing, abandoned); what it has then is returned.
+    pub cancel: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 impl RefineParams {
@@ -66,6 +69,7 @@ impl RefineParams {
             rounds: 30,
             shift_prior_m: 0.0,
             outlier_sds: 10.0,
+            cancel: None,
         }
     }
 }
@@ -774,6 +778,9 @@ impl Problem<'_> {
         let mut reduced = Reduced::new(nb);
         let mut pairs: Vec<PairSlots> = vec![(Vec::new(), Vec::new()); xs.len()];
         for _ in 0..p.rounds {
+            if p.cancel.as_ref().is_some_and(|c| c.load(std::sync::atomic::Ordering::Relaxed)) {
+                break;
+            }
             // Normal equations, blockwise: U (blocks, sparse: frames that share landmarks),
             // V (landmarks), W (block x landmark).
             // Fx, not SipHash: a lookup per sighting and round (10 % of a photo survey's run).

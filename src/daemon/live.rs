@@ -104,6 +104,8 @@ pub struct AreaLive {
     /// The smoothed aim, earth-frame (yaw, pitch), radians; it waits through frames with
     /// no border in view.
     aimed: Option<(f64, f64)>,
+    /// The gimbal chain the log's angles are in.
+    chain: crate::geometry::GimbalChain,
     /// `area.attitude_prior_deg > 0`: the run's sightings and poses, for the bundle
     /// adjustment after each landing ([`super::flightlog`]).
     log: Option<FlightLog>,
@@ -113,6 +115,8 @@ pub struct AreaLive {
     refined: std::collections::BTreeMap<u64, LandmarkRecord>,
     /// The last adjustment, for `summary.json`.
     adjusted: Option<Adjusted>,
+    /// A touchdown came while an adjustment ran: another follows it.
+    landed_again: bool,
 }
 
 impl AreaLive {
@@ -162,9 +166,11 @@ impl AreaLive {
             settings: s.area.clone(),
             aim: s.gimbal.aim == crate::settings::GimbalAim::Border,
             aimed: None,
+            chain: s.gimbal.chain,
             log: refining.then(|| FlightLog::new(s.gimbal.chain)),
             refined: Default::default(),
             adjusted: None,
+            landed_again: false,
         })
     }
 
@@ -330,7 +336,8 @@ impl LivePipeline for AreaLive {
         };
         if let Some(log) = self.log.as_mut() {
             let offset = self.id_offset;
-            if log.add(self.frames, &frame.pose, r.sightings.iter().map(|&(id, px)| (id + offset, px))) {
+            let seen: Vec<_> = r.sightings.iter().map(|&(id, px)| (id + offset, px)).collect();
+            if log.add(self.frames, &frame.pose, &seen) {
                 report.events.push(format!(
                     "area: {} sightings kept for the adjustment after landing, the most it keeps; later frames are not in it",
                     super::flightlog::MAX_SIGHTINGS
@@ -390,12 +397,21 @@ impl LivePipeline for AreaLive {
     }
 
     fn apply(&mut self, s: &Settings) {
-        // Turned on in flight: the sightings from now on; turned off: none kept.
+        // Turned on in flight: the sightings from now on; turned off: none kept. A new
+        // resolution or chain starts the log again (its pixels and angles are the old
+        // ones'), as the pipeline's own landmarks go on.
         let refining = s.area.attitude_prior_deg > 0.0;
-        if refining != self.log.is_some() {
+        let same = s.area.downscale.max(1) == self.downscale && s.gimbal.chain == self.chain;
+        if refining != self.log.is_some() || (refining && !same) {
+            if self.log.as_ref().is_some_and(|l| l.frames() > 0) {
+                tracing::info!(
+                    "area: the sightings kept for the adjustment after landing start again (new settings)"
+                );
+            }
             self.log = refining.then(|| FlightLog::new(s.gimbal.chain));
             self.pipeline.set_trace(refining);
         }
+        self.chain = s.gimbal.chain;
         self.settings = s.area.clone();
         self.aim = s.gimbal.aim == crate::settings::GimbalAim::Border;
         self.downscale = s.area.downscale.max(1);
@@ -430,23 +446,19 @@ impl LivePipeline for AreaLive {
     /// The vehicle touched down: the run's map adjusted on a thread of its own
     /// ([`super::flightlog`]); [`LivePipeline::poll`] writes it when it is done.
     fn landed(&mut self) -> Vec<PipelineEvent> {
-        let landmarks = self.all_landmarks();
-        let k = *self.pipeline.intrinsics();
-        let (prior, noise) = (self.settings.attitude_prior_deg, self.settings.bearing_noise_deg);
-        if self.log.is_none() {
-            return Vec::new();
+        let Some(log) = self.log.as_ref() else { return Vec::new() };
+        if log.running() {
+            self.landed_again = true;
+            return vec![PipelineEvent::Note(
+                "area: landed again while the map is being adjusted; it is adjusted again after".into(),
+            )];
         }
-        // The filters' map at the touchdown, whole, before the adjustment replaces it.
+        // The map at the touchdown, whole, before the adjustment replaces it.
         let mut events = Vec::new();
         if let Err(e) = self.write() {
             events.push(PipelineEvent::WriteFailed(format!("area: cannot write results: {e}")));
         }
-        let log = self.log.as_mut().expect("checked");
-        let line = match log.start(&landmarks, &k, prior, noise) {
-            Ok((frames, n)) => format!("area: landed; adjusting the map: {n} landmarks over {frames} frames"),
-            Err(why) => format!("area: landed; the map is not adjusted: {why}"),
-        };
-        events.push(PipelineEvent::Note(line));
+        events.push(PipelineEvent::Note(self.start_adjustment()));
         events
     }
 
@@ -455,7 +467,12 @@ impl LivePipeline for AreaLive {
         let adjusted = match log.poll() {
             Poll::Idle | Poll::Running => return Vec::new(),
             Poll::Failed(why) => {
-                return vec![PipelineEvent::Note(format!("area: the adjustment after landing failed: {why}"))]
+                let mut events =
+                    vec![PipelineEvent::Note(format!("area: the map is not adjusted after landing: {why}"))];
+                if std::mem::take(&mut self.landed_again) {
+                    events.push(PipelineEvent::Note(self.start_adjustment()));
+                }
+                return events;
             }
             Poll::Done(a) => a,
         };
@@ -472,13 +489,34 @@ impl LivePipeline for AreaLive {
         if let Some((o, _)) = r.offset_deg {
             line.push_str(&format!("; gimbal offset yaw {:.2} pitch {:.2} roll {:.2} deg", o[0], o[1], o[2]));
         }
-        self.refined = r.landmarks.iter().map(|l| (l.id, l.clone())).collect();
+        // Added to what earlier adjustments moved: a landmark this one left out (its
+        // sightings were in a log started again since) keeps its last adjusted place.
+        self.refined.extend(r.landmarks.iter().map(|l| (l.id, l.clone())));
         self.adjusted = Some(adjusted);
         let mut events = vec![PipelineEvent::Note(line)];
         if let Err(e) = self.write() {
             events.push(PipelineEvent::WriteFailed(format!("area: cannot write the adjusted results: {e}")));
         }
+        if std::mem::take(&mut self.landed_again) {
+            events.push(PipelineEvent::Note(self.start_adjustment()));
+        }
         events
+    }
+}
+
+impl AreaLive {
+    /// Starts the adjustment of the run's map; what the ground is told.
+    fn start_adjustment(&mut self) -> String {
+        let landmarks = self.all_landmarks();
+        let k = *self.pipeline.intrinsics();
+        let (prior, noise) = (self.settings.attitude_prior_deg, self.settings.bearing_noise_deg);
+        let Some(log) = self.log.as_mut() else { return "area: the map is not adjusted (off)".into() };
+        match log.start(&landmarks, &k, prior, noise) {
+            Ok(frames) => {
+                format!("area: landed; adjusting the map: {} landmarks over {frames} frames", landmarks.len())
+            }
+            Err(why) => format!("area: landed; the map is not adjusted: {why}"),
+        }
     }
 }
 

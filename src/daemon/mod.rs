@@ -404,7 +404,10 @@ impl Shell {
         };
         match &event {
             // The frame is done: the camera may deliver the next (lossless replay).
-            PipelineEvent::Report { .. } | PipelineEvent::Panicked { .. } => self.live.give_credit(),
+            PipelineEvent::Report { .. } | PipelineEvent::Panicked { frame: Some(_), .. } => {
+                self.live.give_credit()
+            }
+            PipelineEvent::Panicked { frame: None, .. } => {}
             PipelineEvent::Failed(_) => self.live.worker = None,
             PipelineEvent::WriteFailed(_) | PipelineEvent::Note(_) => {}
         }

@@ -200,6 +200,20 @@ fn run(
                 let _ = events.try_send(Event::Pipeline(e));
             }
         };
+        // After a panic (on a frame, or outside one), said, and a new pipeline: the old
+        // one's state may be half-updated. Results written so far stay on disk. None when
+        // no pipeline can be built (said too): the worker ends.
+        let rebuilt = |frame: Option<u64>, p: &(dyn std::any::Any + Send), settings: &Settings| {
+            let message = panic_message(p);
+            let _ = events.try_send(Event::Pipeline(PipelineEvent::Panicked { frame, message }));
+            match build(settings) {
+                Ok(p) => Some(p),
+                Err(e) => {
+                    let _ = events.try_send(Event::Pipeline(PipelineEvent::Failed(e)));
+                    None
+                }
+            }
+        };
         for r in requests {
             match r {
                 Request::Apply(s) => {
@@ -216,7 +230,13 @@ fn run(
                 Request::Snapshot(reply) => {
                     let _ = reply.send(pipeline.write_results().map_err(|e| e.to_string()));
                 }
-                Request::Landed => send(pipeline.landed()),
+                Request::Landed => match catch_unwind(AssertUnwindSafe(|| pipeline.landed())) {
+                    Ok(list) => send(list),
+                    Err(p) => match rebuilt(None, &*p, &settings) {
+                        Some(p) => pipeline = p,
+                        None => return,
+                    },
+                },
                 Request::Stop => {
                     let files = pipeline.finish().unwrap_or_else(|e| {
                         // Logged here too: at shutdown nobody reads the event.
@@ -230,7 +250,13 @@ fn run(
                 }
             }
         }
-        send(pipeline.poll());
+        match catch_unwind(AssertUnwindSafe(|| pipeline.poll())) {
+            Ok(list) => send(list),
+            Err(p) => match rebuilt(None, &*p, &settings) {
+                Some(p) => pipeline = p,
+                None => return,
+            },
+        }
         if let Some(f) = frame {
             match catch_unwind(AssertUnwindSafe(|| pipeline.process(&f))) {
                 Ok(report) => {
@@ -238,20 +264,10 @@ fn run(
                     let event = PipelineEvent::Report { capture: f.capture_s, attitude, report };
                     let _ = events.try_send(Event::Pipeline(event));
                 }
-                Err(p) => {
-                    let message = panic_message(&*p);
-                    let _ =
-                        events.try_send(Event::Pipeline(PipelineEvent::Panicked { frame: f.index, message }));
-                    // The pipeline's state may be half-updated: rebuild it. Results
-                    // written so far stay on disk.
-                    match build(&settings) {
-                        Ok(p) => pipeline = p,
-                        Err(e) => {
-                            let _ = events.try_send(Event::Pipeline(PipelineEvent::Failed(e)));
-                            return;
-                        }
-                    }
-                }
+                Err(p) => match rebuilt(Some(f.index), &*p, &settings) {
+                    Some(p) => pipeline = p,
+                    None => return,
+                },
             }
         }
     }
@@ -327,7 +343,7 @@ mod tests {
         w.stop();
         events.push(rx.blocking_recv().unwrap());
         assert!(
-            matches!(&events[3], Event::Pipeline(PipelineEvent::Panicked { frame: 3, message }) if message == "bad frame")
+            matches!(&events[3], Event::Pipeline(PipelineEvent::Panicked { frame: Some(3), message }) if message == "bad frame")
         );
         // After the restart the count starts again: frames 4 and 5.
         assert!(matches!(&events[5], Event::Pipeline(PipelineEvent::Report { report, .. })

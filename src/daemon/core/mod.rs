@@ -156,8 +156,10 @@ pub enum PipelineEvent {
         attitude: (f64, f64, f64),
         report: Report,
     },
+    /// The pipeline panicked, on a frame or outside one (`None`: after a landing), and
+    /// was rebuilt.
     Panicked {
-        frame: u64,
+        frame: Option<u64>,
         message: String,
     },
     Failed(String),
@@ -1311,7 +1313,8 @@ impl Core {
             }
             PipelineEvent::Panicked { frame, message } => {
                 self.counters.pipeline_panics += 1;
-                self.notes.error(&format!("pipeline panicked on frame {frame}: {message}; restarted"));
+                let on = frame.map_or("outside a frame".to_string(), |f| format!("on frame {f}"));
+                self.notes.error(&format!("pipeline panicked {on}: {message}; restarted"));
             }
             PipelineEvent::Failed(e) => {
                 if let PipelineState::Running(k) | PipelineState::Starting(k) = self.pipeline {
