@@ -115,8 +115,8 @@ pub struct AreaLive {
     refined: std::collections::BTreeMap<u64, LandmarkRecord>,
     /// The last adjustment, for `summary.json`.
     adjusted: Option<Adjusted>,
-    /// A touchdown came while an adjustment ran: another follows it.
-    landed_again: bool,
+    /// Asked again (a touchdown, a command) while an adjustment ran: another follows it.
+    adjust_again: Option<&'static str>,
 }
 
 impl AreaLive {
@@ -170,7 +170,7 @@ impl AreaLive {
             log: refining.then(|| FlightLog::new(s.gimbal.chain)),
             refined: Default::default(),
             adjusted: None,
-            landed_again: false,
+            adjust_again: None,
         })
     }
 
@@ -445,20 +445,24 @@ impl LivePipeline for AreaLive {
 
     /// The vehicle touched down: the run's map adjusted on a thread of its own
     /// ([`super::flightlog`]); [`LivePipeline::poll`] writes it when it is done.
-    fn landed(&mut self) -> Vec<PipelineEvent> {
-        let Some(log) = self.log.as_ref() else { return Vec::new() };
+    fn adjust_map(&mut self, why: &str) -> Vec<PipelineEvent> {
+        let Some(log) = self.log.as_ref() else {
+            return vec![PipelineEvent::Note(format!(
+                "area: {why}; the map is not adjusted: area.attitude_prior_deg (AREA_ADJ_PRIOR) is 0"
+            ))];
+        };
         if log.running() {
-            self.landed_again = true;
-            return vec![PipelineEvent::Note(
-                "area: landed again while the map is being adjusted; it is adjusted again after".into(),
-            )];
+            self.adjust_again = Some(if why == "landed" { "landed" } else { "asked to" });
+            return vec![PipelineEvent::Note(format!(
+                "area: {why} while the map is being adjusted; it is adjusted again after"
+            ))];
         }
         // The map at the touchdown, whole, before the adjustment replaces it.
         let mut events = Vec::new();
         if let Err(e) = self.write() {
             events.push(PipelineEvent::WriteFailed(format!("area: cannot write results: {e}")));
         }
-        events.push(PipelineEvent::Note(self.start_adjustment()));
+        events.push(PipelineEvent::Note(self.start_adjustment(why)));
         events
     }
 
@@ -469,8 +473,8 @@ impl LivePipeline for AreaLive {
             Poll::Failed(why) => {
                 let mut events =
                     vec![PipelineEvent::Note(format!("area: the map is not adjusted after landing: {why}"))];
-                if std::mem::take(&mut self.landed_again) {
-                    events.push(PipelineEvent::Note(self.start_adjustment()));
+                if let Some(why) = self.adjust_again.take() {
+                    events.push(PipelineEvent::Note(self.start_adjustment(why)));
                 }
                 return events;
             }
@@ -497,8 +501,8 @@ impl LivePipeline for AreaLive {
         if let Err(e) = self.write() {
             events.push(PipelineEvent::WriteFailed(format!("area: cannot write the adjusted results: {e}")));
         }
-        if std::mem::take(&mut self.landed_again) {
-            events.push(PipelineEvent::Note(self.start_adjustment()));
+        if let Some(why) = self.adjust_again.take() {
+            events.push(PipelineEvent::Note(self.start_adjustment(why)));
         }
         events
     }
@@ -506,16 +510,16 @@ impl LivePipeline for AreaLive {
 
 impl AreaLive {
     /// Starts the adjustment of the run's map; what the ground is told.
-    fn start_adjustment(&mut self) -> String {
+    fn start_adjustment(&mut self, why: &str) -> String {
         let landmarks = self.all_landmarks();
         let k = *self.pipeline.intrinsics();
         let (prior, noise) = (self.settings.attitude_prior_deg, self.settings.bearing_noise_deg);
         let Some(log) = self.log.as_mut() else { return "area: the map is not adjusted (off)".into() };
         match log.start(&landmarks, &k, prior, noise) {
             Ok(frames) => {
-                format!("area: landed; adjusting the map: {} landmarks over {frames} frames", landmarks.len())
+                format!("area: {why}; adjusting the map: {} landmarks over {frames} frames", landmarks.len())
             }
-            Err(why) => format!("area: landed; the map is not adjusted: {why}"),
+            Err(not) => format!("area: {why}; the map is not adjusted: {not}"),
         }
     }
 }

@@ -316,9 +316,9 @@ impl Shell {
                     w.request(Request::Apply(s));
                 }
             }
-            Action::Worker(WorkerRequest::Landed) => {
+            Action::Worker(WorkerRequest::AdjustMap(why)) => {
                 if let Some((_, w)) = &self.live.worker {
-                    w.request(Request::Landed);
+                    w.request(Request::AdjustMap(why));
                 }
             }
             // Status and the pipeline's results; the ACK says whether both were written.

@@ -50,8 +50,10 @@ pub trait LivePipeline: Send {
     fn finish(&mut self) -> std::io::Result<Vec<PathBuf>> {
         self.write_results()
     }
-    /// The vehicle has touched down (the area pipeline adjusts its map then).
-    fn landed(&mut self) -> Vec<PipelineEvent> {
+    /// Adjust the map now (the area pipeline; at a touchdown, or asked over MAVLink):
+    /// `why` says which, for what the ground is told.
+    fn adjust_map(&mut self, why: &str) -> Vec<PipelineEvent> {
+        let _ = why;
         Vec::new()
     }
     /// Called at least every [`POLL_PERIOD`], frames or not: work the pipeline finished
@@ -73,8 +75,8 @@ pub enum Request {
     Apply(Box<Settings>),
     Reset,
     Snapshot(std::sync::mpsc::Sender<Result<Vec<PathBuf>, String>>),
-    /// The vehicle has touched down.
-    Landed,
+    /// Adjust the map now: why ("landed", "asked to").
+    AdjustMap(&'static str),
     Stop,
 }
 
@@ -230,13 +232,15 @@ fn run(
                 Request::Snapshot(reply) => {
                     let _ = reply.send(pipeline.write_results().map_err(|e| e.to_string()));
                 }
-                Request::Landed => match catch_unwind(AssertUnwindSafe(|| pipeline.landed())) {
-                    Ok(list) => send(list),
-                    Err(p) => match rebuilt(None, &*p, &settings) {
-                        Some(p) => pipeline = p,
-                        None => return,
-                    },
-                },
+                Request::AdjustMap(why) => {
+                    match catch_unwind(AssertUnwindSafe(|| pipeline.adjust_map(why))) {
+                        Ok(list) => send(list),
+                        Err(p) => match rebuilt(None, &*p, &settings) {
+                            Some(p) => pipeline = p,
+                            None => return,
+                        },
+                    }
+                }
                 Request::Stop => {
                     let files = pipeline.finish().unwrap_or_else(|e| {
                         // Logged here too: at shutdown nobody reads the event.
@@ -435,9 +439,9 @@ mod tests {
         fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
             Ok(Vec::new())
         }
-        fn landed(&mut self) -> Vec<PipelineEvent> {
+        fn adjust_map(&mut self, why: &str) -> Vec<PipelineEvent> {
             self.polls = Some(0);
-            vec![PipelineEvent::Note("landed".into())]
+            vec![PipelineEvent::Note(why.into())]
         }
         fn poll(&mut self) -> Vec<PipelineEvent> {
             let Some(n) = self.polls.as_mut() else { return Vec::new() };
@@ -458,7 +462,7 @@ mod tests {
         let (tx, mut rx) = tokio::sync::mpsc::channel(64);
         let factory: Factory = Box::new(|_| Ok(Box::new(Lands { polls: None }) as Box<dyn LivePipeline>));
         let w = Worker::start(factory, Settings::default(), 1, tx);
-        w.request(Request::Landed);
+        w.request(Request::AdjustMap("landed"));
         let t0 = std::time::Instant::now();
         let mut notes = Vec::new();
         while notes.len() < 2 {

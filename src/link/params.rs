@@ -72,6 +72,7 @@ pub const PARAMS: &[ParamDef] = &[
     p("AREA_INIT_SIG", "area.init_sigma_m", Float),
     p("AREA_GROUND_D", "area.ground_down_m", Float),
     p("AREA_MAX_DESC", "area.max_descriptors", Int),
+    p("AREA_ADJ_PRIOR", "area.attitude_prior_deg", Float),
     p("IND_SAMPLES", "indoor.samples", Int),
     p("IND_K", "indoor.k", Int),
     p("IND_PARTICLES", "indoor.particles", Int),

@@ -363,7 +363,7 @@ fn the_map_adjusted_after_landing_finds_a_wrong_gimbal_offset_as_the_offline_run
     };
     assert_eq!(summary(&link).refined_gimbal_offset_deg, None, "nothing adjusted in the air");
 
-    let started = live.landed();
+    let started = live.adjust_map("landed");
     assert!(
         matches!(&started[..], [PipelineEvent::Note(l)] if l.starts_with("area: landed; adjusting the map")),
         "{started:?}"

@@ -30,11 +30,20 @@ pub struct Autopilot {
     landed: Option<MavLandedState>,
     /// In the air since the last touchdown.
     flew: bool,
+    /// A touchdown not yet taken ([`Autopilot::take_touchdown`]).
+    touchdown: bool,
 }
 
 impl Autopilot {
     pub fn new(timeout: Duration) -> Autopilot {
-        Autopilot { state: ApState::Absent, timeout, armed: false, landed: None, flew: false }
+        Autopilot {
+            state: ApState::Absent,
+            timeout,
+            armed: false,
+            landed: None,
+            flew: false,
+            touchdown: false,
+        }
     }
 
     pub fn state(&self) -> ApState {
@@ -63,25 +72,35 @@ impl Autopilot {
 
     /// A heartbeat from the autopilot's system and component.
     pub fn on_heartbeat(&mut self, now: Mono, sys: u8, h: &HEARTBEAT_DATA, what: String) -> Option<ApNotice> {
-        self.armed = h.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+        let armed = h.base_mode.contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED);
+        // An autopilot that never says its landed state: disarming is the touchdown.
+        if self.landed.is_none() && self.armed && !armed {
+            self.touchdown = true;
+        }
+        self.armed = armed;
         let found = !self.present();
         self.state = ApState::Present { sys, last_seen: now };
         found.then_some(ApNotice::Found { sys, what })
     }
 
-    /// The autopilot's landed state; true on a touchdown: on the ground after it was in
-    /// the air (PX4 passes through `LANDING` on the way down; a first `ON_GROUND` after
-    /// mavloc starts, or one repeated, is no touchdown).
-    pub fn on_landed_state(&mut self, s: MavLandedState) -> bool {
+    /// The autopilot's landed state. A touchdown is on the ground after it was in the
+    /// air (PX4 passes through `LANDING` on the way down; a first `ON_GROUND` after
+    /// mavloc starts, or one repeated, is none).
+    pub fn on_landed_state(&mut self, s: MavLandedState) {
         if s == MavLandedState::MAV_LANDED_STATE_IN_AIR {
             self.flew = true;
         }
         self.landed = Some(s);
-        let touchdown = s == MavLandedState::MAV_LANDED_STATE_ON_GROUND && self.flew;
-        if touchdown {
+        if s == MavLandedState::MAV_LANDED_STATE_ON_GROUND && self.flew {
             self.flew = false;
+            self.touchdown = true;
         }
-        touchdown
+    }
+
+    /// Whether the vehicle has touched down since the last call: by its landed state, or
+    /// by disarming when it never says one.
+    pub fn take_touchdown(&mut self) -> bool {
+        std::mem::take(&mut self.touchdown)
     }
 
     pub fn deadline(&self) -> Option<Mono> {

@@ -5,7 +5,8 @@
 //!
 //! Command ids (documented in the README):
 //! * `MAV_CMD_USER_1` (31010), pipeline control: param1 = pipeline (0 the configured one,
-//!   1 area, 2 indoor), param2 = action (0 stop, 1 start, 2 reset).
+//!   1 area, 2 indoor), param2 = action (0 stop, 1 start, 2 reset, 3 adjust the area map
+//!   now, as at a touchdown: `daemon::flightlog`).
 //! * `MAV_CMD_USER_2` (31011), result snapshot: writes the current results to the state
 //!   directory; acknowledged `IN_PROGRESS`, then `ACCEPTED` or `FAILED`.
 //! * `MAV_CMD_REQUEST_MESSAGE` (512) for HEARTBEAT (0), PARAM_VALUE (22, param2 = index)
@@ -39,6 +40,7 @@ pub enum PipelineRequest {
     Start(PipelineKind),
     Stop,
     Reset,
+    AdjustMap,
 }
 
 /// Judges a command addressed to mavloc (trust is checked by the caller). `configured`
@@ -64,6 +66,7 @@ pub fn decide(c: &COMMAND_LONG_DATA, broadcast: bool, configured: PipelineKind, 
                 Some(0) => Decision::Pipeline(PipelineRequest::Stop),
                 Some(1) => Decision::Pipeline(PipelineRequest::Start(kind)),
                 Some(2) => Decision::Pipeline(PipelineRequest::Reset),
+                Some(3) => Decision::Pipeline(PipelineRequest::AdjustMap),
                 _ => denied,
             }
         }
@@ -145,8 +148,9 @@ mod tests {
         assert_eq!(d(1.0, 1.0), Decision::Pipeline(PipelineRequest::Start(PipelineKind::Area)));
         assert_eq!(d(0.0, 0.0), Decision::Pipeline(PipelineRequest::Stop));
         assert_eq!(d(2.0, 2.0), Decision::Pipeline(PipelineRequest::Reset));
+        assert_eq!(d(1.0, 3.0), Decision::Pipeline(PipelineRequest::AdjustMap));
         for (p1, p2) in
-            [(1.0, f32::NAN), (f32::NAN, 1.0), (1.0, 0.5), (7.0, 1.0), (1.0, f32::INFINITY), (1.0, 3.0)]
+            [(1.0, f32::NAN), (f32::NAN, 1.0), (1.0, 0.5), (7.0, 1.0), (1.0, f32::INFINITY), (1.0, 4.0)]
         {
             assert_eq!(d(p1, p2), Decision::Ack(MavResult::MAV_RESULT_DENIED), "({p1}, {p2})");
         }

@@ -226,8 +226,9 @@ pub enum WorkerRequest {
     Reset,
     /// Settings changed over MAVLink; hand them to the running pipeline.
     Apply(Box<Settings>),
-    /// The vehicle touched down after a flight.
-    Landed,
+    /// Adjust the area map now: at a touchdown ("landed") or asked by a command
+    /// ("asked to").
+    AdjustMap(&'static str),
 }
 
 /// Something the shell must do besides sending messages.
@@ -810,13 +811,12 @@ impl Core {
                     }
                 }
                 self.update_gps_phase();
+                self.after_touchdown();
             }
             MavMessage::EXTENDED_SYS_STATE(e) if self.is_autopilot(&f) => {
-                let touched_down = self.autopilot.on_landed_state(e.landed_state);
+                self.autopilot.on_landed_state(e.landed_state);
                 self.update_gps_phase();
-                if touched_down && matches!(self.pipeline, PipelineState::Running(_)) {
-                    self.actions.push_back(Action::Worker(WorkerRequest::Landed));
-                }
+                self.after_touchdown();
                 if e.landed_state == MavLandedState::MAV_LANDED_STATE_ON_GROUND {
                     self.landing.landed();
                 }
@@ -1202,6 +1202,19 @@ impl Core {
                 self.stop_pipeline();
                 ack(self, MavResult::MAV_RESULT_ACCEPTED);
             }
+            Decision::Pipeline(PipelineRequest::AdjustMap) => {
+                let result = if self.pipeline != PipelineState::Running(PipelineKind::Area) {
+                    self.notes.warn("the map is adjusted by the area pipeline, which is not running");
+                    MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+                } else if self.settings.area.attitude_prior_deg <= 0.0 {
+                    self.notes.warn("the map is not adjusted: area.attitude_prior_deg (AREA_ADJ_PRIOR) is 0");
+                    MavResult::MAV_RESULT_DENIED
+                } else {
+                    self.actions.push_back(Action::Worker(WorkerRequest::AdjustMap("asked to")));
+                    MavResult::MAV_RESULT_ACCEPTED
+                };
+                ack(self, result);
+            }
             Decision::Pipeline(PipelineRequest::Reset) => match self.pipeline {
                 PipelineState::Running(k) => {
                     self.actions.push_back(Action::Worker(WorkerRequest::Reset));
@@ -1210,6 +1223,17 @@ impl Core {
                 }
                 _ => ack(self, MavResult::MAV_RESULT_TEMPORARILY_REJECTED),
             },
+        }
+    }
+
+    /// At a touchdown the area pipeline adjusts its map (`daemon::flightlog`), when
+    /// `area.attitude_prior_deg` asks for it.
+    fn after_touchdown(&mut self) {
+        if self.autopilot.take_touchdown()
+            && self.pipeline == PipelineState::Running(PipelineKind::Area)
+            && self.settings.area.attitude_prior_deg > 0.0
+        {
+            self.actions.push_back(Action::Worker(WorkerRequest::AdjustMap("landed")));
         }
     }
 

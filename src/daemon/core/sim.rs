@@ -35,6 +35,8 @@ pub struct FakeAutopilot {
     pub alive: bool,
     pub armed: bool,
     pub in_air: bool,
+    /// Says its landed state (EXTENDED_SYS_STATE), as PX4 does; false: only armed or not.
+    pub says_landed_state: bool,
     pub streams: StreamAnswer,
     pub land_answer: Option<MavResult>,
     /// Landing commands of either kind (NAV_LAND, NAV_LAND_LOCAL).
@@ -68,6 +70,7 @@ impl FakeAutopilot {
             alive: true,
             armed: false,
             in_air: false,
+            says_landed_state: true,
             streams: StreamAnswer::Accept,
             land_answer: Some(MavResult::MAV_RESULT_ACCEPTED),
             land_commands: 0,
@@ -178,14 +181,16 @@ impl FakeAutopilot {
                 system_status: MavState::MAV_STATE_STANDBY,
                 mavlink_version: 3,
             }));
-            out.push(MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
-                vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
-                landed_state: if self.in_air {
-                    MavLandedState::MAV_LANDED_STATE_IN_AIR
-                } else {
-                    MavLandedState::MAV_LANDED_STATE_ON_GROUND
-                },
-            }));
+            if self.says_landed_state {
+                out.push(MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
+                    vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
+                    landed_state: if self.in_air {
+                        MavLandedState::MAV_LANDED_STATE_IN_AIR
+                    } else {
+                        MavLandedState::MAV_LANDED_STATE_ON_GROUND
+                    },
+                }));
+            }
         }
         if self.next_status <= now {
             self.next_status = now + Duration::from_secs(1);

@@ -1049,37 +1049,54 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     );
 }
 
-/// The pipeline hears of each touchdown once (the area map is adjusted then): not of the
-/// vehicle standing when mavloc starts, nor of each landed-state report on the ground
-/// after. What it says of its work outside a frame goes to the ground as INFO.
+/// The area pipeline adjusts its map at each touchdown, once (`daemon::flightlog`): not
+/// for the vehicle standing when mavloc starts, nor for each landed-state report on the
+/// ground after; by the disarm when the autopilot never says its landed state; not at all
+/// with `area.attitude_prior_deg` 0. What the pipeline says of its work outside a frame
+/// goes to the ground as INFO.
 #[test]
-fn each_touchdown_reaches_the_pipeline_once_and_its_notes_reach_the_ground() {
-    let mut s = Settings::default();
-    s.daemon.pipeline = PipelineKind::Area;
-    let mut sim = Sim::new(s);
-    sim.ap = FakeAutopilot::new(Mono::ZERO);
-    let landed = |sim: &Sim| {
+fn each_touchdown_adjusts_the_map_once_and_the_pipelines_notes_reach_the_ground() {
+    let adjusted = |sim: &Sim| {
         sim.actions
             .iter()
-            .filter(|(_, a)| *a == Action::Worker(WorkerRequest::Landed))
+            .filter(|(_, a)| *a == Action::Worker(WorkerRequest::AdjustMap("landed")))
             .map(|(t, _)| *t)
             .collect::<Vec<_>>()
     };
-    sim.run_until(secs(10));
-    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area));
-    assert!(landed(&sim).is_empty(), "standing at the start is no touchdown");
-    for (up, down) in [(10, 40), (60, 90)] {
-        sim.ap.armed = true;
-        sim.ap.in_air = true;
-        sim.run_until(secs(down));
-        assert_eq!(landed(&sim).len(), if up == 10 { 0 } else { 1 }, "none in the air");
-        sim.ap.in_air = false;
-        sim.ap.armed = false;
-        sim.run_until(secs(down + 20));
+    // Two flights; the times of the requests.
+    let fly = |says_landed_state: bool, prior: f64| {
+        let mut s = Settings::default();
+        s.daemon.pipeline = PipelineKind::Area;
+        s.area.attitude_prior_deg = prior;
+        let mut sim = Sim::new(s);
+        sim.ap = FakeAutopilot::new(Mono::ZERO);
+        sim.ap.says_landed_state = says_landed_state;
+        sim.run_until(secs(10));
+        assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area));
+        assert!(adjusted(&sim).is_empty(), "standing at the start is no touchdown");
+        for (n, down) in [(0, 40), (1, 90)] {
+            sim.ap.armed = true;
+            sim.ap.in_air = true;
+            sim.run_until(secs(down));
+            let want = if prior > 0.0 { n } else { 0 };
+            assert_eq!(
+                adjusted(&sim).len(),
+                want,
+                "none in the air (landed state said: {says_landed_state})"
+            );
+            sim.ap.in_air = false;
+            sim.ap.armed = false;
+            sim.run_until(secs(down + 20));
+        }
+        (adjusted(&sim), sim)
+    };
+    for says in [true, false] {
+        let (at, _) = fly(says, 1.5);
+        assert_eq!(at.len(), 2, "two touchdowns (landed state said: {says}): {at:?}");
+        assert!(at[0] >= secs(40) && at[0] < secs(42) && at[1] >= secs(90) && at[1] < secs(92), "{at:?}");
     }
-    let at = landed(&sim);
-    assert_eq!(at.len(), 2, "two touchdowns: {at:?}");
-    assert!(at[0] >= secs(40) && at[0] < secs(42) && at[1] >= secs(90) && at[1] < secs(92), "{at:?}");
+    let (at, mut sim) = fly(true, 0.0);
+    assert!(at.is_empty(), "off: {at:?}");
 
     let line = "area: map adjusted in 70 s";
     sim.input(Input::Pipeline { now: sim.now, event: PipelineEvent::Note(line.into()) });
@@ -1089,4 +1106,49 @@ fn each_touchdown_reaches_the_pipeline_once_and_its_notes_reach_the_ground() {
             && String::from_utf8_lossy(&t.text[..]).contains(line))
     });
     assert!(said, "{:?}", sim.statustexts());
+}
+
+/// `MAV_CMD_USER_1` with param2 = 3 asks for the adjustment now: accepted with the area
+/// pipeline running and a prior set, denied with no prior (and why), temporarily
+/// rejected with the pipeline stopped.
+#[test]
+fn the_map_is_adjusted_on_command_when_it_can_be() {
+    let ask = |prior: f64, pipeline: PipelineKind| {
+        let mut s = Settings::default();
+        s.daemon.pipeline = pipeline;
+        s.area.attitude_prior_deg = prior;
+        let mut sim = Sim::new(s);
+        sim.run_until(secs(1));
+        sim.gcs_sends(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_USER_1,
+            param1: 1.0,
+            param2: 3.0,
+            target_system: 1,
+            target_component: 191,
+            ..Default::default()
+        }));
+        sim.run_for(Duration::from_millis(100));
+        let acks: Vec<MavResult> = sim
+            .to_gcs
+            .iter()
+            .filter_map(|(_, m)| match m {
+                MavMessage::COMMAND_ACK(a) => Some(a.result),
+                _ => None,
+            })
+            .collect();
+        let asked = sim
+            .actions
+            .iter()
+            .filter(|(_, a)| *a == Action::Worker(WorkerRequest::AdjustMap("asked to")))
+            .count();
+        (acks, asked, sim.statustexts().concat())
+    };
+    let (acks, asked, said) = ask(1.5, PipelineKind::Area);
+    assert_eq!((acks, asked), (vec![MavResult::MAV_RESULT_ACCEPTED], 1));
+    assert!(!said.contains("not adjusted"), "{said}");
+    let (acks, asked, said) = ask(0.0, PipelineKind::Area);
+    assert_eq!((acks, asked), (vec![MavResult::MAV_RESULT_DENIED], 0));
+    assert!(said.contains("AREA_ADJ_PRIOR"), "{said}");
+    let (acks, asked, _) = ask(1.5, PipelineKind::None);
+    assert_eq!((acks, asked), (vec![MavResult::MAV_RESULT_TEMPORARILY_REJECTED], 0));
 }
