@@ -183,6 +183,17 @@ def test_link_params_commands_garbage_and_peer_loss():
         assert command(USER_1, 1, 0) == mav2.MAV_RESULT_ACCEPTED
         assert command(USER_1, 1, 1) == mav2.MAV_RESULT_ACCEPTED
         assert command(USER_1, 7, 1) == mav2.MAV_RESULT_DENIED
+        # The map adjusted on command: refused while AREA_ADJ_PRIOR is 0; with it set, the
+        # request reaches the pipeline's worker, which says why there is nothing to adjust.
+        # (STATUSTEXT carries 50 characters: longer lines come in pieces.)
+        assert command(USER_1, 1, 3) == mav2.MAV_RESULT_DENIED
+        recv(c, "STATUSTEXT", cond=lambda m: "AREA_ADJ_PRIOR" in m.text)
+        c.mav.param_set_send(1, MAVLOC_COMP, b"AREA_ADJ_PRIOR", 1.5, mav2.MAV_PARAM_TYPE_REAL32)
+        pv = recv(c, "PARAM_VALUE", cond=lambda m: m.param_id == "AREA_ADJ_PRIOR")
+        assert abs(pv.param_value - 1.5) < 1e-6, pv.param_value
+        assert command(USER_1, 1, 3) == mav2.MAV_RESULT_ACCEPTED
+        recv(c, "STATUSTEXT", cond=lambda m: "area: asked to; the map is not adjusted" in m.text)
+        recv(c, "STATUSTEXT", cond=lambda m: "fewer than 30" in m.text)
         assert command(mav2.MAV_CMD_DO_SET_MODE) == mav2.MAV_RESULT_UNSUPPORTED
         assert command(USER_2) == mav2.MAV_RESULT_IN_PROGRESS
         done = recv(c, "COMMAND_ACK", cond=lambda m: m.command == USER_2)
