@@ -249,7 +249,13 @@ struct Shell {
     live: Live,
     /// The link's queue was full on the last flush: retry shortly instead of spinning.
     link_full: bool,
+    /// The area result set last handed to the core for MAVLink FTP (the link's target).
+    served_area: Option<PathBuf>,
 }
+
+/// A result file larger than this is not served over MAVLink FTP (at its 239 bytes a
+/// packet and 4 ms between packets, 8 MB take over two minutes).
+const MAX_SERVED_BYTES: u64 = 8 << 20;
 
 impl Shell {
     /// Rewrites `status.json` with the daemon's state now.
@@ -260,6 +266,34 @@ impl Shell {
 
     fn now(&self) -> Mono {
         self.mono(tokio::time::Instant::now())
+    }
+
+    /// Hands the area pipeline's current result set to the core, which serves it over
+    /// MAVLink FTP: read once per set, since a published set never changes (a new one is
+    /// a new folder, `mavloc_data::sets`). A set removed while being read (the next was
+    /// published) is read at the next report instead.
+    fn serve_area_results(&mut self, core: &mut Core, now: Mono) {
+        let link = self.dir.join("results").join("area");
+        let Ok(target) = std::fs::read_link(&link) else { return };
+        if self.served_area.as_ref() == Some(&target) {
+            return;
+        }
+        // The link is relative to its folder (`area.runs/<run>/set-N`).
+        let set = link.parent().map_or_else(|| target.clone(), |d| d.join(&target));
+        let Ok(entries) = std::fs::read_dir(set) else { return };
+        let mut files = Vec::new();
+        for e in entries.flatten() {
+            if !e.metadata().is_ok_and(|m| m.is_file() && m.len() <= MAX_SERVED_BYTES) {
+                continue;
+            }
+            match std::fs::read(e.path()) {
+                Ok(bytes) => files.push((e.file_name().to_string_lossy().into_owned(), bytes)),
+                Err(_) => return,
+            }
+        }
+        files.sort();
+        self.served_area = Some(target);
+        core.handle(Input::AreaResults { now, files });
     }
 
     fn mono(&self, t: tokio::time::Instant) -> Mono {
@@ -360,6 +394,7 @@ impl Shell {
                 }
                 core.handle(Input::Stats { now, stats });
                 let _ = self.write_status(core, now);
+                self.serve_area_results(core, now);
             }
             Action::Watchdog => notify(&[sd_notify::NotifyState::Watchdog]),
         }
@@ -522,7 +557,15 @@ pub async fn run(
             Err(e) => tracing::warn!("mavlink.px4_events = {events_path}: {e}; events shown by number"),
         }
     }
-    let mut shell = Shell { started, dir, link, link_state: String::from("opening"), live, link_full: false };
+    let mut shell = Shell {
+        started,
+        dir,
+        link,
+        link_state: String::from("opening"),
+        live,
+        link_full: false,
+        served_area: None,
+    };
     serve(&mut core, &mut shell, shutdown).await?;
 
     // Shutdown: stop frames, flush results, tell the link (which saves the signing
@@ -904,6 +947,7 @@ mod shell_tests {
                 link_state: "test".into(),
                 live,
                 link_full: false,
+                served_area: None,
             };
             serve(&mut core, &mut shell, async {
                 let _ = stop_rx.await;

@@ -545,7 +545,8 @@ def component_metadata(c, timeout=5.0):
 
 def test_component_metadata_over_mavlink_ftp():
     """COMPONENT_METADATA names general.json; both files come over MAVLink FTP with the
-    CRCs announced, and parameters.json describes every parameter PARAM_VALUE lists."""
+    CRCs announced, and parameters.json describes every parameter PARAM_VALUE lists; the
+    area pipeline's result set is served beside them."""
     import zlib
     d = Daemon()
     try:
@@ -574,6 +575,21 @@ def test_component_metadata_over_mavlink_ftp():
         assert ret.error_code != 0, "a remove must be refused"
         again = ftp_get(c, entry["uri"].split("]", 1)[1], os.path.join(d.dir, "again.json"))
         assert again == params_bytes
+        # The area pipeline's current result set is served too: a snapshot writes one, and
+        # within the daemon's next report it is under /mavloc/results/area/, byte for byte.
+        c.mav.command_long_send(1, MAVLOC_COMP, USER_2, 0, 0, 0, 0, 0, 0, 0, 0)
+        done = recv(c, "COMMAND_ACK", cond=lambda m: m.command == USER_2 and m.result != mav2.MAV_RESULT_IN_PROGRESS)
+        assert done.result == mav2.MAV_RESULT_ACCEPTED
+        on_disk = open(os.path.join(d.state, "results", "area", "summary.json"), "rb").read()
+        deadline = time.time() + 5
+        while True:
+            try:
+                got = ftp_get(c, "/mavloc/results/area/summary.json", os.path.join(d.dir, "summary.json"))
+                break
+            except AssertionError:
+                assert time.time() < deadline, "the result set was not served within 5 s"
+                time.sleep(0.5)
+        assert got == on_disk, (got[:200], on_disk[:200])
         c.close()
     finally:
         assert d.stop() == 0

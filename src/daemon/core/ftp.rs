@@ -1,6 +1,9 @@
 //! A read-only MAVLink FTP server (<https://mavlink.io/en/services/ftp.html>) for the
 //! files mavloc publishes: its component metadata (`link::metadata`), which a ground
-//! station fetches after COMPONENT_METADATA names it. No I/O: requests in, replies out,
+//! station fetches after COMPONENT_METADATA names it, and the area pipeline's current
+//! result set under `/mavloc/results/area/` (the map after its adjustment at landing
+//! included), replaced as a whole when the pipeline publishes a new one: a download
+//! already open goes on reading the set it opened. No I/O: requests in, replies out,
 //! a burst read paced by the clock like the parameter list (PX4 forwards a ground
 //! station's traffic and drops what comes in a heap).
 //!
@@ -87,8 +90,9 @@ fn build(h: Header, data: &[u8]) -> [u8; PAYLOAD] {
 
 #[derive(Clone, Debug)]
 struct Session {
-    path: String,
     peer: (u8, u8),
+    /// The file as it was when opened.
+    data: std::sync::Arc<Vec<u8>>,
 }
 
 #[derive(Clone, Debug)]
@@ -102,7 +106,7 @@ struct Burst {
 
 #[derive(Debug)]
 pub struct FtpServer {
-    files: BTreeMap<String, Vec<u8>>,
+    files: BTreeMap<String, std::sync::Arc<Vec<u8>>>,
     sessions: [Option<Session>; SESSIONS],
     burst: Option<Burst>,
     next_burst: Mono,
@@ -113,11 +117,21 @@ pub struct FtpServer {
 impl FtpServer {
     pub fn new(files: BTreeMap<String, Vec<u8>>) -> FtpServer {
         FtpServer {
-            files,
+            files: files.into_iter().map(|(p, f)| (p, std::sync::Arc::new(f))).collect(),
             sessions: Default::default(),
             burst: None,
             next_burst: Mono::ZERO,
             last: BTreeMap::new(),
+        }
+    }
+
+    /// Replaces every file under the folder `dir` (`/mavloc/results/area`) by `files`
+    /// (names inside it). Open sessions keep the files they opened.
+    pub fn publish(&mut self, dir: &str, files: Vec<(String, Vec<u8>)>) {
+        let prefix = format!("{dir}/");
+        self.files.retain(|p, _| !p.starts_with(&prefix));
+        for (name, bytes) in files {
+            self.files.insert(format!("{prefix}{name}"), std::sync::Arc::new(bytes));
         }
     }
 
@@ -197,9 +211,10 @@ impl FtpServer {
             }
             OPEN_FILE_RO => {
                 let path = path();
-                let Some(len) = self.files.get(&path).map(Vec::len) else {
+                let Some(data) = self.files.get(&path).cloned() else {
                     return Some(nak(FILE_NOT_FOUND));
                 };
+                let len = data.len();
                 // A peer reopening gets its old session back rather than exhausting them.
                 let free = self
                     .sessions
@@ -208,14 +223,14 @@ impl FtpServer {
                     .or_else(|| self.sessions.iter().position(Option::is_none));
                 match free {
                     Some(i) => {
-                        self.sessions[i] = Some(Session { path, peer });
+                        self.sessions[i] = Some(Session { peer, data });
                         ack(&(len as u32).to_le_bytes(), i as u8, 0)
                     }
                     None => nak(NO_SESSIONS_AVAILABLE),
                 }
             }
             READ_FILE => {
-                let Some(file) = self.session(h.session, peer).and_then(|s| self.files.get(&s.path)) else {
+                let Some(file) = self.session(h.session, peer).map(|s| &s.data) else {
                     return Some(nak(INVALID_SESSION));
                 };
                 let at = h.offset as usize;
@@ -226,7 +241,7 @@ impl FtpServer {
                 ack(&file[at..at + n], h.session, h.offset)
             }
             BURST_READ_FILE => {
-                let Some(file) = self.session(h.session, peer).and_then(|s| self.files.get(&s.path)) else {
+                let Some(file) = self.session(h.session, peer).map(|s| &s.data) else {
                     return Some(nak(INVALID_SESSION));
                 };
                 if h.offset as usize >= file.len() {
@@ -293,11 +308,7 @@ impl FtpServer {
         if now < self.next_burst {
             return None;
         }
-        let file = self
-            .sessions
-            .get(b.session as usize)
-            .and_then(|s| s.as_ref())
-            .and_then(|s| self.files.get(&s.path));
+        let file = self.sessions.get(b.session as usize).and_then(|s| s.as_ref()).map(|s| &s.data);
         let Some(file) = file else {
             self.burst = None;
             return None;
@@ -383,7 +394,7 @@ mod tests {
             assert_eq!(h.offset as usize, got.len());
             got.extend_from_slice(d);
         }
-        assert_eq!(got, s.files["/mavloc/big.bin"]);
+        assert_eq!(got, *s.files["/mavloc/big.bin"]);
     }
 
     #[test]
@@ -407,7 +418,7 @@ mod tests {
                 assert!(s.poll(now).is_none(), "one packet per interval");
             }
         }
-        assert_eq!(got, s.files["/mavloc/big.bin"]);
+        assert_eq!(got, *s.files["/mavloc/big.bin"]);
         assert_eq!(seqs, (6..6 + seqs.len() as u16).collect::<Vec<_>>());
         assert_eq!(seqs.len(), 5, "200-byte packets");
     }
@@ -456,6 +467,57 @@ mod tests {
         let r =
             s.on_request(Mono::ZERO, PEER, &req(21, 0, CALC_FILE_CRC32, 0, 0, b"/mavloc/big.bin")).unwrap();
         let (_, d) = parse(&r);
-        assert_eq!(u32::from_le_bytes(d.try_into().unwrap()), crc32fast::hash(&s.files["/mavloc/big.bin"]));
+        assert_eq!(
+            u32::from_le_bytes(d.try_into().unwrap()),
+            crc32fast::hash(s.files["/mavloc/big.bin"].as_slice())
+        );
+    }
+
+    /// Lists a folder: its entries, NUL-separated. (`seq` differs from call to call: a
+    /// repeated one is answered from the last reply.)
+    fn list(s: &mut FtpServer, seq: u16, dir: &str) -> Vec<String> {
+        let r = s.on_request(Mono::ZERO, PEER, &req(seq, 0, LIST_DIRECTORY, 0, 0, dir.as_bytes())).unwrap();
+        let (h, d) = parse(&r);
+        if h.opcode == NAK {
+            return Vec::new();
+        }
+        String::from_utf8_lossy(d).split('\0').filter(|e| !e.is_empty()).map(String::from).collect()
+    }
+
+    /// Reads a whole open file with READ_FILE.
+    fn read_all(s: &mut FtpServer, session: u8, first_seq: u16) -> Vec<u8> {
+        let mut got = Vec::new();
+        for seq in first_seq.. {
+            let r = s
+                .on_request(Mono::ZERO, PEER, &req(seq, session, READ_FILE, 239, got.len() as u32, &[]))
+                .unwrap();
+            let (h, d) = parse(&r);
+            if h.opcode == NAK {
+                break;
+            }
+            got.extend_from_slice(d);
+        }
+        got
+    }
+
+    /// A published result set replaces the folder's files as a whole; a download opened
+    /// before reads the set it opened to its end, one opened after the new set; the
+    /// metadata beside it stays.
+    #[test]
+    fn a_published_set_replaces_the_folder_and_open_downloads_keep_theirs() {
+        let mut s = server();
+        let dir = "/mavloc/results/area";
+        assert!(list(&mut s, 40, dir).is_empty(), "nothing published yet");
+        let first: Vec<u8> = b"id,north\n".iter().copied().cycle().take(700).collect();
+        s.publish(dir, vec![("landmarks.csv".into(), first.clone()), ("old.kml".into(), b"<kml/>".to_vec())]);
+        assert_eq!(list(&mut s, 41, dir), ["Flandmarks.csv\t700", "Fold.kml\t6"]);
+        let (session, len) = open(&mut s, "/mavloc/results/area/landmarks.csv");
+        assert_eq!(len, 700);
+        s.publish(dir, vec![("landmarks.csv".into(), b"id,north\n1,2\n".to_vec())]);
+        assert_eq!(list(&mut s, 42, dir), ["Flandmarks.csv\t13"], "the old set's files are gone");
+        assert_eq!(read_all(&mut s, session, 100), first, "the open download reads the set it opened");
+        let (session, len) = open_seq(&mut s, "/mavloc/results/area/landmarks.csv", 60);
+        assert_eq!((len, read_all(&mut s, session, 200)), (13, b"id,north\n1,2\n".to_vec()));
+        assert_eq!(list(&mut s, 43, "/mavloc").len(), 3, "general.json, big.bin and the results folder");
     }
 }

@@ -211,6 +211,12 @@ pub enum Input {
         now: Mono,
         stats: ShellStats,
     },
+    /// The area pipeline's current result set (file names and contents), served over
+    /// MAVLink FTP under `/mavloc/results/area/`; the shell reads each new set once.
+    AreaResults {
+        now: Mono,
+        files: Vec<(String, Vec<u8>)>,
+    },
 }
 
 /// Work for the pipeline worker.
@@ -258,6 +264,9 @@ pub enum PipelineState {
     Running(PipelineKind),
     Failed(PipelineKind),
 }
+
+/// Where the area pipeline's current result set is served over MAVLink FTP.
+pub const AREA_RESULTS_FTP: &str = "/mavloc/results/area";
 
 /// Counters reported to the ground and in `status.json`.
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -568,7 +577,8 @@ impl Core {
             Input::Pipeline { now, .. }
             | Input::Camera { now, .. }
             | Input::Done { now, .. }
-            | Input::Stats { now, .. } => *now,
+            | Input::Stats { now, .. }
+            | Input::AreaResults { now, .. } => *now,
         };
         self.now = self.now.max(at);
         match input {
@@ -577,6 +587,7 @@ impl Core {
             Input::Camera { event, .. } => self.on_camera(event),
             Input::Done { token, result, .. } => self.on_done(token, result),
             Input::Stats { now, stats } => self.on_stats(now, stats),
+            Input::AreaResults { files, .. } => self.ftp.publish(AREA_RESULTS_FTP, files),
         }
     }
 
