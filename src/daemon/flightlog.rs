@@ -104,23 +104,30 @@ impl FlightLog {
         self.poses.len()
     }
 
-    /// One processed frame: its pose and its sightings (landmark ids as the results carry
-    /// them). Returns true when this frame filled the log (it is then not in it).
-    pub fn add(&mut self, frame: u64, pose: &AlignedPose, sightings: &[(u64, Pixel)]) -> bool {
+    /// One processed frame: its pose and its sightings, landmark ids as the pipeline
+    /// numbers them plus `id_offset` (as the results carry them). Returns true when this
+    /// frame filled the log (it is then not in it).
+    pub fn add(
+        &mut self,
+        frame: u64,
+        pose: &AlignedPose,
+        sightings: &[(u64, Pixel)],
+        id_offset: u64,
+    ) -> bool {
         if self.full || !pose.from_gimbal {
             return false;
         }
         let fits = |n: u64| u32::try_from(n).is_ok();
         if self.sightings.len() + sightings.len() > MAX_SIGHTINGS
             || !fits(frame)
-            || sightings.iter().any(|(id, _)| !fits(*id))
+            || sightings.iter().any(|(id, _)| !fits(id + id_offset))
         {
             self.full = true;
             return true;
         }
         self.sightings.extend(sightings.iter().map(|(id, px)| Seen {
             frame: frame as u32,
-            id: *id as u32,
+            id: (id + id_offset) as u32,
             u: px.u as f32,
             v: px.v as f32,
         }));
@@ -269,7 +276,7 @@ mod tests {
                 Vec3::new(10.0, -4.0, -50.0), chain, GimbalAngles::from_degrees(yaw, pitch, roll), mount,
             );
             let mut log = FlightLog::new(chain);
-            log.add(7, &aligned(camera, true), &[]);
+            log.add(7, &aligned(camera, true), &[], 0);
             let r = &log.poses[&7];
             let back = pose_at(r, chain, &Vec3::zeros());
             prop_assert!((back.position - camera.position).norm() < 1e-9);
@@ -296,14 +303,14 @@ mod tests {
         );
         let mut log = FlightLog::new(GimbalChain::YawPitchRoll);
         let seen = [(1, Pixel::new(1.0, 2.0)), (2, Pixel::new(3.0, 4.0))];
-        assert!(!log.add(0, &aligned(camera, false), &seen));
+        assert!(!log.add(0, &aligned(camera, false), &seen, 0));
         assert_eq!((log.frames(), log.sightings.len()), (0, 0));
-        assert!(!log.add(1, &aligned(camera, true), &seen));
+        assert!(!log.add(1, &aligned(camera, true), &seen, 0));
         assert_eq!((log.frames(), log.sightings.len()), (1, 2));
         let many = vec![(3, Pixel::new(0.0, 0.0)); MAX_SIGHTINGS - 1];
-        assert!(log.add(2, &aligned(camera, true), &many), "full");
+        assert!(log.add(2, &aligned(camera, true), &many, 0), "full");
         assert_eq!((log.frames(), log.sightings.len()), (1, 2), "the frame that did not fit is not in it");
-        assert!(!log.add(3, &aligned(camera, true), &seen), "said once");
+        assert!(!log.add(3, &aligned(camera, true), &seen, 0), "said once");
         assert_eq!(log.frames(), 1);
     }
 

@@ -335,9 +335,7 @@ impl LivePipeline for AreaLive {
             }
         };
         if let Some(log) = self.log.as_mut() {
-            let offset = self.id_offset;
-            let seen: Vec<_> = r.sightings.iter().map(|&(id, px)| (id + offset, px)).collect();
-            if log.add(self.frames, &frame.pose, &seen) {
+            if log.add(self.frames, &frame.pose, &r.sightings, self.id_offset) {
                 report.events.push(format!(
                     "area: {} sightings kept for the adjustment after landing, the most it keeps; later frames are not in it",
                     super::flightlog::MAX_SIGHTINGS

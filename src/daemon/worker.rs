@@ -52,8 +52,7 @@ pub trait LivePipeline: Send {
     }
     /// Adjust the map now (the area pipeline; at a touchdown, or asked over MAVLink):
     /// `why` says which, for what the ground is told.
-    fn adjust_map(&mut self, why: &str) -> Vec<PipelineEvent> {
-        let _ = why;
+    fn adjust_map(&mut self, _why: &str) -> Vec<PipelineEvent> {
         Vec::new()
     }
     /// Called at least every [`POLL_PERIOD`], frames or not: work the pipeline finished
