@@ -26,6 +26,29 @@ fn timesyncs(sim: &Sim, from: Mono, to: Mono) -> usize {
     sim.sent_between(from, to).filter(|m| matches!(m, MavMessage::TIMESYNC(t) if t.tc1 == 0)).count()
 }
 
+/// `MAV_CMD_USER_1` (pipeline control) from the ground station, addressed to mavloc.
+fn pipeline_command(param1: f32, param2: f32) -> MavMessage {
+    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        command: MavCmd::MAV_CMD_USER_1,
+        param1,
+        param2,
+        target_system: 1,
+        target_component: 191,
+        ..Default::default()
+    })
+}
+
+/// The results of every COMMAND_ACK the ground station got, in order.
+fn acks_to_gcs(sim: &Sim) -> Vec<MavResult> {
+    sim.to_gcs
+        .iter()
+        .filter_map(|(_, m)| match m {
+            MavMessage::COMMAND_ACK(a) => Some(a.result),
+            _ => None,
+        })
+        .collect()
+}
+
 fn settings() -> Settings {
     let mut s = Settings::default();
     s.daemon.pipeline = PipelineKind::None;
@@ -346,24 +369,9 @@ fn a_pipeline_that_cannot_start_is_denied_and_failed() {
     s.indoor.model = "/nonexistent.model".into();
     let mut sim = Sim::new(s);
     sim.start_result = Err("model /nonexistent.model does not exist".into());
-    sim.gcs_sends(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-        command: MavCmd::MAV_CMD_USER_1,
-        param1: 2.0,
-        param2: 1.0,
-        target_system: 1,
-        target_component: 191,
-        ..Default::default()
-    }));
+    sim.gcs_sends(pipeline_command(2.0, 1.0));
     sim.run_for(Duration::from_millis(100));
-    let acks: Vec<MavResult> = sim
-        .to_gcs
-        .iter()
-        .filter_map(|(_, m)| match m {
-            MavMessage::COMMAND_ACK(a) => Some(a.result),
-            _ => None,
-        })
-        .collect();
-    assert_eq!(acks, vec![MavResult::MAV_RESULT_DENIED]);
+    assert_eq!(acks_to_gcs(&sim), vec![MavResult::MAV_RESULT_DENIED]);
     assert_eq!(sim.core.pipeline(), PipelineState::Failed(PipelineKind::Indoor));
     assert!(sim.statustexts().concat().contains("does not exist"));
 }
@@ -1119,23 +1127,9 @@ fn the_map_is_adjusted_on_command_when_it_can_be() {
         s.area.attitude_prior_deg = prior;
         let mut sim = Sim::new(s);
         sim.run_until(secs(1));
-        sim.gcs_sends(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-            command: MavCmd::MAV_CMD_USER_1,
-            param1: 1.0,
-            param2: 3.0,
-            target_system: 1,
-            target_component: 191,
-            ..Default::default()
-        }));
+        sim.gcs_sends(pipeline_command(1.0, 3.0));
         sim.run_for(Duration::from_millis(100));
-        let acks: Vec<MavResult> = sim
-            .to_gcs
-            .iter()
-            .filter_map(|(_, m)| match m {
-                MavMessage::COMMAND_ACK(a) => Some(a.result),
-                _ => None,
-            })
-            .collect();
+        let acks = acks_to_gcs(&sim);
         let asked = sim
             .actions
             .iter()
