@@ -698,11 +698,9 @@ def run_scenario(a, name, out):
             truth = os.path.join(out, "truth")
             subprocess.run([a.mavloc, "sim", "render", "--scenario", "coastline", "--frames", "1", "--width", "320",
                             "--height", "180", "--out", truth, "--force"], capture_output=True, check=True)
-            r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", live, "--json"],
-                               capture_output=True, text=True)
-            if r.returncode == 0:
-                ev = json.loads(r.stdout)
-                report["evaluation"] = ev
+            ev, why = eval_area(a, truth, live)
+            report["evaluation"] = ev or why
+            if ev:
                 report["mean_m"] = ev["mean_m"]
                 report["median_m"] = ev["median_m"]
             if isinstance(report.get("adjustment"), dict) and live == filters:
@@ -785,19 +783,26 @@ def evaluate_adjusted(a, results, truth):
             adjusted[k] = summary[k]
     if "refined_frames" not in adjusted:
         return {"evaluation": "failed: the daemon's last set is not an adjusted one"}
-    try:
-        r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", results, "--json"],
-                           capture_output=True, text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        adjusted["evaluation"] = "failed: mavloc eval took more than 120 s"
-        return adjusted
-    if r.returncode == 0:
-        ev = json.loads(r.stdout)
+    ev, why = eval_area(a, truth, results)
+    if ev:
         adjusted["mean_m"] = ev["mean_m"]
         adjusted["median_m"] = ev["median_m"]
     else:
-        adjusted["evaluation"] = "failed: " + r.stderr.strip()[-300:]
+        adjusted["evaluation"] = why
     return adjusted
+
+
+def eval_area(a, truth, result):
+    """`mavloc eval area` of a result set against the true shore: (its figures, None), or
+    (None, why there are none)."""
+    try:
+        r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", result, "--json"],
+                           capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        return None, "failed: mavloc eval took more than 120 s"
+    if r.returncode != 0:
+        return None, "failed: " + r.stderr.strip()[-300:]
+    return json.loads(r.stdout), None
 
 
 def refine_recording(a, config, state, out, truth):
@@ -843,21 +848,15 @@ def refine_recording(a, config, state, out, truth):
         shutil.copytree(result, copy, ignore=shutil.ignore_patterns("trace.csv"))
         summary.pop("dataset_crc32", None)
         json.dump(summary, open(os.path.join(copy, "summary.json"), "w"))
-        try:
-            r = subprocess.run([a.mavloc, "eval", "area", "--dataset", truth, "--result", copy, "--json"],
-                               capture_output=True, text=True, timeout=120)
-        except subprocess.TimeoutExpired:
-            refined["evaluation"] = "failed: mavloc eval took more than 120 s"
-            return refined
-        if r.returncode == 0:
+        ev, why = eval_area(a, truth, copy)
+        if ev:
             for png in glob.glob(os.path.join(copy, "*.png")):
                 shutil.copy(png, os.path.join(result, "eval-" + os.path.basename(png)))
-    if r.returncode == 0:
-        ev = json.loads(r.stdout)
+    if ev:
         refined["mean_m"] = ev["mean_m"]
         refined["median_m"] = ev["median_m"]
     else:
-        refined["evaluation"] = "failed: " + r.stderr.strip()[-300:]
+        refined["evaluation"] = why
     return refined
 
 
