@@ -692,6 +692,15 @@ def run_scenario(a, name, out):
         lm = os.path.join(live, "landmarks.csv")
         if os.path.exists(lm):
             report["landmarks"] = max(0, sum(1 for _ in open(lm)) - 1)
+        try:
+            # `area.adjust_first_frames`: the map at the touchdown holds what the adjustments
+            # in flight moved, and the frames after them had the offset they found added.
+            at_touchdown = json.load(open(os.path.join(live, "summary.json")))
+            for k in ("refined_frames", "refined_landmarks", "gimbal_offset_applied_deg"):
+                if at_touchdown.get(k) is not None:
+                    report.setdefault("in_flight", {})[k] = at_touchdown[k]
+        except (OSError, ValueError):
+            pass
         if report.get("landmarks"):
             # Accuracy against the simulated world's true shore: the scenario's ground truth
             # (rendered once, one frame) and `mavloc eval area`.
@@ -727,15 +736,21 @@ def await_adjustment(state, out, log_path, events):
     map adjusted after landing"). The filters' set it writes at the touchdown is copied to
     OUT/filters (the live figures), then the adjusted set is awaited. What happened, as a
     dict, or why there is nothing to wait for."""
-    # The harness's flight is the daemon's only one: its log has one landing.
-    def log_has(*needles):
+    # The harness's flight is the daemon's only one: its log has one landing. With
+    # `area.adjust_first_frames` the map is adjusted in flight too, and a landing during
+    # such an adjustment is adjusted after it ("area: landed while ..."), so only what the
+    # log says after the landing's own adjustment started counts.
+    def log_has(*needles, after="area: landed"):
         try:
             text = open(log_path).read()
         except OSError:
             return None
-        return next((n for n in needles if n in text), None)
+        at = text.find(after)
+        if at < 0:
+            return None
+        return next((n for n in needles if n in text[at:]), None)
     t0 = time.time()
-    while log_has("area: landed;") is None:
+    while log_has("area: landed") is None:
         if time.time() - t0 > 30:
             return "not started: mavloc said nothing of a landing within 30 s of the disarm"
         time.sleep(0.5)
@@ -748,19 +763,21 @@ def await_adjustment(state, out, log_path, events):
         try:
             # The set the link points at is removed when the next one is published.
             shutil.copytree(os.path.realpath(results), filters)
-            summary = json.load(open(os.path.join(filters, "summary.json")))
+            json.load(open(os.path.join(filters, "summary.json")))
         except (OSError, ValueError, shutil.Error):
             time.sleep(0.2)
             continue
-        if summary.get("refined_frames") is not None:
+        if log_has("area: map adjusted", "area: the map is not adjusted", "area: the map's adjustment is not used",
+                   after="area: landed;") is not None:
             shutil.rmtree(filters, ignore_errors=True)
-            return "not measured: the adjustment ended before the filters' set was copied"
+            return "not measured: the adjustment ended before the set at the touchdown was copied"
         break
     else:
-        return "not measured: the filters' set could not be copied"
+        return "not measured: the set at the touchdown could not be copied"
     t0 = time.time()
     while True:
-        said = log_has("area: map adjusted", "area: the map is not adjusted after landing")
+        said = log_has("area: map adjusted", "area: the map is not adjusted", "area: the map's adjustment is not used",
+                       after="area: landed;")
         if said is not None:
             break
         if time.time() - t0 > ADJUST_TIMEOUT_S:
@@ -778,7 +795,8 @@ def evaluate_adjusted(a, results, truth):
     except (OSError, ValueError) as e:
         return {"evaluation": f"failed: {e}"}
     for k in ("landmarks", "refined_frames", "refined_elapsed_s", "refined_median_before_px",
-              "refined_median_after_px", "attitude_correction_median_deg", "refined_gimbal_offset_deg"):
+              "refined_median_after_px", "attitude_correction_median_deg", "refined_gimbal_offset_deg",
+              "gimbal_offset_applied_deg"):
         if summary.get(k) is not None:
             adjusted[k] = summary[k]
     if "refined_frames" not in adjusted:

@@ -8,7 +8,7 @@
 //!   telemetry.jsonl        one JSON object per frame: time, true and measured pose, gimbal
 //!   camera.toml            intrinsics, resolution, gimbal kinematic chain
 //!   ground_truth.csv       border polylines: line, index, north, east, down, lat, lon, alt
-//!   ground_truth.geojson   the same in WGS84 (RFC 7946: lon, lat, alt)
+//!   ground_truth.geojson   the same in WGS84 (RFC 7946: lon, lat, height above the ellipsoid)
 //!   scenario.toml          everything needed to re-render the dataset
 //!   mission.plan           the flight as a QGroundControl plan
 //!   mavloc.toml            optional: settings the data needs, layered over the
@@ -244,7 +244,9 @@ pub fn write_ground_truth(dir: &Path, frame: &LocalFrame, lines: &[Vec<Vec3>]) -
                 lon: g.lon_deg,
                 alt: g.alt_m,
             });
-            coords.push(vec![g.lon_deg, g.lat_deg, g.alt_m]);
+            // Heights as area.geojson has them (above the ellipsoid, RFC 7946), so the two
+            // files lie on each other (they were 38 m apart where the geoid is -38 m).
+            coords.push(crate::results::wgs84(frame, p).0.to_vec());
         }
         let mut props = geojson::JsonObject::new();
         props.insert("name".into(), format!("ground truth border {li}").into());
@@ -256,7 +258,12 @@ pub fn write_ground_truth(dir: &Path, frame: &LocalFrame, lines: &[Vec<Vec3>]) -
             foreign_members: None,
         });
     }
-    let fc = geojson::FeatureCollection { bbox: None, features, foreign_members: None };
+    let mut members = geojson::JsonObject::new();
+    members.insert(
+        "heights".into(),
+        "third coordinate: metres above the WGS84 ellipsoid (mean sea level + EGM96 undulation); ground_truth.csv's alt: above mean sea level".into(),
+    );
+    let fc = geojson::FeatureCollection { bbox: None, features, foreign_members: Some(members) };
     write_file(dir, GROUND_TRUTH_CSV, table::to_string(&rows).as_bytes())?;
     write_file(dir, GROUND_TRUTH_GEOJSON, geojson::GeoJson::from(fc).to_string().as_bytes())
 }
@@ -308,11 +315,27 @@ pub struct Dataset {
     pub records: Vec<TelemetryRecord>,
     /// Ground-truth polylines, local NED (empty when the dataset has none).
     pub ground_truth: Vec<Vec<Vec3>>,
+    /// The line of `telemetry.jsonl` that was torn (the last, without its newline: a
+    /// recording cut off as it wrote it), left out; the frames before it are the dataset.
+    pub torn_line: Option<usize>,
 }
 
 impl Dataset {
     /// Opens a dataset folder; every error names the file (and line) that is wrong.
     pub fn open(dir: &Path) -> Result<Dataset, String> {
+        // The folder itself first: "nope/camera.toml: No such file" sent users looking
+        // for a file when the folder name was wrong.
+        match fs::metadata(dir) {
+            Err(e) => return Err(format!("dataset {}: {e}", dir.display())),
+            Ok(m) if !m.is_dir() => return Err(format!("dataset {}: not a folder", dir.display())),
+            Ok(_) if !dir.join(CAMERA_FILE).exists() => {
+                return Err(format!(
+                    "{} is not a dataset: it has no {CAMERA_FILE} (datasets are made by `mavloc sim render`, `mavloc import photos` and the daemon's recorder)",
+                    dir.display()
+                ))
+            }
+            Ok(_) => {}
+        }
         let read = |name: &str| {
             let p = dir.join(name);
             fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))
@@ -329,6 +352,7 @@ impl Dataset {
             .map_err(|e| format!("{}: {e} (an interrupted render leaves no telemetry)", tpath.display()))?;
         let lines: Vec<&str> = text.split_inclusive('\n').collect();
         let mut records = Vec::new();
+        let mut torn = None;
         for (n, line) in lines.iter().enumerate() {
             if line.trim().is_empty() {
                 continue;
@@ -337,10 +361,16 @@ impl Dataset {
                 Ok(r) => r,
                 // A recording's telemetry is appended a line at a time: a crash can tear
                 // the last line (no newline yet). That frame was never recorded whole.
-                Err(_) if n + 1 == lines.len() && !line.ends_with('\n') => break,
+                Err(_) if n + 1 == lines.len() && !line.ends_with('\n') => {
+                    torn = Some(n + 1);
+                    break;
+                }
                 Err(e) => return Err(format!("{} line {}: {e}", tpath.display(), n + 1)),
             };
             records.push(r);
+        }
+        if records.is_empty() {
+            return Err(format!("{}: no telemetry record in it, so no frame can be posed", tpath.display()));
         }
 
         let gpath = dir.join(GROUND_TRUTH_CSV);
@@ -349,7 +379,7 @@ impl Dataset {
         } else {
             Vec::new()
         };
-        Ok(Dataset { dir: dir.to_path_buf(), camera, records, ground_truth })
+        Ok(Dataset { dir: dir.to_path_buf(), camera, records, ground_truth, torn_line: torn })
     }
 
     /// `frames/NNNNNN.png`, or `.jpg` where the dataset holds photos (`mavloc import`).
@@ -398,6 +428,39 @@ mod tests {
             gimbal_frame: GimbalFrame::Earth,
             origin: Geodetic::new(57.0, 10.0, 20.0),
         }
+    }
+
+    /// The ground truth's GeoJSON and a result's `area.geojson` give a point the same
+    /// height (above the ellipsoid): the same shore loaded from both lies on itself. They
+    /// were the geoid's undulation apart (38 m at the coastline's origin), the ground truth
+    /// above mean sea level.
+    #[test]
+    fn ground_truth_and_results_geojson_share_their_heights() {
+        let dir = tempfile::tempdir().unwrap();
+        // Where the EGM96 undulation is large (about -30 m, Duluth).
+        let frame = LocalFrame::new(Geodetic::new(46.8, -92.1, 190.0));
+        let p = Vec3::new(12.0, -7.0, 3.0);
+        write_ground_truth(dir.path(), &frame, &[vec![p, p + Vec3::new(1.0, 0.0, 0.0)]]).unwrap();
+        let truth: serde_json::Value =
+            serde_json::from_str(&fs::read_to_string(dir.path().join(GROUND_TRUTH_GEOJSON)).unwrap())
+                .unwrap();
+        let landmark = crate::results::LandmarkRecord {
+            id: 0,
+            position: p,
+            sigma_max_m: 0.1,
+            observations: 3,
+            first_frame: 0,
+            last_frame: 1,
+        };
+        let result: serde_json::Value =
+            serde_json::from_str(&crate::results::area_geojson(&frame, &[landmark], &[])).unwrap();
+        let height = |v: &serde_json::Value| v.as_f64().unwrap();
+        let t = height(&truth["features"][0]["geometry"]["coordinates"][0][2]);
+        let r = height(&result["features"][0]["geometry"]["coordinates"][2]);
+        assert!((t - r).abs() < 1e-6, "ground truth {t} m, result {r} m");
+        let amsl = 190.0 - 3.0;
+        assert!((t - amsl).abs() > 20.0, "{t} m is the ellipsoid's, not mean sea level's {amsl} m");
+        assert!(truth["heights"].as_str().unwrap().contains("ellipsoid"), "{truth}");
     }
 
     #[test]
@@ -467,7 +530,18 @@ mod tests {
         let line = |frame| serde_json::to_string(&rec(frame)).unwrap();
         let torn = &line(2)[..30];
         fs::write(d.join(TELEMETRY_FILE), format!("{}\n{}\n{torn}", line(0), line(1))).unwrap();
-        assert_eq!(Dataset::open(d).unwrap().records, vec![rec(0), rec(1)]);
+        let ds = Dataset::open(d).unwrap();
+        assert_eq!(ds.records, vec![rec(0), rec(1)]);
+        assert_eq!(ds.torn_line, Some(3), "the torn line is told, so a run can say so");
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n", line(0))).unwrap();
+        assert_eq!(Dataset::open(d).unwrap().torn_line, None);
+        // A torn first line: nothing to pose a frame with, said as such.
+        fs::write(d.join(TELEMETRY_FILE), torn).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("telemetry.jsonl: no telemetry record"), "{e}");
+        fs::write(d.join(TELEMETRY_FILE), "").unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("telemetry.jsonl: no telemetry record"), "{e}");
         fs::write(d.join(TELEMETRY_FILE), format!("{}\n{torn}\n{}\n", line(0), line(1))).unwrap();
         let e = Dataset::open(d).unwrap_err();
         assert!(e.contains("telemetry.jsonl line 2"), "{e}");
@@ -476,10 +550,26 @@ mod tests {
         assert!(e.contains("telemetry.jsonl line 2"), "a complete bad last line is an error: {e}");
     }
 
+    /// A folder that is not there, a file, or a folder without camera.toml is named for
+    /// what it is, not as a missing camera.toml inside it.
+    #[test]
+    fn a_missing_or_foreign_folder_is_named_as_such() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = Dataset::open(&dir.path().join("nope")).unwrap_err();
+        assert!(e.starts_with(&format!("dataset {}:", dir.path().join("nope").display())), "{e}");
+        assert!(!e.contains("camera.toml"), "{e}");
+        fs::write(dir.path().join("file"), "x").unwrap();
+        let e = Dataset::open(&dir.path().join("file")).unwrap_err();
+        assert!(e.ends_with("not a folder"), "{e}");
+        let e = Dataset::open(dir.path()).unwrap_err();
+        assert!(e.contains("is not a dataset: it has no camera.toml"), "{e}");
+    }
+
     #[test]
     fn camera_pose_adds_the_static_gimbal_offsets() {
         let camera = CameraFile { gimbal_frame: GimbalFrame::Body, ..camera() };
-        let ds = Dataset { dir: PathBuf::new(), camera, records: vec![], ground_truth: vec![] };
+        let ds =
+            Dataset { dir: PathBuf::new(), camera, records: vec![], ground_truth: vec![], torn_line: None };
         let r = PoseRecord {
             position: [1.0, 2.0, -30.0],
             attitude_deg: [2.0, -3.0, 40.0],

@@ -245,7 +245,7 @@ pub fn landmarks_ply(frame: &LocalFrame, landmarks: &[LandmarkRecord]) -> String
 
 /// Longitude, latitude and height above the WGS84 ellipsoid (RFC 7946's third
 /// coordinate), and the height above mean sea level, of a local point.
-fn wgs84(frame: &LocalFrame, p: &Vec3) -> ([f64; 3], f64) {
+pub(crate) fn wgs84(frame: &LocalFrame, p: &Vec3) -> ([f64; 3], f64) {
     let g = frame.to_geodetic(p);
     ([g.lon_deg, g.lat_deg, crate::geoid::ellipsoid_height_m(g.lat_deg, g.lon_deg, g.alt_m)], g.alt_m)
 }

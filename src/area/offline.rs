@@ -101,6 +101,14 @@ pub struct RunSummary {
     pub refined_gimbal_offset_deg: Option<[f64; 3]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refined_gimbal_offset_sd_deg: Option<[f64; 3]>,
+    /// Why the refinement's solution was not used (`area::refine::Refined::implausible`):
+    /// the landmarks are then the filters'.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined_rejected: Option<String>,
+    /// Live: the static gimbal offset the daemon adds to the frames' reported angles since
+    /// an adjustment found it (`area.adjust_first_frames`, `daemon::flightlog`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gimbal_offset_applied_deg: Option<[f64; 3]>,
     /// Flight lines (split where the track turns); the pairs of points a converged
     /// landmark gets from two lines' rays alone (one per landmark and pair of lines); the
     /// median distance between them, with the poses the filters ran on (aligned, when the
@@ -451,6 +459,13 @@ pub fn run_observed(
     stop: Option<&AtomicBool>,
 ) -> anyhow::Result<(RunSummary, Observations)> {
     let ds = Dataset::open(&opts.dataset).map_err(|e| anyhow::anyhow!(e))?;
+    if let Some(line) = ds.torn_line {
+        tracing::warn!(
+            "{}: line {line} is torn (a recording cut off as it wrote it): the {} frames before it are the dataset",
+            opts.dataset.join(mavloc_data::dataset::TELEMETRY_FILE).display(),
+            ds.records.len()
+        );
+    }
     // Whether --out holds a complete earlier set, which a stopped run must not replace.
     let earlier_complete = std::fs::read_to_string(opts.out.join("summary.json"))
         .ok()
@@ -794,33 +809,42 @@ pub fn run_observed(
             summary.refined_median_before_px = Some(r.median_before_px * scale);
             summary.refined_median_after_px = Some(r.median_after_px * scale);
             summary.refined_left_out = Some(r.left_out);
-            if let Some((o, sd)) = r.offset_deg {
-                summary.refined_gimbal_offset_deg = Some(o);
-                summary.refined_gimbal_offset_sd_deg = Some(sd);
+            // Only the unaligned photos' and frames' corrections are held to the prior this
+            // way; aligned photos' rest on their tie points.
+            let rejected = if alignment.is_empty() { r.implausible(s.area.attitude_prior_deg) } else { None };
+            if let Some(why) = rejected {
+                tracing::warn!("attitude refinement not used: {why}; the filters' landmarks are the results");
+                summary.refined_rejected = Some(why);
+            } else {
+                if let Some((o, sd)) = r.offset_deg {
+                    summary.refined_gimbal_offset_deg = Some(o);
+                    summary.refined_gimbal_offset_sd_deg = Some(sd);
+                }
+                let mut angles: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
+                if !angles.is_empty() {
+                    summary.attitude_correction_median_deg =
+                        Some(super::residuals::quantile(&mut angles, 0.5));
+                }
+                let mut csv =
+                    String::from("frame,correction_deg,about_north_deg,about_east_deg,about_down_deg\n");
+                for (f, d) in &r.corrections {
+                    let g = d.map(f64::to_degrees);
+                    csv.push_str(&format!("{f},{:.4},{:.4},{:.4},{:.4}\n", g.norm(), g.x, g.y, g.z));
+                }
+                output::write_atomic(&out.join("attitude.csv"), csv.as_bytes())?;
+                results = r.landmarks;
+                let refined: std::collections::BTreeMap<u64, crate::geometry::CameraPose> = frames
+                    .iter()
+                    .map(|&f| {
+                        let o = r.offset_deg.map_or(crate::geometry::Vec3::zeros(), |(o, _)| o.into());
+                        (f, super::refine::corrected(&pose(f, &o), &r.corrections[&f]))
+                    })
+                    .collect();
+                if surveyed_in_lines {
+                    summary.cross_line_refined_median_m = cross(&refined, &results).1;
+                }
+                marks = super::residuals::marks(&seen, &results, &refined, &k, scale);
             }
-            let mut angles: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
-            if !angles.is_empty() {
-                summary.attitude_correction_median_deg = Some(super::residuals::quantile(&mut angles, 0.5));
-            }
-            let mut csv =
-                String::from("frame,correction_deg,about_north_deg,about_east_deg,about_down_deg\n");
-            for (f, d) in &r.corrections {
-                let g = d.map(f64::to_degrees);
-                csv.push_str(&format!("{f},{:.4},{:.4},{:.4},{:.4}\n", g.norm(), g.x, g.y, g.z));
-            }
-            output::write_atomic(&out.join("attitude.csv"), csv.as_bytes())?;
-            results = r.landmarks;
-            let refined: std::collections::BTreeMap<u64, crate::geometry::CameraPose> = frames
-                .iter()
-                .map(|&f| {
-                    let o = r.offset_deg.map_or(crate::geometry::Vec3::zeros(), |(o, _)| o.into());
-                    (f, super::refine::corrected(&pose(f, &o), &r.corrections[&f]))
-                })
-                .collect();
-            if surveyed_in_lines {
-                summary.cross_line_refined_median_m = cross(&refined, &results).1;
-            }
-            marks = super::residuals::marks(&seen, &results, &refined, &k, scale);
         }
     }
     summary.complete = !stopped;

@@ -43,9 +43,16 @@ pub struct RefineParams {
     /// Huber's threshold, in SDs.
     pub huber: f64,
     pub rounds: usize,
-    /// SD of the prior on each frame's position shift, metres; 0 = positions held at the
-    /// recorded ones (no shift estimated).
-    pub shift_prior_m: f64,
+    /// SD of the prior on each frame's position shift, metres, along north, east and down;
+    /// all 0 = positions held at the recorded ones (no shift estimated). Held, positions
+    /// noisier than the sightings are fitted by turning the whole flight and pushing the
+    /// landmarks away, where the noise turns a bearing less (session 35: the seed's video
+    /// noise, 2 m of height per frame, gave a 24-45 deg static pitch offset and a map
+    /// 24-28 m off); with shifts estimated the same flights kept their maps (1.30 and
+    /// 1.71 m), but `mavloc area --trace` on a PX4 SITL recording of 1861 frames ran over
+    /// 12 minutes (stopped there) against 2.5 without: twice the blocks. So positions are
+    /// held and such a solution is refused instead ([`Refined::implausible`]).
+    pub shift_prior_m: [f64; 3],
     /// A sighting this many SDs off after a first solution is left out and the problem
     /// solved again: a false match a filter took while its landmark was still uncertain
     /// (on a rendered photo survey 1 % of the converged landmarks' sightings were
@@ -67,7 +74,7 @@ impl RefineParams {
             pixel_sd: 1.0,
             huber: 2.0,
             rounds: 30,
-            shift_prior_m: 0.0,
+            shift_prior_m: [0.0; 3],
             outlier_sds: 10.0,
             cancel: None,
         }
@@ -88,11 +95,52 @@ pub struct Refined {
     /// The static gimbal offset (yaw, pitch, roll, degrees, added to the recorded angles)
     /// and its SD from the sightings, when it was estimated.
     pub offset_deg: Option<([f64; 3], [f64; 3])>,
+    /// The offset's covariance (degrees squared), when it was estimated: yaw and roll of
+    /// a camera looking obliquely down turn its view alike, so their SDs alone overstate
+    /// how well the view is known ([`weighed_offset`]).
+    pub offset_covariance_deg2: Option<Matrix3<f64>>,
     /// Median reprojection error of the sightings before and after, pixels.
     pub median_before_px: f64,
     pub median_after_px: f64,
     /// Sightings left out as outliers.
     pub left_out: usize,
+}
+
+/// A frame's correction is implausible beyond this many times the prior's SD (the
+/// median over the frames): a median of three SDs is where the sightings no longer tell
+/// attitude errors but something the model lacks (session 35: the seed's video noise,
+/// 2 m of height noise per frame, had the frames turned by 8.3 deg with a 2 deg prior and
+/// a 45 deg static pitch offset, the map 28 m off instead of 1.4 m).
+pub const PLAUSIBLE_PRIOR_SDS: f64 = 3.0;
+
+/// The largest static offset taken for one, degrees: what `gimbal.*_offset_deg` accepts.
+pub const PLAUSIBLE_OFFSET_DEG: f64 = 20.0;
+
+impl Refined {
+    /// Why this refinement is not to be used, if it is not: its frames turned far beyond
+    /// their prior `prior_deg` (the median correction more than [`PLAUSIBLE_PRIOR_SDS`]
+    /// times it), or a static offset beyond any mount ([`PLAUSIBLE_OFFSET_DEG`]). Such a
+    /// solution fits the sightings by turning the whole flight, not by correcting it.
+    pub fn implausible(&self, prior_deg: f64) -> Option<String> {
+        let mut turned: Vec<f64> = self.corrections.values().map(|d| d.norm().to_degrees()).collect();
+        if !turned.is_empty() {
+            let median = super::residuals::quantile(&mut turned, 0.5);
+            if median.is_nan() || median > PLAUSIBLE_PRIOR_SDS * prior_deg {
+                return Some(format!(
+                    "the frames would turn by {median:.2} deg (median), more than {PLAUSIBLE_PRIOR_SDS} times the {prior_deg} deg the attitude is trusted to: the sightings' errors are not the attitude's (noisy positions?)"
+                ));
+            }
+        }
+        if let Some((o, _)) = self.offset_deg {
+            if !o.iter().all(|a| a.abs() <= PLAUSIBLE_OFFSET_DEG) {
+                return Some(format!(
+                    "a static gimbal offset of yaw {:.1} pitch {:.1} roll {:.1} deg, beyond the {PLAUSIBLE_OFFSET_DEG} deg a mount is taken to be off",
+                    o[0], o[1], o[2]
+                ));
+            }
+        }
+        None
+    }
 }
 
 /// A pose moved by `shift` (local NED, m).
@@ -487,7 +535,7 @@ fn solve_refined(
     frame_prior: Vec<f64>,
 ) -> Refined {
     let block: BTreeMap<u64, usize> = frames.iter().enumerate().map(|(i, &f)| (f, i)).collect();
-    let shifting = p.shift_prior_m > 0.0;
+    let shifting = p.shift_prior_m.iter().any(|sd| *sd > 0.0);
     let shift_block: BTreeMap<u64, usize> = if shifting {
         frames.iter().enumerate().map(|(i, &f)| (f, frames.len() + i)).collect()
     } else {
@@ -520,10 +568,32 @@ fn solve_refined(
         corrections,
         shifts,
         offset_deg,
+        offset_covariance_deg2: if shared { r.shared_covariance } else { None },
         median_before_px: r.median_before_px,
         median_after_px: r.median_after_px,
         left_out: r.left_out,
     }
+}
+
+/// An estimated static offset weighed against a prior on it of `prior_sd_deg` in every
+/// direction (the Wiener gain `P0 (P0 + C)^-1` with `P0 = prior^2 I`): the directions the
+/// sightings determine are taken nearly whole, those they leave open are shrunk towards
+/// no offset. Yaw and roll of a camera looking obliquely down are far less determined
+/// apart than together (session 35: SDs of 3.0 deg along one direction, 0.6-0.8 along the
+/// others over 60 frames of a short line), so the offset is not judged by each angle's SD
+/// alone; weighed this way it is, in expectation, closer to the truth than no offset is.
+pub fn weighed_offset(offset_deg: &Vec3, covariance_deg2: &Matrix3<f64>, prior_sd_deg: f64) -> Vec3 {
+    if !covariance_deg2.iter().all(|c| c.is_finite()) || !offset_deg.iter().all(|c| c.is_finite()) {
+        return Vec3::zeros();
+    }
+    let eig = covariance_deg2.symmetric_eigen();
+    let p2 = prior_sd_deg.powi(2);
+    let mut kept = Vec3::zeros();
+    for (i, var) in eig.eigenvalues.iter().enumerate() {
+        let v = eig.eigenvectors.column(i);
+        kept += v * (v.dot(offset_deg) * p2 / (p2 + var.max(0.0)));
+    }
+    kept
 }
 
 /// A static gimbal offset, estimated (area seed sec. 6.11, table 6.8/6.9).
@@ -682,13 +752,14 @@ impl Problem<'_> {
         let nt = self.shift_block.len();
         let nb = nf + nt + self.shared as usize;
         let shared_ix = self.shared.then_some(nf + nt);
-        let prior = |b: usize| {
+        // Each block's prior SDs, per parameter; an axis held (0) is held to a millimetre.
+        let prior = |b: usize| -> Vector3<f64> {
             if b < nf {
-                self.frame_prior[b]
+                Vector3::repeat(self.frame_prior[b])
             } else if b < nf + nt {
-                p.shift_prior_m
+                Vector3::from(p.shift_prior_m).map(|sd| sd.max(1e-3))
             } else {
-                p.shared_prior_deg
+                Vector3::repeat(p.shared_prior_deg)
             }
         };
         let index: BTreeMap<u64, usize> = self.landmarks.iter().enumerate().map(|(i, l)| (l.id, i)).collect();
@@ -746,8 +817,11 @@ impl Problem<'_> {
         };
         let shared_of = |theta: &[Vec3]| shared_ix.map_or(zero, |b| theta[b]);
         let cost_and_errors = |xs: &[Vec3], theta: &[Vec3]| -> (f64, Vec<f64>) {
-            let mut cost =
-                theta.iter().enumerate().map(|(b, d)| 0.5 * (d.norm() / prior(b)).powi(2)).sum::<f64>();
+            let mut cost = theta
+                .iter()
+                .enumerate()
+                .map(|(b, d)| 0.5 * d.component_div(&prior(b)).norm_squared())
+                .sum::<f64>();
             let at = poses_at(theta, &shared_of(theta));
             let mut errs = Vec::new();
             for (j, obs) in per_landmark.iter().enumerate() {
@@ -785,14 +859,14 @@ impl Problem<'_> {
             // V (landmarks), W (block x landmark).
             // Fx, not SipHash: a lookup per sighting and round (10 % of a photo survey's run).
             let mut eu: Vec<Vector3<f64>> =
-                theta.iter().enumerate().map(|(b, d)| d / prior(b).powi(2)).collect();
+                theta.iter().enumerate().map(|(b, d)| d.component_div(&prior(b).map(|sd| sd * sd))).collect();
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
             let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
             let mut w: Vec<Vec<(usize, Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
             let at = poses_at(&theta, &shared_of(&theta));
             // The shared block's central differences: every frame's pose with that block
             // moved by -h and +h in each of its three parameters.
-            let ht = shared_ix.map_or(0.0, |b| 1e-6 * prior(b).max(1e-3));
+            let ht = shared_ix.map_or(0.0, |b| 1e-6 * prior(b).max().max(1e-3));
             let moved: Vec<[Vec<FrameAt>; 2]> = if shared_ix.is_some() {
                 let sh = shared_of(&theta);
                 (0..3)
@@ -888,7 +962,7 @@ impl Problem<'_> {
             }
             let mut u = vec![Matrix3::<f64>::zeros(); reduced.keys.len()];
             for (b, &d) in diagonal.iter().enumerate() {
-                u[d] = Matrix3::identity() / prior(b).powi(2);
+                u[d] = Matrix3::from_diagonal(&prior(b).map(|sd| 1.0 / (sd * sd)));
             }
             for &(fi, part, slot) in &u_at {
                 u[slot] += uf[fi][part / 3][part % 3];
@@ -1168,6 +1242,51 @@ mod tests {
         out
     }
 
+    /// A solution whose frames turned by more than three prior SDs (median), or with a
+    /// static offset beyond 20 deg, is refused with the figure that gives it away; one
+    /// within them is not. On both sides of each bound.
+    #[test]
+    fn a_solution_that_turns_the_whole_flight_is_refused() {
+        let refined = |turn_deg: &[f64], offset: Option<[f64; 3]>| Refined {
+            landmarks: Vec::new(),
+            corrections: turn_deg
+                .iter()
+                .enumerate()
+                .map(|(f, d)| (f as u64, Vec3::new(0.0, d.to_radians(), 0.0)))
+                .collect(),
+            shifts: BTreeMap::new(),
+            offset_deg: offset.map(|o| (o, [0.1; 3])),
+            offset_covariance_deg2: None,
+            median_before_px: 10.0,
+            median_after_px: 1.0,
+            left_out: 0,
+        };
+        assert_eq!(refined(&[1.0, 5.9, 7.0], Some([1.0, -19.9, 0.5])).implausible(2.0), None);
+        let why = refined(&[1.0, 6.1, 7.0], None).implausible(2.0).expect("refused");
+        assert!(why.contains("turn by 6.10 deg (median)") && why.contains("3 times the 2 deg"), "{why}");
+        let why = refined(&[1.0, 1.0, 1.0], Some([3.4, 45.2, 2.8])).implausible(2.0).expect("refused");
+        assert!(why.contains("pitch 45.2"), "{why}");
+        assert!(refined(&[f64::NAN], None).implausible(2.0).is_some(), "a NaN solution");
+    }
+
+    /// The offset applied to later frames (`weighed_offset`): whole along a direction the
+    /// sightings pin down, shrunk along one they leave open, and none from a covariance
+    /// that is not finite.
+    #[test]
+    fn an_offset_is_weighed_against_the_mount_prior_per_direction() {
+        let o = Vec3::new(1.0, 2.0, -1.0);
+        let cov = Matrix3::from_diagonal(&Vec3::new(1e-6, 4.0, 1e6));
+        let w = weighed_offset(&o, &cov, 2.0);
+        assert!((w.x - 1.0).abs() < 1e-6, "pinned down: taken whole: {w}");
+        assert!((w.y - 1.0).abs() < 1e-9, "SD 2 against a 2 deg prior: half: {w}");
+        assert!(w.z.abs() < 1e-5, "left open: none: {w}");
+        // Rotated into another basis, the same weighing.
+        let r = Rot3::from_euler_angles(0.3, -0.2, 1.1);
+        let turned = weighed_offset(&(r * o), &(r.matrix() * cov * r.matrix().transpose()), 2.0);
+        assert!((turned - r * w).norm() < 1e-6, "{turned} vs {}", r * w);
+        assert_eq!(weighed_offset(&o, &Matrix3::from_element(f64::NAN), 2.0), Vec3::zeros());
+    }
+
     /// Per-frame attitude noise plus a static gimbal offset: the offset refined beside the
     /// per-frame corrections is the offset plus the frames' mean noise (all the sightings
     /// can tell), and the landmarks come back to the truth.
@@ -1299,7 +1418,7 @@ mod tests {
         let sightings = exact_sightings(&truth, &points, &k);
         let start: Vec<LandmarkRecord> =
             points.iter().enumerate().map(|(j, x)| record(j as u64, *x)).collect();
-        let p = RefineParams { shift_prior_m: 5.0, ..RefineParams::new(2.0) };
+        let p = RefineParams { shift_prior_m: [5.0; 3], ..RefineParams::new(2.0) };
         let r = refine(&sightings, &start, &recorded, &k, &p);
         // Moving every frame and landmark together changes no sighting: the position
         // priors share the error out, so frame 2 comes back by 5/6 of it and the others

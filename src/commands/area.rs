@@ -143,6 +143,9 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
         let out = summary.refined_left_out.unwrap_or(0);
         println!("attitude refinement: sightings reproject within {b:.1} px -> {a:.1} px (median), frames corrected by {d:.2} deg (median; attitude.csv); {out} sightings left out as false matches");
     }
+    if let Some(why) = &summary.refined_rejected {
+        println!("attitude refinement not used: {why}; the landmarks are the filters'");
+    }
     if let (Some(o), Some(sd)) = (summary.refined_gimbal_offset_deg, summary.refined_gimbal_offset_sd_deg) {
         println!(
             "static gimbal offset found with it: yaw {:+.3}, pitch {:+.3}, roll {:+.3} deg (SD {:.3}, {:.3}, {:.3} from the sightings; add to gimbal.*_offset_deg, or `mavloc calibrate gimbal`)",

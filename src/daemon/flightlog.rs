@@ -82,7 +82,7 @@ pub struct Adjusted {
 pub enum Poll {
     Idle,
     Running,
-    Done(Adjusted),
+    Done(Box<Adjusted>),
     /// It could not run, or its thread panicked: why.
     Failed(String),
 }
@@ -171,6 +171,7 @@ impl FlightLog {
         let handle = std::thread::Builder::new()
             .name("mavloc-refine".into())
             .spawn(move || {
+                yield_to_the_pipeline();
                 let mut count: BTreeMap<u64, usize> = BTreeMap::new();
                 for s in &seen {
                     *count.entry(s.id as u64).or_default() += 1;
@@ -206,7 +207,7 @@ impl FlightLog {
         let r = self.running.take().expect("checked");
         let elapsed_s = r.started.elapsed().as_secs_f64();
         match r.handle.join() {
-            Ok(Ok(refined)) => Poll::Done(Adjusted { refined, frames: r.frames, elapsed_s }),
+            Ok(Ok(refined)) => Poll::Done(Box::new(Adjusted { refined, frames: r.frames, elapsed_s })),
             Ok(Err(why)) => Poll::Failed(why),
             Err(p) => Poll::Failed(format!(
                 "it panicked: {}",
@@ -215,6 +216,30 @@ impl FlightLog {
                     .or_else(|| p.downcast_ref::<String>().cloned())
                     .unwrap_or_else(|| "unknown panic".into())
             )),
+        }
+    }
+}
+
+/// The nice value of the adjustment's thread: in flight (`area.adjust_first_frames`) it
+/// shares the cores with the pipeline and the camera, which must keep their rate; the
+/// adjustment takes what they leave.
+const ADJUSTMENT_NICE: i32 = 10;
+
+/// Lowers the calling thread's scheduling priority to [`ADJUSTMENT_NICE`]. On Linux the
+/// nice value is per thread (setpriority(2) on a thread id); elsewhere nothing is done.
+fn yield_to_the_pipeline() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: gettid and setpriority on this thread's own id touch no memory.
+        let done = unsafe {
+            let tid = libc::gettid();
+            libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, ADJUSTMENT_NICE)
+        };
+        if done != 0 {
+            tracing::debug!(
+                "area: the adjustment's thread keeps its priority: {}",
+                std::io::Error::last_os_error()
+            );
         }
     }
 }

@@ -104,8 +104,9 @@ pub struct AreaLive {
     /// The smoothed aim, earth-frame (yaw, pitch), radians; it waits through frames with
     /// no border in view.
     aimed: Option<(f64, f64)>,
-    /// The gimbal chain the log's angles are in.
+    /// The gimbal chain the log's angles are in, and the configured offsets in them.
     chain: crate::geometry::GimbalChain,
+    offsets: [f64; 3],
     /// `area.attitude_prior_deg > 0`: the run's sightings and poses, for the bundle
     /// adjustment after each landing ([`super::flightlog`]).
     log: Option<FlightLog>,
@@ -117,7 +118,20 @@ pub struct AreaLive {
     adjusted: Option<Adjusted>,
     /// Asked again (a touchdown, a command) while an adjustment ran: another follows it.
     adjust_again: Option<&'static str>,
+    /// The static gimbal offset (yaw, pitch, roll, degrees) the last adjustment found,
+    /// added to the angles of every frame posed by the gimbal since; the log keeps the
+    /// angles as reported, so each adjustment finds the whole offset again.
+    bias: Option<[f64; 3]>,
+    /// `area.adjust_first_frames`: the logged frames at which the next adjustment in
+    /// flight starts.
+    next_adjust: usize,
 }
+
+/// The SD of a gimbal mount's static offset before any adjustment, degrees: what the
+/// offset an adjustment finds is weighed against before the frames after it get it
+/// ([`crate::area::refine::weighed_offset`]). Degrees, as the issue's DJI photos (2.4-5.0
+/// deg, partly per photo) and PX4 SITL's heading (about 1 deg) were off.
+pub const MOUNT_PRIOR_DEG: f64 = 2.0;
 
 impl AreaLive {
     /// `k_full`: the camera's intrinsics at capture size; `origin`: the local frame's WGS84
@@ -167,10 +181,13 @@ impl AreaLive {
             aim: s.gimbal.aim == crate::settings::GimbalAim::Border,
             aimed: None,
             chain: s.gimbal.chain,
+            offsets: [s.gimbal.yaw_offset_deg, s.gimbal.pitch_offset_deg, s.gimbal.roll_offset_deg],
             log: refining.then(|| FlightLog::new(s.gimbal.chain)),
             refined: Default::default(),
             adjusted: None,
             adjust_again: None,
+            bias: None,
+            next_adjust: 0,
         })
     }
 
@@ -230,6 +247,7 @@ impl AreaLive {
             }
             summary.attitude_correction_median_deg = median_correction_deg(r);
         }
+        summary.gimbal_offset_applied_deg = self.bias;
         let frame = LocalFrame::new(self.origin);
         let mut lines = Vec::new();
         self.sets.write(|dir| {
@@ -308,15 +326,12 @@ impl LivePipeline for AreaLive {
             }
         };
         let prepared = t_prepare.elapsed();
-        let input =
-            FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: frame.pose.camera };
+        let camera = self.biased(&frame.pose);
+        let input = FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: camera };
         if self.aim {
-            if let Some((yaw, pitch)) = border_bearing(
-                &small_mask,
-                &frame.pose.camera,
-                self.pipeline.intrinsics(),
-                self.settings.ground_down_m,
-            ) {
+            if let Some((yaw, pitch)) =
+                border_bearing(&small_mask, &camera, self.pipeline.intrinsics(), self.settings.ground_down_m)
+            {
                 // Each frame's nearest shore is a few pixels' choice: smoothed, the
                 // setpoints move with the shore, not with the pixels.
                 let (y, p) = self.aimed.map_or((yaw, pitch), |(y, p)| {
@@ -337,10 +352,13 @@ impl LivePipeline for AreaLive {
         if let Some(log) = self.log.as_mut() {
             if log.add(self.frames, &frame.pose, &r.sightings, self.id_offset) {
                 report.events.push(format!(
-                    "area: {} sightings kept for the adjustment after landing, the most it keeps; later frames are not in it",
+                    "area: {} sightings kept for the map's adjustment, the most it keeps; later frames are not in it",
                     super::flightlog::MAX_SIGHTINGS
                 ));
             }
+        }
+        if let Some(note) = self.adjust_in_flight() {
+            report.events.push(note);
         }
         self.frames += 1;
         self.prepare += prepared;
@@ -398,17 +416,25 @@ impl LivePipeline for AreaLive {
         // Turned on in flight: the sightings from now on; turned off: none kept. A new
         // resolution or chain starts the log again (its pixels and angles are the old
         // ones'), as the pipeline's own landmarks go on.
+        // New configured gimbal offsets do as well: the logged angles have the old ones in.
         let refining = s.area.attitude_prior_deg > 0.0;
-        let same = s.area.downscale.max(1) == self.downscale && s.gimbal.chain == self.chain;
+        let offsets = |g: &crate::settings::Gimbal| [g.yaw_offset_deg, g.pitch_offset_deg, g.roll_offset_deg];
+        let same = s.area.downscale.max(1) == self.downscale
+            && s.gimbal.chain == self.chain
+            && offsets(&s.gimbal) == self.offsets;
         if refining != self.log.is_some() || (refining && !same) {
             if self.log.as_ref().is_some_and(|l| l.frames() > 0) {
                 tracing::info!(
-                    "area: the sightings kept for the adjustment after landing start again (new settings)"
+                    "area: the sightings kept for the map's adjustment start again (new settings)"
                 );
             }
             self.log = refining.then(|| FlightLog::new(s.gimbal.chain));
             self.pipeline.set_trace(refining);
+            // The offset found is one of the angles as they were reported before.
+            self.bias = None;
+            self.next_adjust = 0;
         }
+        self.offsets = offsets(&s.gimbal);
         self.chain = s.gimbal.chain;
         self.settings = s.area.clone();
         self.aim = s.gimbal.aim == crate::settings::GimbalAim::Border;
@@ -435,7 +461,7 @@ impl LivePipeline for AreaLive {
         }
         if self.log.as_ref().is_some_and(FlightLog::running) {
             tracing::warn!(
-                "area: stopped while the map was being adjusted after landing; the last set holds the filters' landmarks"
+                "area: stopped while the map was being adjusted; the last set holds the landmarks as they were before"
             );
         }
         self.write_results()
@@ -469,15 +495,23 @@ impl LivePipeline for AreaLive {
         let adjusted = match log.poll() {
             Poll::Idle | Poll::Running => return Vec::new(),
             Poll::Failed(why) => {
-                let mut events =
-                    vec![PipelineEvent::Note(format!("area: the map is not adjusted after landing: {why}"))];
+                let mut events = vec![PipelineEvent::Note(format!("area: the map is not adjusted: {why}"))];
                 if let Some(why) = self.adjust_again.take() {
                     events.push(PipelineEvent::Note(self.start_adjustment(why)));
                 }
                 return events;
             }
-            Poll::Done(a) => a,
+            Poll::Done(a) => *a,
         };
+        if let Some(why) = adjusted.refined.implausible(self.settings.attitude_prior_deg) {
+            let mut events = vec![PipelineEvent::Note(format!(
+                "area: the map's adjustment is not used: {why}; the map stays the filters'"
+            ))];
+            if let Some(why) = self.adjust_again.take() {
+                events.push(PipelineEvent::Note(self.start_adjustment(why)));
+            }
+            return events;
+        }
         let r = &adjusted.refined;
         let scale = self.downscale as f64;
         let mut line = format!(
@@ -488,8 +522,14 @@ impl LivePipeline for AreaLive {
             r.median_after_px * scale,
             median_correction_deg(r).unwrap_or(0.0),
         );
-        if let Some((o, _)) = r.offset_deg {
+        if let (Some((o, _)), Some(cov)) = (r.offset_deg, r.offset_covariance_deg2) {
             line.push_str(&format!("; gimbal offset yaw {:.2} pitch {:.2} roll {:.2} deg", o[0], o[1], o[2]));
+            let kept = crate::area::refine::weighed_offset(&o.into(), &cov, MOUNT_PRIOR_DEG);
+            self.bias = Some([kept.x, kept.y, kept.z]);
+            line.push_str(&format!(
+                "; added to later frames: yaw {:.2} pitch {:.2} roll {:.2} deg",
+                kept.x, kept.y, kept.z
+            ));
         }
         // Added to what earlier adjustments moved: a landmark this one left out (its
         // sightings were in a log started again since) keeps its last adjusted place.
@@ -507,6 +547,43 @@ impl LivePipeline for AreaLive {
 }
 
 impl AreaLive {
+    /// The static gimbal offset added to the frames now, if any (degrees).
+    pub fn summary_offset(&self) -> Option<[f64; 3]> {
+        self.bias
+    }
+
+    /// The camera pose the pipeline takes for a frame: as reported, with the static
+    /// gimbal offset the last adjustment found added to the gimbal's angles (frames posed
+    /// by the fixed mount have no gimbal angles to correct).
+    fn biased(&self, pose: &crate::align::AlignedPose) -> crate::geometry::CameraPose {
+        match self.bias {
+            Some([yaw, pitch, roll]) if pose.from_gimbal => {
+                let reported = super::record::pose_record(pose, self.chain, [0.0; 3], |p| p);
+                super::flightlog::pose_at(
+                    &reported,
+                    self.chain,
+                    &crate::geometry::Vec3::new(yaw, pitch, roll),
+                )
+            }
+            _ => pose.camera,
+        }
+    }
+
+    /// `area.adjust_first_frames`: starts an adjustment in flight once the log holds that
+    /// many frames, then each time they have doubled (the whole log each time, so the
+    /// adjustments' cost stays within about twice the last one's); what the ground is
+    /// told.
+    fn adjust_in_flight(&mut self) -> Option<String> {
+        let first = self.settings.adjust_first_frames as usize;
+        let log = self.log.as_ref()?;
+        let frames = log.frames();
+        if first == 0 || log.running() || frames < first.max(self.next_adjust) {
+            return None;
+        }
+        self.next_adjust = 2 * frames;
+        Some(self.start_adjustment(&format!("{frames} frames logged")))
+    }
+
     /// Starts the adjustment of the run's map; what the ground is told.
     fn start_adjustment(&mut self, why: &str) -> String {
         let landmarks = self.all_landmarks();
@@ -922,6 +999,81 @@ mod tests {
         // The nearest 10 % of the shore in view spans a few metres along it.
         assert!((yaw - 90.0).abs() < 6.0, "yaw {yaw:.1}");
         assert!((pitch + 53.7).abs() < 2.0, "pitch {pitch:.1}");
+    }
+
+    /// `area.adjust_first_frames`: adjustments start at that many logged frames, then at
+    /// twice the frames of the last start, never while one runs; the offset an adjustment
+    /// found turns the pose of each later frame posed by the gimbal by that many degrees of
+    /// the chain's angles, and leaves frames posed by the fixed mount as they came.
+    #[test]
+    fn adjustments_in_flight_start_at_doubling_frames_and_their_offset_turns_gimbal_frames_only() {
+        use crate::align::{AlignedPose, VehicleSample};
+        use crate::geometry::{GimbalAngles, Mount};
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Settings::default();
+        s.area.attitude_prior_deg = 1.0;
+        s.area.adjust_first_frames = 40;
+        let k = crate::camera::intrinsics(&s).unwrap();
+        let mut live =
+            AreaLive::new(&s, k, Geodetic::new(0.0, 0.0, 0.0), &dir.path().join("area"), "r").unwrap();
+        let chain = s.gimbal.chain;
+        let pose = |yaw: f64, from_gimbal: bool| {
+            let camera = crate::geometry::CameraPose::from_gimbal(
+                Vec3::new(1.0, 2.0, -40.0),
+                chain,
+                GimbalAngles::from_degrees(yaw, -50.0, 0.0),
+                Mount::Earth,
+            );
+            AlignedPose {
+                autopilot_time: 0.0,
+                vehicle: VehicleSample {
+                    position: camera.position,
+                    velocity: Vec3::zeros(),
+                    attitude: nalgebra::UnitQuaternion::identity(),
+                },
+                camera,
+                from_gimbal,
+            }
+        };
+        let mut started = Vec::new();
+        for frame in 0..170u64 {
+            assert!(!live.log.as_mut().unwrap().add(frame, &pose(frame as f64, true), &[], 0));
+            if let Some(note) = live.adjust_in_flight() {
+                started.push((frame + 1, note));
+                // Nothing converged: it ends at once, saying so.
+                let t0 = std::time::Instant::now();
+                while live.log.as_ref().unwrap().running() {
+                    let said = live.poll();
+                    if !said.is_empty() {
+                        assert!(format!("{said:?}").contains("no converged landmark"), "{said:?}");
+                        break;
+                    }
+                    assert!(t0.elapsed().as_secs() < 10);
+                    std::thread::sleep(std::time::Duration::from_millis(5));
+                }
+            }
+        }
+        let at: Vec<u64> = started.iter().map(|(f, _)| *f).collect();
+        assert_eq!(at, [40, 80, 160], "{started:?}");
+        assert!(started[0].1.contains("40 frames logged; adjusting the map"), "{started:?}");
+
+        let reported = pose(30.0, true);
+        assert_eq!(live.biased(&reported).attitude, reported.camera.attitude, "no offset found yet");
+        live.bias = Some([1.5, -2.0, 0.5]);
+        let turned = chain.angles(&live.biased(&reported).attitude);
+        let was = chain.angles(&reported.camera.attitude);
+        for (d, want) in
+            [(turned.yaw - was.yaw, 1.5), (turned.pitch - was.pitch, -2.0), (turned.roll - was.roll, 0.5)]
+        {
+            assert!((d.to_degrees() - want).abs() < 1e-9, "{turned:?} vs {was:?}");
+        }
+        assert_eq!(live.biased(&reported).position, reported.camera.position);
+        let fixed = pose(30.0, false);
+        assert_eq!(
+            live.biased(&fixed).attitude,
+            fixed.camera.attitude,
+            "the fixed mount's frames as they came"
+        );
     }
 
     fn landmark(id: u64) -> LandmarkRecord {

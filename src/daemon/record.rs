@@ -648,7 +648,7 @@ mod tests {
             let camera = CameraFile::new(spec(Path::new(""), RecordFormat::Jpg).intrinsics, chain,
                 GimbalFrame::Earth, Geodetic::new(57.0, 10.0, 12.0));
             let ds = mavloc_data::Dataset {
-                dir: PathBuf::new(), camera, records: Vec::new(), ground_truth: Vec::new(),
+                dir: PathBuf::new(), camera, records: Vec::new(), ground_truth: Vec::new(), torn_line: None,
             };
             let replayed = ds.camera_pose(&rec, [oy, op, or]);
             // Matrices, not `angle()`: its arccos cannot resolve below about 1e-8 rad.

@@ -73,6 +73,7 @@ pub const PARAMS: &[ParamDef] = &[
     p("AREA_GROUND_D", "area.ground_down_m", Float),
     p("AREA_MAX_DESC", "area.max_descriptors", Int),
     p("AREA_ADJ_PRIOR", "area.attitude_prior_deg", Float),
+    p("AREA_ADJ_FIRST", "area.adjust_first_frames", Int),
     p("IND_SAMPLES", "indoor.samples", Int),
     p("IND_K", "indoor.k", Int),
     p("IND_PARTICLES", "indoor.particles", Int),

@@ -729,6 +729,7 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     v.range("area.ground_down_m", a.ground_down_m, -10_000.0, 10_000.0);
     v.range_int("area.max_descriptors", a.max_descriptors.into(), 1, 1000);
     v.range("area.attitude_prior_deg", a.attitude_prior_deg, 0.0, 30.0);
+    v.range_int("area.adjust_first_frames", a.adjust_first_frames.into(), 0, 10_000_000);
     v.range("area.align_prior_deg", a.align_prior_deg, 0.0, 45.0);
     v.range("area.align_shift_m", a.align_shift_m, 0.0, 1000.0);
     v.range("area.aligned_bearing_noise_deg", a.aligned_bearing_noise_deg, 0.0, 20.0);

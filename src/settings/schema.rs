@@ -281,6 +281,11 @@ pub struct Area {
     /// after the landmark filters (`area::refine`): offline, and live after each
     /// touchdown (`daemon::flightlog`); 0 = no refinement.
     pub attitude_prior_deg: f64,
+    /// Live, with `attitude_prior_deg > 0`: adjust the map in flight too, first once this
+    /// many frames are logged, then each time the logged frames have doubled; the static
+    /// gimbal offset each adjustment finds is applied to the frames after it. 0 = only
+    /// after each touchdown and on command.
+    pub adjust_first_frames: u32,
     /// SD of the recorded attitude, degrees, for aligning the photos to each other by
     /// their tie points before the landmark filters run (`area::align`); 0 = off.
     pub align_prior_deg: f64,
@@ -350,6 +355,7 @@ impl Default for Area {
             ground_down_m: 0.0,
             max_descriptors: 8,
             attitude_prior_deg: 0.0,
+            adjust_first_frames: 0,
             align_prior_deg: 0.0,
             align_shift_m: 5.0,
             aligned_bearing_noise_deg: 0.0,
