@@ -4,11 +4,12 @@
 //! [`crate::area::refine`] over them (each frame's attitude, a static gimbal offset and the
 //! landmarks together), as `mavloc area --trace` does on a recording after the flight.
 //!
-//! Why after the landing and not in the air: the adjustment wants the whole flight (a
-//! static offset is told apart from the frames' own errors only over hundreds of frames),
-//! and on a PX4 SITL flight of 1861 frames it took 73 s of one core (session 34): too long
-//! to hold the frames back, and while the vehicle stands the cores are free. So it runs on
-//! a thread of its own, beside the pipeline (which goes on with the frames the camera
+//! Why after the landing: the adjustment wants the whole flight (a static offset is told
+//! apart from the frames' own errors only over hundreds of frames), and on a PX4 SITL
+//! flight of 1861 frames it took 73 s of one core (session 34): too long to hold the
+//! frames back, and while the vehicle stands the cores are free. In flight it runs only
+//! when asked (`area.adjust_first_frames`, [`crate::daemon::live`]), at a lower priority
+//! than the pipeline. Either way it runs on a thread of its own, beside the pipeline (which goes on with the frames the camera
 //! still sends); its result becomes a new result set when it is done
 //! ([`FlightLog::poll`]). A stop, or the log dropped (the pipeline reset or rebuilt, the
 //! prior turned off), cancels it at its next round and leaves the filters' set, which was

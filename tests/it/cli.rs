@@ -172,7 +172,7 @@ fn demo_runs_both_flights_and_prints_its_report() {
 }
 
 #[test]
-fn area_on_a_missing_dataset_names_the_file() {
+fn area_on_a_missing_dataset_names_the_folder() {
     let dir = tempfile::tempdir().unwrap();
     let a = mavloc()
         .args(["area", "--dataset"])
@@ -182,7 +182,9 @@ fn area_on_a_missing_dataset_names_the_file() {
         .assert()
         .failure();
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
-    assert!(err.contains("nope/camera.toml"), "{err}");
+    // The folder, not a file inside it (it said "nope/camera.toml: No such file").
+    assert!(err.contains("dataset ") && err.contains("nope: No such file or directory"), "{err}");
+    assert!(!err.contains("camera.toml"), "{err}");
 }
 
 #[test]
