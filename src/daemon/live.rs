@@ -434,6 +434,9 @@ impl LivePipeline for AreaLive {
             self.bias = None;
             self.next_adjust = 0;
         }
+        if s.area.adjust_first_frames == 0 {
+            self.bias = None;
+        }
         self.offsets = offsets(&s.gimbal);
         self.chain = s.gimbal.chain;
         self.settings = s.area.clone();
@@ -524,12 +527,16 @@ impl LivePipeline for AreaLive {
         );
         if let (Some((o, _)), Some(cov)) = (r.offset_deg, r.offset_covariance_deg2) {
             line.push_str(&format!("; gimbal offset yaw {:.2} pitch {:.2} roll {:.2} deg", o[0], o[1], o[2]));
-            let kept = crate::area::refine::weighed_offset(&o.into(), &cov, MOUNT_PRIOR_DEG);
-            self.bias = Some([kept.x, kept.y, kept.z]);
-            line.push_str(&format!(
-                "; added to later frames: yaw {:.2} pitch {:.2} roll {:.2} deg",
-                kept.x, kept.y, kept.z
-            ));
+            // Only with the adjustments in flight asked for: against PX4 SITL adding it
+            // gained nothing (README, "The map adjusted in flight").
+            if self.settings.adjust_first_frames > 0 {
+                let kept = crate::area::refine::weighed_offset(&o.into(), &cov, MOUNT_PRIOR_DEG);
+                self.bias = Some([kept.x, kept.y, kept.z]);
+                line.push_str(&format!(
+                    "; added to later frames: yaw {:.2} pitch {:.2} roll {:.2} deg",
+                    kept.x, kept.y, kept.z
+                ));
+            }
         }
         // Added to what earlier adjustments moved: a landmark this one left out (its
         // sightings were in a log started again since) keeps its last adjusted place.
@@ -548,7 +555,7 @@ impl LivePipeline for AreaLive {
 
 impl AreaLive {
     /// The static gimbal offset added to the frames now, if any (degrees).
-    pub fn summary_offset(&self) -> Option<[f64; 3]> {
+    pub fn offset_added(&self) -> Option<[f64; 3]> {
         self.bias
     }
 

@@ -374,7 +374,7 @@ fn the_map_adjusted_after_landing_finds_a_wrong_gimbal_offset_as_the_offline_run
             // Waited for here, so the frames the offset is added to are known.
             let done = wait_for(&mut in_flight);
             said.push((r.frame, done));
-            if applied_from.is_none() && in_flight.summary_offset().is_some() {
+            if applied_from.is_none() && in_flight.offset_added().is_some() {
                 applied_from = Some(r.frame + 1);
                 let set = landmarks(&in_flight_link);
                 adjusted_in_flight = set.iter().map(|l| l.id).collect();
@@ -398,6 +398,8 @@ fn the_map_adjusted_after_landing_finds_a_wrong_gimbal_offset_as_the_offline_run
     assert!(matches!(&done[..], [PipelineEvent::Note(l)] if l.contains("map adjusted")), "{done:?}");
     let adjusted = landmarks(&link);
     let found = summary(&link);
+    assert_eq!(found.gimbal_offset_applied_deg, None, "the offset is added to later frames only when asked");
+    assert_eq!(live.offset_added(), None);
     // Offline, the same settings over the same frames: the same map.
     let out = dir.path().join("offline");
     let opts = RunOptions {
