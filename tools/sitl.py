@@ -754,6 +754,13 @@ def await_adjustment(state, out, log_path, events):
         if time.time() - t0 > 30:
             return "not started: mavloc said nothing of a landing within 30 s of the disarm"
         time.sleep(0.5)
+    if log_has("area: landed while") is not None:
+        # Landed during an adjustment in flight: the set at the touchdown is the one that
+        # adjustment publishes just before the landing's own starts ("area: landed;").
+        while log_has("area: landed;") is None:
+            if time.time() - t0 > ADJUST_TIMEOUT_S:
+                return f"not started: the adjustment in flight did not end within {ADJUST_TIMEOUT_S} s"
+            time.sleep(0.5)
     if log_has("area: landed; the map is not adjusted") is not None:
         return "not adjusted (mavloc.log says why)"
     results = os.path.join(state, "results", "area")
@@ -777,7 +784,7 @@ def await_adjustment(state, out, log_path, events):
     t0 = time.time()
     while True:
         said = log_has("area: map adjusted", "area: the map is not adjusted", "area: the map's adjustment is not used",
-                       after="area: landed;")
+                       "area: landed; the map is not adjusted", after="area: landed;")
         if said is not None:
             break
         if time.time() - t0 > ADJUST_TIMEOUT_S:
@@ -855,7 +862,8 @@ def refine_recording(a, config, state, out, truth):
         refined["evaluation"] = f"failed: no summary.json in {result}: {e}"
         return refined
     for k in ("frames", "landmarks", "refined_median_before_px", "refined_median_after_px",
-              "attitude_correction_median_deg", "cross_line_median_m", "cross_line_refined_median_m"):
+              "attitude_correction_median_deg", "cross_line_median_m", "cross_line_refined_median_m",
+              "refined_rejected"):
         if summary.get(k) is not None:
             refined[k] = summary[k]
     # The result was made from the recording, not from the truth dataset, whose CRC

@@ -806,9 +806,6 @@ pub fn run_observed(
                 super::refine::refine_with_priors(&seen, &results, &poses, &k, &params, &priors)
             };
             let scale = downscale as f64;
-            summary.refined_median_before_px = Some(r.median_before_px * scale);
-            summary.refined_median_after_px = Some(r.median_after_px * scale);
-            summary.refined_left_out = Some(r.left_out);
             // Only the unaligned photos' and frames' corrections are held to the prior this
             // way; aligned photos' rest on their tie points.
             let rejected = if alignment.is_empty() { r.implausible(s.area.attitude_prior_deg) } else { None };
@@ -816,6 +813,9 @@ pub fn run_observed(
                 tracing::warn!("attitude refinement not used: {why}; the filters' landmarks are the results");
                 summary.refined_rejected = Some(why);
             } else {
+                summary.refined_median_before_px = Some(r.median_before_px * scale);
+                summary.refined_median_after_px = Some(r.median_after_px * scale);
+                summary.refined_left_out = Some(r.left_out);
                 if let Some((o, sd)) = r.offset_deg {
                     summary.refined_gimbal_offset_deg = Some(o);
                     summary.refined_gimbal_offset_sd_deg = Some(sd);

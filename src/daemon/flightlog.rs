@@ -231,9 +231,11 @@ const ADJUSTMENT_NICE: i32 = 10;
 fn yield_to_the_pipeline() {
     #[cfg(target_os = "linux")]
     {
-        // SAFETY: gettid and setpriority on this thread's own id touch no memory.
+        // SAFETY: the gettid system call and setpriority on this thread's own id touch no
+        // memory. The system call, not glibc's gettid(), which glibc before 2.30 (Ubuntu
+        // 18.04, JetPack 4) lacks.
         let done = unsafe {
-            let tid = libc::gettid();
+            let tid = libc::syscall(libc::SYS_gettid);
             libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, ADJUSTMENT_NICE)
         };
         if done != 0 {

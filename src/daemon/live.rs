@@ -329,9 +329,14 @@ impl LivePipeline for AreaLive {
         let camera = self.biased(&frame.pose);
         let input = FrameInput { index: frame.index, grey: &grey, mask: &small_mask, pose: camera };
         if self.aim {
-            if let Some((yaw, pitch)) =
-                border_bearing(&small_mask, &camera, self.pipeline.intrinsics(), self.settings.ground_down_m)
-            {
+            // In the angles the gimbal reports: its manager holds those at the setpoint, so
+            // a bearing with the offset found added would point the camera that far off.
+            if let Some((yaw, pitch)) = border_bearing(
+                &small_mask,
+                &frame.pose.camera,
+                self.pipeline.intrinsics(),
+                self.settings.ground_down_m,
+            ) {
                 // Each frame's nearest shore is a few pixels' choice: smoothed, the
                 // setpoints move with the shore, not with the pixels.
                 let (y, p) = self.aimed.map_or((yaw, pitch), |(y, p)| {
@@ -433,6 +438,13 @@ impl LivePipeline for AreaLive {
             // The offset found is one of the angles as they were reported before.
             self.bias = None;
             self.next_adjust = 0;
+            // A landing queued behind the adjustment the old log took with it is not lost:
+            // it goes to the new log now (which says why if it has too few frames).
+            if let Some(why) = self.adjust_again.take() {
+                self.settings = s.area.clone();
+                let note = self.start_adjustment(why);
+                tracing::info!("{note}");
+            }
         }
         if s.area.adjust_first_frames == 0 {
             self.bias = None;
@@ -1009,7 +1021,8 @@ mod tests {
     }
 
     /// `area.adjust_first_frames`: adjustments start at that many logged frames, then at
-    /// twice the frames of the last start, never while one runs; the offset an adjustment
+    /// twice the frames of the last start, never while one runs (the next then waits for
+    /// it to be collected); the offset an adjustment
     /// found turns the pose of each later frame posed by the gimbal by that many degrees of
     /// the chain's angles, and leaves frames posed by the fixed mount as they came.
     #[test]
@@ -1043,25 +1056,32 @@ mod tests {
             }
         };
         let mut started = Vec::new();
-        for frame in 0..170u64 {
+        let wait = |live: &mut AreaLive| {
+            // Nothing converged: it ends at once, saying so.
+            let t0 = std::time::Instant::now();
+            loop {
+                let said = live.poll();
+                if !said.is_empty() {
+                    assert!(format!("{said:?}").contains("no converged landmark"), "{said:?}");
+                    return;
+                }
+                assert!(t0.elapsed().as_secs() < 10);
+                std::thread::sleep(std::time::Duration::from_millis(5));
+            }
+        };
+        for frame in 0..260u64 {
             assert!(!live.log.as_mut().unwrap().add(frame, &pose(frame as f64, true), &[], 0));
             if let Some(note) = live.adjust_in_flight() {
                 started.push((frame + 1, note));
-                // Nothing converged: it ends at once, saying so.
-                let t0 = std::time::Instant::now();
-                while live.log.as_ref().unwrap().running() {
-                    let said = live.poll();
-                    if !said.is_empty() {
-                        assert!(format!("{said:?}").contains("no converged landmark"), "{said:?}");
-                        break;
-                    }
-                    assert!(t0.elapsed().as_secs() < 10);
-                    std::thread::sleep(std::time::Duration::from_millis(5));
-                }
+            }
+            // The first is left running past the frames of the next (80): none starts
+            // beside it; once it is collected the next starts at once.
+            if frame == 100 || (frame > 100 && live.log.as_ref().unwrap().running()) {
+                wait(&mut live);
             }
         }
         let at: Vec<u64> = started.iter().map(|(f, _)| *f).collect();
-        assert_eq!(at, [40, 80, 160], "{started:?}");
+        assert_eq!(at, [40, 102, 204], "{started:?}");
         assert!(started[0].1.contains("40 frames logged; adjusting the map"), "{started:?}");
 
         let reported = pose(30.0, true);
@@ -1081,6 +1101,17 @@ mod tests {
             fixed.camera.attitude,
             "the fixed mount's frames as they came"
         );
+
+        // A landing queued behind a running adjustment, then new gimbal offsets: the log
+        // starts again without the offset found, and the landing is not left queued.
+        live.start_adjustment("asked to");
+        assert!(live.log.as_ref().unwrap().running());
+        let said = format!("{:?}", live.adjust_map("landed"));
+        assert!(said.contains("adjusted again after"), "{said}");
+        let mut moved = s.clone();
+        moved.gimbal.pitch_offset_deg = 1.0;
+        live.apply(&moved);
+        assert_eq!((live.log.as_ref().unwrap().frames(), live.bias, live.adjust_again), (0, None, None));
     }
 
     fn landmark(id: u64) -> LandmarkRecord {
