@@ -406,7 +406,7 @@ pub fn align(
     // before the first adjustment (they are dropped after it, below).
     let params = RefineParams {
         pixel_sd,
-        shift_prior_m: [shift_m; 3],
+        shift_prior_m: shift_m,
         outlier_sds: f64::INFINITY,
         ..RefineParams::new(prior_deg)
     };

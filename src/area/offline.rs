@@ -820,11 +820,7 @@ pub fn run_observed(
                     summary.refined_gimbal_offset_deg = Some(o);
                     summary.refined_gimbal_offset_sd_deg = Some(sd);
                 }
-                let mut angles: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
-                if !angles.is_empty() {
-                    summary.attitude_correction_median_deg =
-                        Some(super::residuals::quantile(&mut angles, 0.5));
-                }
+                summary.attitude_correction_median_deg = r.median_correction_deg();
                 let mut csv =
                     String::from("frame,correction_deg,about_north_deg,about_east_deg,about_down_deg\n");
                 for (f, d) in &r.corrections {

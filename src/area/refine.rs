@@ -43,16 +43,9 @@ pub struct RefineParams {
     /// Huber's threshold, in SDs.
     pub huber: f64,
     pub rounds: usize,
-    /// SD of the prior on each frame's position shift, metres, along north, east and down;
-    /// all 0 = positions held at the recorded ones (no shift estimated). Held, positions
-    /// noisier than the sightings are fitted by turning the whole flight and pushing the
-    /// landmarks away, where the noise turns a bearing less (session 35: the seed's video
-    /// noise, 2 m of height per frame, gave a 24-45 deg static pitch offset and a map
-    /// 24-28 m off); with shifts estimated the same flights kept their maps (1.30 and
-    /// 1.71 m), but `mavloc area --trace` on a PX4 SITL recording of 1861 frames ran over
-    /// 12 minutes (stopped there) against 2.5 without: twice the blocks. So positions are
-    /// held and such a solution is refused instead ([`Refined::implausible`]).
-    pub shift_prior_m: [f64; 3],
+    /// SD of the prior on each frame's position shift, metres; 0 = positions held at the
+    /// recorded ones (no shift estimated).
+    pub shift_prior_m: f64,
     /// A sighting this many SDs off after a first solution is left out and the problem
     /// solved again: a false match a filter took while its landmark was still uncertain
     /// (on a rendered photo survey 1 % of the converged landmarks' sightings were
@@ -74,7 +67,7 @@ impl RefineParams {
             pixel_sd: 1.0,
             huber: 2.0,
             rounds: 30,
-            shift_prior_m: [0.0; 3],
+            shift_prior_m: 0.0,
             outlier_sds: 10.0,
             cancel: None,
         }
@@ -108,9 +101,15 @@ pub struct Refined {
 
 /// A frame's correction is implausible beyond this many times the prior's SD (the
 /// median over the frames): a median of three SDs is where the sightings no longer tell
-/// attitude errors but something the model lacks (session 35: the seed's video noise,
-/// 2 m of height noise per frame, had the frames turned by 8.3 deg with a 2 deg prior and
-/// a 45 deg static pitch offset, the map 28 m off instead of 1.4 m).
+/// attitude errors but something the model lacks. Positions noisier than the sightings,
+/// held as recorded, are fitted by turning the whole flight and pushing the landmarks
+/// away, where the noise turns a bearing less (session 35: the seed's video noise, 2 m of
+/// height per frame, had the frames turned by 8.3 deg with a 2 deg prior and a 45 deg
+/// static pitch offset, the map 28 m off instead of 1.4 m). Estimating each frame's shift
+/// too (per axis, with `area.position_noise_m` as its prior) kept those maps sane (1.71
+/// and 1.30 m), but `mavloc area --trace` on a 1861-frame PX4 SITL recording then ran over
+/// 12 minutes (stopped there) against 2.5: twice the blocks. So such a solution is
+/// refused instead.
 pub const PLAUSIBLE_PRIOR_SDS: f64 = 3.0;
 
 /// The largest static offset taken for one, degrees: what `gimbal.*_offset_deg` accepts.
@@ -122,9 +121,7 @@ impl Refined {
     /// times it), or a static offset beyond any mount ([`PLAUSIBLE_OFFSET_DEG`]). Such a
     /// solution fits the sightings by turning the whole flight, not by correcting it.
     pub fn implausible(&self, prior_deg: f64) -> Option<String> {
-        let mut turned: Vec<f64> = self.corrections.values().map(|d| d.norm().to_degrees()).collect();
-        if !turned.is_empty() {
-            let median = super::residuals::quantile(&mut turned, 0.5);
+        if let Some(median) = self.median_correction_deg() {
             if median.is_nan() || median > PLAUSIBLE_PRIOR_SDS * prior_deg {
                 return Some(format!(
                     "the frames would turn by {median:.2} deg (median), more than {PLAUSIBLE_PRIOR_SDS} times the {prior_deg} deg the attitude is trusted to: the sightings' errors are not the attitude's (noisy positions?)"
@@ -140,6 +137,12 @@ impl Refined {
             }
         }
         None
+    }
+
+    /// The median of the frames' corrections, degrees (none without frames).
+    pub fn median_correction_deg(&self) -> Option<f64> {
+        let mut turned: Vec<f64> = self.corrections.values().map(|d| d.norm().to_degrees()).collect();
+        (!turned.is_empty()).then(|| super::residuals::quantile(&mut turned, 0.5))
     }
 }
 
@@ -535,7 +538,7 @@ fn solve_refined(
     frame_prior: Vec<f64>,
 ) -> Refined {
     let block: BTreeMap<u64, usize> = frames.iter().enumerate().map(|(i, &f)| (f, i)).collect();
-    let shifting = p.shift_prior_m.iter().any(|sd| *sd > 0.0);
+    let shifting = p.shift_prior_m > 0.0;
     let shift_block: BTreeMap<u64, usize> = if shifting {
         frames.iter().enumerate().map(|(i, &f)| (f, frames.len() + i)).collect()
     } else {
@@ -752,14 +755,13 @@ impl Problem<'_> {
         let nt = self.shift_block.len();
         let nb = nf + nt + self.shared as usize;
         let shared_ix = self.shared.then_some(nf + nt);
-        // Each block's prior SDs, per parameter; an axis held (0) is held to a millimetre.
-        let prior = |b: usize| -> Vector3<f64> {
+        let prior = |b: usize| {
             if b < nf {
-                Vector3::repeat(self.frame_prior[b])
+                self.frame_prior[b]
             } else if b < nf + nt {
-                Vector3::from(p.shift_prior_m).map(|sd| sd.max(1e-3))
+                p.shift_prior_m
             } else {
-                Vector3::repeat(p.shared_prior_deg)
+                p.shared_prior_deg
             }
         };
         let index: BTreeMap<u64, usize> = self.landmarks.iter().enumerate().map(|(i, l)| (l.id, i)).collect();
@@ -817,11 +819,8 @@ impl Problem<'_> {
         };
         let shared_of = |theta: &[Vec3]| shared_ix.map_or(zero, |b| theta[b]);
         let cost_and_errors = |xs: &[Vec3], theta: &[Vec3]| -> (f64, Vec<f64>) {
-            let mut cost = theta
-                .iter()
-                .enumerate()
-                .map(|(b, d)| 0.5 * d.component_div(&prior(b)).norm_squared())
-                .sum::<f64>();
+            let mut cost =
+                theta.iter().enumerate().map(|(b, d)| 0.5 * (d.norm() / prior(b)).powi(2)).sum::<f64>();
             let at = poses_at(theta, &shared_of(theta));
             let mut errs = Vec::new();
             for (j, obs) in per_landmark.iter().enumerate() {
@@ -859,14 +858,14 @@ impl Problem<'_> {
             // V (landmarks), W (block x landmark).
             // Fx, not SipHash: a lookup per sighting and round (10 % of a photo survey's run).
             let mut eu: Vec<Vector3<f64>> =
-                theta.iter().enumerate().map(|(b, d)| d.component_div(&prior(b).map(|sd| sd * sd))).collect();
+                theta.iter().enumerate().map(|(b, d)| d / prior(b).powi(2)).collect();
             let mut v = vec![Matrix3::<f64>::zeros(); xs.len()];
             let mut ev = vec![Vector3::<f64>::zeros(); xs.len()];
             let mut w: Vec<Vec<(usize, Matrix3<f64>)>> = vec![Vec::new(); xs.len()];
             let at = poses_at(&theta, &shared_of(&theta));
             // The shared block's central differences: every frame's pose with that block
             // moved by -h and +h in each of its three parameters.
-            let ht = shared_ix.map_or(0.0, |b| 1e-6 * prior(b).max().max(1e-3));
+            let ht = shared_ix.map_or(0.0, |b| 1e-6 * prior(b).max(1e-3));
             let moved: Vec<[Vec<FrameAt>; 2]> = if shared_ix.is_some() {
                 let sh = shared_of(&theta);
                 (0..3)
@@ -962,7 +961,7 @@ impl Problem<'_> {
             }
             let mut u = vec![Matrix3::<f64>::zeros(); reduced.keys.len()];
             for (b, &d) in diagonal.iter().enumerate() {
-                u[d] = Matrix3::from_diagonal(&prior(b).map(|sd| 1.0 / (sd * sd)));
+                u[d] = Matrix3::identity() / prior(b).powi(2);
             }
             for &(fi, part, slot) in &u_at {
                 u[slot] += uf[fi][part / 3][part % 3];
@@ -1418,7 +1417,7 @@ mod tests {
         let sightings = exact_sightings(&truth, &points, &k);
         let start: Vec<LandmarkRecord> =
             points.iter().enumerate().map(|(j, x)| record(j as u64, *x)).collect();
-        let p = RefineParams { shift_prior_m: [5.0; 3], ..RefineParams::new(2.0) };
+        let p = RefineParams { shift_prior_m: 5.0, ..RefineParams::new(2.0) };
         let r = refine(&sightings, &start, &recorded, &k, &p);
         // Moving every frame and landmark together changes no sighting: the position
         // priors share the error out, so frame 2 comes back by 5/6 of it and the others

@@ -245,7 +245,7 @@ impl AreaLive {
                 summary.refined_gimbal_offset_deg = Some(o);
                 summary.refined_gimbal_offset_sd_deg = Some(sd);
             }
-            summary.attitude_correction_median_deg = median_correction_deg(r);
+            summary.attitude_correction_median_deg = r.median_correction_deg();
         }
         summary.gimbal_offset_applied_deg = self.bias;
         let frame = LocalFrame::new(self.origin);
@@ -535,7 +535,7 @@ impl LivePipeline for AreaLive {
             r.landmarks.len(),
             r.median_before_px * scale,
             r.median_after_px * scale,
-            median_correction_deg(r).unwrap_or(0.0),
+            r.median_correction_deg().unwrap_or(0.0),
         );
         if let (Some((o, _)), Some(cov)) = (r.offset_deg, r.offset_covariance_deg2) {
             line.push_str(&format!("; gimbal offset yaw {:.2} pitch {:.2} roll {:.2} deg", o[0], o[1], o[2]));
@@ -616,12 +616,6 @@ impl AreaLive {
             Err(not) => format!("area: {why}; the map is not adjusted: {not}"),
         }
     }
-}
-
-/// The median of the frames' attitude corrections, degrees.
-fn median_correction_deg(r: &crate::area::refine::Refined) -> Option<f64> {
-    let mut a: Vec<f64> = r.corrections.values().map(|d| d.norm().to_degrees()).collect();
-    (!a.is_empty()).then(|| crate::area::residuals::quantile(&mut a, 0.5))
 }
 
 /// Weight of a frame's aim in the smoothed one (about 1 s at 6 frames/s).
