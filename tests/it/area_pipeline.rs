@@ -80,14 +80,7 @@ fn trace_records_every_update() {
     let dir = tempfile::tempdir().unwrap();
     let ds = render("coastline", 30);
     let out = dir.path().join("traced");
-    let opts = RunOptions {
-        dataset: ds,
-        out: out.clone(),
-        method: AreaMethod::Ukf,
-        trace: true,
-        max_frames: None,
-        debug_masks: false,
-    };
+    let opts = traced(&ds, &out);
     run(&opts, &settings(), |_, _| {}).unwrap();
     let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
     let rows: Vec<&str> = trace.lines().skip(1).collect();
@@ -277,14 +270,7 @@ fn a_rendered_three_line_survey_runs_with_the_photo_settings() {
     };
     let s = mavloc::settings::load(&layers).unwrap().settings;
     let out = tempfile::tempdir().unwrap();
-    let opts = RunOptions {
-        dataset: dir.clone(),
-        out: out.path().into(),
-        method: AreaMethod::Ukf,
-        trace: true,
-        max_frames: None,
-        debug_masks: false,
-    };
+    let opts = traced(&dir, out.path());
     let summary = run(&opts, &s, |_, _| {}).unwrap();
     let landmarks = parse_landmarks_csv(
         &std::fs::read_to_string(out.path().join("landmarks.csv")).unwrap(),
@@ -402,14 +388,7 @@ fn the_map_adjusted_after_landing_finds_a_wrong_gimbal_offset_as_the_offline_run
     assert_eq!(live.offset_added(), None);
     // Offline, the same settings over the same frames: the same map.
     let out = dir.path().join("offline");
-    let opts = RunOptions {
-        dataset: ds_dir.clone(),
-        out: out.clone(),
-        method: AreaMethod::Ukf,
-        trace: true,
-        max_frames: None,
-        debug_masks: false,
-    };
+    let opts = traced(&ds_dir, &out);
     run(&opts, &s, |_, _| {}).unwrap();
     let offline = landmarks(&out);
     let offset = found.refined_gimbal_offset_deg.unwrap();
@@ -483,14 +462,7 @@ fn a_refinement_that_turns_the_whole_flight_is_refused_and_the_filters_map_kept(
     s.area.downscale = 1;
     s.area.band_px = 13;
     let out = tempfile::tempdir().unwrap();
-    let opts = RunOptions {
-        dataset: ds_dir.clone(),
-        out: out.path().into(),
-        method: AreaMethod::Ukf,
-        trace: true,
-        max_frames: None,
-        debug_masks: false,
-    };
+    let opts = traced(&ds_dir, out.path());
     let summary = run(&opts, &s, |_, _| {}).unwrap();
     let why = summary.refined_rejected.clone().expect("refused");
     assert!(why.contains("static gimbal offset") || why.contains("would turn"), "{why}");
@@ -501,6 +473,18 @@ fn a_refinement_that_turns_the_whole_flight_is_refused_and_the_filters_map_kept(
     println!("{why}\n{e}");
     // 131 landmarks at 1.28 m mean (the filters'); the refused solution had them 20 m off.
     assert!(e.landmarks >= 100 && e.mean_m < 2.0, "{e}");
+}
+
+/// A traced UKF run of `dataset` into `out` (`mavloc area --trace`).
+fn traced(dataset: &std::path::Path, out: &std::path::Path) -> RunOptions {
+    RunOptions {
+        dataset: dataset.into(),
+        out: out.into(),
+        method: AreaMethod::Ukf,
+        trace: true,
+        max_frames: None,
+        debug_masks: false,
+    }
 }
 
 /// Polls a live area pipeline until its adjustment has ended (at most two minutes).
