@@ -525,8 +525,7 @@ pub async fn run(
 
     // 5. Camera: its own thread, frames over a small channel. Lossless replay (file or
     //    dataset with realtime = false) waits for the pipeline through credits.
-    let lossless = !settings.camera.realtime
-        && matches!(settings.camera.source, CameraSource::File | CameraSource::Dataset);
+    let lossless = lossless(&settings);
     let ctx = SourceContext {
         started: started.into_std(),
         latest_pose: Arc::new(Mutex::new(None)),
@@ -794,6 +793,12 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
     }
 }
 
+/// A file or dataset replayed as fast as the pipeline takes it: no frame is dropped,
+/// neither by the pipeline nor by the recorder.
+fn lossless(settings: &Settings) -> bool {
+    !settings.camera.realtime && matches!(settings.camera.source, CameraSource::File | CameraSource::Dataset)
+}
+
 /// Starts the flight recorder when `daemon.record` names a folder (relative: in the state
 /// directory). A recorder that cannot start is an error the start-up reports, as a
 /// setting the daemon cannot honour.
@@ -812,6 +817,7 @@ fn start_recorder(settings: &Settings, state: &Path, run: &str) -> Result<Option
         intrinsics,
         chain: settings.gimbal.chain,
         source_origin: camera::origin(settings),
+        lossless: lossless(settings),
     })))
 }
 

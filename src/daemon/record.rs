@@ -6,7 +6,9 @@
 //!
 //! - **Never in the pipeline's way.** The recorder is a thread of its own with a short
 //!   mailbox; a disk slower than the camera pushes out the oldest waiting frame (counted
-//!   as not recorded), never a live one.
+//!   as not recorded), never a live one. A lossless replay (`camera.realtime = false`)
+//!   has no live frame to protect, so there the offer waits for room instead (at most
+//!   [`ROOM_WAIT`], for a disk that hangs) and the recording holds every frame.
 //! - **A readable dataset at every moment, a power cut included.** `camera.toml` is
 //!   written first; each frame's image is written whole under a hidden name and renamed
 //!   into place. Once a second the images written since are synced, then their lines are
@@ -73,7 +75,14 @@ pub struct RecordSpec {
     /// The camera source's own origin (a replayed dataset's, a scenario's), for frames
     /// that come before (or without) the autopilot's; as the live pipeline takes it.
     pub source_origin: Option<Geodetic>,
+    /// The source waits for the pipeline (`camera.realtime = false`): an offer waits for
+    /// room rather than pushing out a waiting frame.
+    pub lossless: bool,
 }
+
+/// How long a lossless offer waits for the disk before it drops the oldest waiting frame
+/// after all: a disk that hangs must not hold the daemon's loop.
+pub const ROOM_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// Counters the daemon logs and reports.
 #[derive(Debug, Default)]
@@ -124,6 +133,7 @@ pub struct Recorder {
     pub stats: Arc<RecordStats>,
     pub dir: PathBuf,
     source_origin: Option<Geodetic>,
+    lossless: bool,
 }
 
 /// How long a stop waits for the last frames and the final sync (the daemon promises to
@@ -134,8 +144,8 @@ impl Recorder {
     pub fn start(spec: RecordSpec) -> Recorder {
         let shared = Arc::new((Mutex::new(Mailbox::default()), Condvar::new()));
         let stats = Arc::new(RecordStats::default());
-        let (s2, st2, dir, source_origin) =
-            (shared.clone(), stats.clone(), spec.dir.clone(), spec.source_origin);
+        let (s2, st2, dir, source_origin, lossless) =
+            (shared.clone(), stats.clone(), spec.dir.clone(), spec.source_origin, spec.lossless);
         let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
         let thread = std::thread::Builder::new()
             .name("mavloc-record".into())
@@ -149,11 +159,14 @@ impl Recorder {
                 }
             })
             .expect("spawn recorder thread");
-        Recorder { shared, thread: Some(thread), ended: Some(done_rx), stats, dir, source_origin }
+        Recorder { shared, thread: Some(thread), ended: Some(done_rx), stats, dir, source_origin, lossless }
     }
 
     /// Offers a copy of a frame the pipeline is given, with the gimbal offsets (yaw,
-    /// pitch, roll, degrees) that were added to its camera attitude. Returns at once.
+    /// pitch, roll, degrees) that were added to its camera attitude. Returns at once,
+    /// unless the recording is lossless and its mailbox full: then it waits for room (at
+    /// most [`ROOM_WAIT`]). Called from the daemon's loop (a multi-threaded runtime) or
+    /// any plain thread.
     pub fn offer(&self, frame: &LiveFrame, offsets_deg: [f64; 3]) {
         // Takes the mailbox's lock twice, briefly: the copy below is made without it.
         let (m, cv) = &*self.shared;
@@ -178,6 +191,20 @@ impl Recorder {
             offsets_deg,
         };
         let mut mb = m.lock().expect("record mailbox");
+        if self.lossless && mb.items.len() >= DEPTH {
+            let wait = |mb| {
+                cv.wait_timeout_while(mb, ROOM_WAIT, |mb: &mut Mailbox| {
+                    mb.items.len() >= DEPTH && !mb.failed && !mb.stop
+                })
+                .expect("record mailbox")
+                .0
+            };
+            // Blocking a runtime's worker thread would stall its other tasks.
+            mb = match tokio::runtime::Handle::try_current() {
+                Ok(_) => tokio::task::block_in_place(|| wait(mb)),
+                Err(_) => wait(mb),
+            };
+        }
         if mb.failed {
             return;
         }
@@ -186,7 +213,9 @@ impl Recorder {
             self.stats.dropped.fetch_add(1, Ordering::Relaxed);
         }
         mb.items.push_back(item);
-        cv.notify_one();
+        // Both sides wait on the one condition variable: the recorder for frames, a
+        // lossless offer for room.
+        cv.notify_all();
     }
 
     /// Writes what is waiting, syncs and ends the thread (waiting at most [`STOP_WAIT`]).
@@ -204,8 +233,14 @@ impl Recorder {
         let Some(thread) = self.thread.take() else { return };
         let ended = self.ended.take().map(|rx| rx.recv_timeout(STOP_WAIT));
         if matches!(ended, Some(Err(std::sync::mpsc::RecvTimeoutError::Timeout))) {
+            // What still waits will not be written: counted, so the status adds up.
+            let mut mb = self.shared.0.lock().unwrap_or_else(|p| p.into_inner());
+            let left = mb.items.len();
+            self.stats.dropped.fetch_add(left as u64, Ordering::Relaxed);
+            mb.items.clear();
             tracing::warn!(
-                "recording: the disk did not take the last frames within {STOP_WAIT:?}; not waiting for it"
+                "recording: the disk did not take the last frames within {STOP_WAIT:?}; not waiting for it \
+                 ({left} not recorded)"
             );
             return;
         }
@@ -228,6 +263,8 @@ fn fail(shared: &(Mutex<Mailbox>, Condvar), stats: &RecordStats, e: String) {
     stats.dropped.fetch_add(mb.items.len() as u64, Ordering::Relaxed);
     mb.items.clear();
     *stats.failed.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+    // A lossless offer waiting for room gives up at once.
+    shared.1.notify_all();
 }
 
 fn run(spec: RecordSpec, shared: Arc<(Mutex<Mailbox>, Condvar)>, stats: Arc<RecordStats>) {
@@ -239,6 +276,7 @@ fn run(spec: RecordSpec, shared: Arc<(Mutex<Mailbox>, Condvar)>, stats: Arc<Reco
             let mut mb = m.lock().expect("record mailbox");
             loop {
                 if let Some(i) = mb.items.pop_front() {
+                    cv.notify_all();
                     break (Some(i), false);
                 }
                 if mb.stop {
@@ -515,6 +553,7 @@ mod tests {
             intrinsics: Intrinsics { width: 64, height: 48, fx: 50.0, fy: 50.0, cx: 31.5, cy: 23.5 },
             chain: GimbalChain::YawPitchRoll,
             source_origin: None,
+            lossless: false,
         }
     }
 
@@ -558,6 +597,45 @@ mod tests {
             .filter(|n| n.starts_with('.'))
             .collect();
         assert!(hidden.is_empty(), "{hidden:?}");
+    }
+
+    /// A lossless replay (`camera.realtime = false`) records every frame however slow the
+    /// disk: offers faster than the disk wait for room. A live recorder given the same
+    /// burst pushes frames out (the CI failure this guards against: 55 of 60 replayed
+    /// frames recorded on a loaded machine).
+    #[test]
+    fn a_lossless_recording_waits_for_the_disk_and_keeps_every_frame() {
+        // Noise, so each PNG takes the disk (the encoder) far longer than an offer.
+        let mut big = opencv::core::Mat::new_rows_cols_with_default(
+            800,
+            800,
+            opencv::core::CV_8UC3,
+            opencv::core::Scalar::all(0.0),
+        )
+        .unwrap();
+        opencv::core::randu(&mut big, &opencv::core::Scalar::all(0.0), &opencv::core::Scalar::all(255.0))
+            .unwrap();
+        let burst = 3 * DEPTH as u64;
+        let dir = tempfile::tempdir().unwrap();
+        let mut recorded = Vec::new();
+        for lossless in [false, true] {
+            let rec_dir = dir.path().join(format!("lossless-{lossless}"));
+            let r = Recorder::start(RecordSpec { lossless, ..spec(&rec_dir, RecordFormat::Png) });
+            for i in 0..burst {
+                let mut f = frame(i, Some(Geodetic::new(57.0, 10.0, 12.0)));
+                f.image = big.clone();
+                r.offer(&f, [0.0; 3]);
+            }
+            // The last waiting frames are written at the stop (at most STOP_WAIT).
+            let stats = r.stop();
+            let (n, dropped) =
+                (stats.recorded.load(Ordering::Relaxed), stats.dropped.load(Ordering::Relaxed));
+            assert_eq!(n + dropped, burst, "lossless {lossless}: every frame recorded or counted");
+            assert_eq!(mavloc_data::Dataset::open(&rec_dir).unwrap().records.len() as u64, n);
+            recorded.push((n, dropped));
+        }
+        assert!(recorded[0].1 > 0, "the live recorder keeps up with nothing: {recorded:?}");
+        assert_eq!(recorded[1], (burst, 0), "lossless: every frame, none dropped");
     }
 
     /// With no origin at all (a V4L2 camera without GPS, indoors) frames are still
