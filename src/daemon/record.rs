@@ -626,7 +626,17 @@ mod tests {
                 f.image = big.clone();
                 r.offer(&f, [0.0; 3]);
             }
-            // The last waiting frames are written at the stop (at most STOP_WAIT).
+            // Every frame offered is recorded or counted out once the disk is through
+            // (not left to the stop, which waits at most STOP_WAIT: a loaded machine
+            // takes longer for the frames still waiting).
+            let start = std::time::Instant::now();
+            let settled = |s: &RecordStats| {
+                s.recorded.load(Ordering::Relaxed) + s.dropped.load(Ordering::Relaxed) == burst
+            };
+            while !settled(&r.stats) {
+                assert!(start.elapsed().as_secs() < 60, "lossless {lossless}: the recorder never caught up");
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
             let stats = r.stop();
             let (n, dropped) =
                 (stats.recorded.load(Ordering::Relaxed), stats.dropped.load(Ordering::Relaxed));
