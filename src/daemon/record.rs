@@ -199,10 +199,12 @@ impl Recorder {
                 .expect("record mailbox")
                 .0
             };
-            // Blocking a runtime's worker thread would stall its other tasks.
-            mb = match tokio::runtime::Handle::try_current() {
-                Ok(_) => tokio::task::block_in_place(|| wait(mb)),
-                Err(_) => wait(mb),
+            // Blocking a runtime's worker thread would stall its other tasks
+            // (`block_in_place` panics on a current-thread runtime, which has no other).
+            let flavor = tokio::runtime::Handle::try_current().map(|h| h.runtime_flavor());
+            mb = match flavor {
+                Ok(tokio::runtime::RuntimeFlavor::MultiThread) => tokio::task::block_in_place(|| wait(mb)),
+                _ => wait(mb),
             };
         }
         if mb.failed {
