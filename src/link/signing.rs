@@ -23,6 +23,10 @@ use mavlink::MAVLinkV2MessageRaw;
 const EPOCH_2015_UNIX_S: u64 = 1_420_070_400;
 /// A new stream more than a minute behind our clock is a replay (the spec's rule).
 const NEW_STREAM_WINDOW: u64 = 60 * 100_000;
+/// The signature's timestamp field is 48 bits: a larger value cannot be sent, and a
+/// state file holding one was not written by a signer (mavloc once panicked adding to
+/// `u64::MAX`, and kept panicking at every restart).
+const TIMESTAMP_LIMIT: u64 = 1 << 48;
 /// The timestamp is saved this often; after a crash mavloc restarts this far ahead of the
 /// last saved value, so it cannot reuse a timestamp it had already sent.
 pub const SAVE_INTERVAL_S: u64 = 10;
@@ -60,11 +64,15 @@ type Streams = HashMap<(u8, u8, u8), u64>;
 /// stream's memory, not a reason to refuse to start).
 fn parse_state(text: &str) -> Option<(u64, Streams)> {
     let mut lines = text.lines();
-    let ts = lines.next()?.trim().parse::<u64>().ok()?;
+    // Room for the restart's step ahead too.
+    let ts = lines.next()?.trim().parse::<u64>().ok().filter(|t| *t < TIMESTAMP_LIMIT / 2)?;
     let mut streams = HashMap::new();
     for l in lines {
         let f: Vec<u64> = l.split_whitespace().filter_map(|v| v.parse().ok()).collect();
         if let [link, sys, comp, t] = f[..] {
+            if t >= TIMESTAMP_LIMIT {
+                continue;
+            }
             if let (Ok(a), Ok(b), Ok(c)) = (u8::try_from(link), u8::try_from(sys), u8::try_from(comp)) {
                 streams.insert((a, b, c), t);
             }
@@ -134,7 +142,21 @@ impl Signer {
             },
             _ => (0, HashMap::new()),
         };
-        let timestamp = stored.max(now_units());
+        let now = now_units();
+        if stored > now + NEW_STREAM_WINDOW {
+            // Either this computer's clock is behind (no real-time clock, before NTP: then
+            // all is well) or the state was saved by a clock that ran ahead. In the second
+            // case every peer's new stream is more than a minute behind ours, and MAVLink's
+            // rule refuses it as a replay, until real time catches up with the file.
+            tracing::warn!(
+                "signing: the saved timestamp in {} is {:.0} s ahead of this computer's clock; peers \
+                 whose clocks are right will be refused as replays if it is the saved time that is \
+                 wrong (a clock that ran ahead): then stop mavloc and delete the file",
+                state_file.as_deref().map(|p| p.display().to_string()).unwrap_or_default(),
+                (stored - now) as f64 / 100_000.0
+            );
+        }
+        let timestamp = stored.max(now);
         let mut s = Signer { key, link_id, timestamp, streams, state_file, dirty: true };
         s.save();
         s
@@ -302,6 +324,29 @@ mod tests {
             .collect();
         assert_eq!(aside.len(), 1);
         assert!(file.exists(), "a fresh state file is written");
+    }
+
+    /// A timestamp that does not fit the signature's 48 bits is no signer's: the file is
+    /// moved aside and signing starts from the clock (u64::MAX once made every start
+    /// panic), and a stream's such value is forgotten.
+    #[test]
+    fn a_timestamp_beyond_48_bits_is_a_corrupt_state_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("signing-timestamp");
+        for first in [u64::MAX.to_string(), (1u64 << 48).to_string(), ((1u64 << 48) - 1000).to_string()] {
+            std::fs::write(&file, format!("{first}\n0 1 1 {}\n", u64::MAX)).unwrap();
+            let s = Signer::new([1; 32], 0, Some(file.clone()));
+            assert!(s.timestamp() < now_units() + 100_000, "{first}: started from the clock");
+        }
+        let aside = std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| {
+                e.as_ref().unwrap().file_name().to_string_lossy().starts_with("signing-timestamp.corrupt-")
+            })
+            .count();
+        assert!(aside >= 1, "moved aside");
+        let (_, streams) = parse_state(&format!("5\n0 1 1 {}\n0 2 1 7\n", 1u64 << 48)).unwrap();
+        assert_eq!(streams.len(), 1, "the stream beyond 48 bits is forgotten: {streams:?}");
     }
 
     #[test]
