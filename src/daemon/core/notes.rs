@@ -93,25 +93,41 @@ impl Notes {
 /// Per-sender allowance for things that write a log line or a STATUSTEXT on a peer's
 /// behalf (a refused set, an unknown parameter): the first from a sender is said, then at
 /// most one per `PERIOD`; the rest are only counted. A flood costs a counter, not the
-/// disk. Senders are bounded too (the oldest is forgotten).
+/// disk. Senders are bounded too (the oldest is forgotten), and so are the lines of all
+/// senders together: a flood from more senders than are remembered (one id after another,
+/// 255 x 255 of them) would otherwise find each sender forgotten and be said in full.
 #[derive(Debug, Default)]
 pub struct SenderLimit {
     last: std::collections::BTreeMap<(u8, u8), super::time::Mono>,
+    /// Lines said in the current period of all senders: its start and the count.
+    window: Option<(super::time::Mono, usize)>,
     pub suppressed: u64,
 }
 
 impl SenderLimit {
     const PERIOD: std::time::Duration = std::time::Duration::from_secs(10);
     const SENDERS: usize = 64;
+    /// Lines of all senders together per period.
+    const ALL_SENDERS: usize = 16;
 
     /// Whether a line on behalf of `from` may be written at `now`.
     pub fn allow(&mut self, from: (u8, u8), now: super::time::Mono) -> bool {
+        let window = match self.window {
+            Some((start, n)) if now.saturating_sub(start) < Self::PERIOD => (start, n),
+            _ => (now, 0),
+        };
+        self.window = Some(window);
         match self.last.get(&from) {
             Some(&t) if now.saturating_sub(t) < Self::PERIOD => {
                 self.suppressed += 1;
                 false
             }
+            _ if window.1 >= Self::ALL_SENDERS => {
+                self.suppressed += 1;
+                false
+            }
             _ => {
+                self.window = Some((window.0, window.1 + 1));
                 if self.last.len() >= Self::SENDERS && !self.last.contains_key(&from) {
                     let oldest = self.last.iter().min_by_key(|(_, t)| **t).map(|(k, _)| *k);
                     if let Some(k) = oldest {
@@ -147,6 +163,28 @@ mod tests {
         assert!(c.iter().all(|(id, _)| *id == c[0].0 && *id != 0));
         n.info("short");
         assert_eq!(chunks(&mut n), vec![(0, 0)], "one chunk: id 0");
+    }
+
+    /// One line per sender per period, and at most `ALL_SENDERS` of all senders: a flood
+    /// cycling through more senders than are remembered (the audit's 65 component ids
+    /// wrote 10,000 lines for 10,000 refusals) is said a bounded number of times.
+    #[test]
+    fn refusals_from_many_senders_are_bounded_together() {
+        use super::super::time::Mono;
+        use std::time::Duration;
+        let mut l = SenderLimit::default();
+        let mut said = 0;
+        for i in 0..10_000u32 {
+            let now = Mono::ZERO + Duration::from_millis(u64::from(i)); // 10 s in all
+            said += usize::from(l.allow((255, (i % 65) as u8), now));
+        }
+        assert_eq!(said, SenderLimit::ALL_SENDERS, "one period's worth");
+        assert_eq!(l.suppressed, 10_000 - said as u64);
+        // The next period says again, and a sender already said this period stays quiet.
+        let later = Mono::ZERO + Duration::from_secs(11);
+        assert!(l.allow((1, 1), later));
+        assert!(!l.allow((1, 1), later + Duration::from_secs(1)));
+        assert!(l.allow((1, 1), later + Duration::from_secs(11)));
     }
 
     #[test]
