@@ -56,6 +56,13 @@ use self::gpsdenied::GpsDenied;
 use self::health::Health;
 use self::landing::{Landing, LandingNotice};
 use self::notes::{Notes, SenderLimit};
+
+/// A sender not allowed to command mavloc is told DENIED at most this many times per
+/// period (a ground station retries a command a few times), and all such senders together
+/// at most `STRANGER_ACKS_ALL` times; the rest are counted in `commands_refused`.
+const STRANGER_ACK_PERIOD: Duration = Duration::from_secs(1);
+const STRANGER_ACKS_EACH: u32 = 5;
+const STRANGER_ACKS_ALL: u32 = 20;
 use self::params::ParamPacer;
 use self::streams::Streams;
 use self::telemetry::Telemetry;
@@ -363,6 +370,10 @@ pub struct Core {
     notes: Notes,
     /// Lines written on a peer's behalf, rate-limited per sender.
     peer_lines: SenderLimit,
+    /// DENIED answers to commands from senders not allowed to command mavloc: each goes
+    /// to every peer, so a stranger's flood would otherwise be reflected at the
+    /// autopilot's link at its own rate (the audit's 5,000 commands got 5,000 answers).
+    stranger_acks: SenderLimit,
     owed: Owed,
     jobs: BTreeMap<u64, Job>,
     next_job: u64,
@@ -421,6 +432,7 @@ impl Core {
             health: Health::new(m.heartbeat_hz, watchdog),
             notes: Notes::default(),
             peer_lines: SenderLimit::default(),
+            stranger_acks: SenderLimit::new(STRANGER_ACK_PERIOD, STRANGER_ACKS_EACH, STRANGER_ACKS_ALL),
             owed: Owed::default(),
             jobs: BTreeMap::new(),
             next_job: 0,
@@ -1171,7 +1183,10 @@ impl Core {
             if self.peer_lines.allow(from, rx) {
                 tracing::warn!("refused command {} from {}/{}: {why}", c.command as u32, from.0, from.1);
             }
-            return self.reply(commands::ack(c.command, MavResult::MAV_RESULT_DENIED, from));
+            if self.stranger_acks.allow(from, rx) {
+                self.reply(commands::ack(c.command, MavResult::MAV_RESULT_DENIED, from));
+            }
+            return;
         }
         let ack = |core: &mut Core, r| core.reply(commands::ack(c.command, r, from));
         match decision {

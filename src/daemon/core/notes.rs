@@ -90,54 +90,60 @@ impl Notes {
     }
 }
 
-/// Per-sender allowance for things that write a log line or a STATUSTEXT on a peer's
-/// behalf (a refused set, an unknown parameter): the first from a sender is said, then at
-/// most one per `PERIOD`; the rest are only counted. A flood costs a counter, not the
-/// disk. Senders are bounded too (the oldest is forgotten), and so are the lines of all
-/// senders together: a flood from more senders than are remembered (one id after another,
-/// 255 x 255 of them) would otherwise find each sender forgotten and be said in full.
-#[derive(Debug, Default)]
+/// Per-sender allowance for things done on a peer's behalf that cost the disk or the link
+/// (a log line or STATUSTEXT about a refused set, a DENIED answer to a stranger's
+/// command): at most `per_sender` in a period from each sender, and `all` from all
+/// senders together; the rest are only counted. A flood costs a counter. Senders are
+/// bounded too (the oldest is forgotten), which is why the total is capped: a flood
+/// cycling through more senders than are remembered (the audit's 65 component ids) would
+/// find each one forgotten and be answered in full.
+#[derive(Debug)]
 pub struct SenderLimit {
-    last: std::collections::BTreeMap<(u8, u8), super::time::Mono>,
-    /// Lines said in the current period of all senders: its start and the count.
-    window: Option<(super::time::Mono, usize)>,
+    period: std::time::Duration,
+    per_sender: u32,
+    all: u32,
+    /// Each sender's current period: its start and the count allowed in it.
+    last: std::collections::BTreeMap<(u8, u8), (super::time::Mono, u32)>,
+    /// The same for all senders together.
+    window: Option<(super::time::Mono, u32)>,
     pub suppressed: u64,
 }
 
-impl SenderLimit {
-    const PERIOD: std::time::Duration = std::time::Duration::from_secs(10);
-    const SENDERS: usize = 64;
-    /// Lines of all senders together per period.
-    const ALL_SENDERS: usize = 16;
+impl Default for SenderLimit {
+    /// Lines about a peer: one per sender per 10 s, 16 of all senders.
+    fn default() -> SenderLimit {
+        SenderLimit::new(std::time::Duration::from_secs(10), 1, 16)
+    }
+}
 
-    /// Whether a line on behalf of `from` may be written at `now`.
+impl SenderLimit {
+    const SENDERS: usize = 64;
+
+    pub fn new(period: std::time::Duration, per_sender: u32, all: u32) -> SenderLimit {
+        SenderLimit { period, per_sender, all, last: Default::default(), window: None, suppressed: 0 }
+    }
+
+    /// Whether something on behalf of `from` may be done at `now`.
     pub fn allow(&mut self, from: (u8, u8), now: super::time::Mono) -> bool {
-        let window = match self.window {
-            Some((start, n)) if now.saturating_sub(start) < Self::PERIOD => (start, n),
+        let current = |w: Option<(super::time::Mono, u32)>| match w {
+            Some((start, n)) if now.saturating_sub(start) < self.period => (start, n),
             _ => (now, 0),
         };
-        self.window = Some(window);
-        match self.last.get(&from) {
-            Some(&t) if now.saturating_sub(t) < Self::PERIOD => {
-                self.suppressed += 1;
-                false
-            }
-            _ if window.1 >= Self::ALL_SENDERS => {
-                self.suppressed += 1;
-                false
-            }
-            _ => {
-                self.window = Some((window.0, window.1 + 1));
-                if self.last.len() >= Self::SENDERS && !self.last.contains_key(&from) {
-                    let oldest = self.last.iter().min_by_key(|(_, t)| **t).map(|(k, _)| *k);
-                    if let Some(k) = oldest {
-                        self.last.remove(&k);
-                    }
-                }
-                self.last.insert(from, now);
-                true
+        let window = current(self.window);
+        let sender = current(self.last.get(&from).copied());
+        if sender.1 >= self.per_sender || window.1 >= self.all {
+            self.suppressed += 1;
+            return false;
+        }
+        if self.last.len() >= Self::SENDERS && !self.last.contains_key(&from) {
+            let oldest = self.last.iter().min_by_key(|(_, (t, _))| *t).map(|(k, _)| *k);
+            if let Some(k) = oldest {
+                self.last.remove(&k);
             }
         }
+        self.last.insert(from, (sender.0, sender.1 + 1));
+        self.window = Some((window.0, window.1 + 1));
+        true
     }
 }
 
@@ -178,7 +184,7 @@ mod tests {
             let now = Mono::ZERO + Duration::from_millis(u64::from(i)); // 10 s in all
             said += usize::from(l.allow((255, (i % 65) as u8), now));
         }
-        assert_eq!(said, SenderLimit::ALL_SENDERS, "one period's worth");
+        assert_eq!(said, 16, "one period's worth");
         assert_eq!(l.suppressed, 10_000 - said as u64);
         // The next period says again, and a sender already said this period stays quiet.
         let later = Mono::ZERO + Duration::from_secs(11);

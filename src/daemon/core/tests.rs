@@ -1146,3 +1146,33 @@ fn the_map_is_adjusted_on_command_when_it_can_be() {
     let (acks, asked, _) = ask(1.5, PipelineKind::None);
     assert_eq!((acks, asked), (vec![MavResult::MAV_RESULT_TEMPORARILY_REJECTED], 0));
 }
+
+/// A stranger's commands are DENIED, but a flood of them is not reflected at its rate: at
+/// most 5 answers a second to each stranger and 20 to all (every answer goes to every
+/// peer, the autopilot's link included); each command is still counted as refused. The
+/// ground station's own command is answered within the same second.
+#[test]
+fn a_strangers_command_flood_is_answered_a_bounded_number_of_times() {
+    let mut sim = Sim::new(settings());
+    sim.run_until(secs(1));
+    let sent_before = sim.sent.len();
+    // 2 s of 500 commands a second from 10 strangers in turn.
+    for i in 0..1000u32 {
+        sim.deliver(frame(42 + (i % 10) as u8, 1, pipeline_command(1.0, 0.0)));
+        sim.run_for(Duration::from_millis(2));
+    }
+    sim.run_for(Duration::from_millis(100));
+    let denied = sim.sent[sent_before..]
+        .iter()
+        .filter(|(_, m)| matches!(m, MavMessage::COMMAND_ACK(a) if a.result == MavResult::MAV_RESULT_DENIED))
+        .count();
+    assert!((2 * 20..=3 * 20).contains(&denied), "{denied} answers to 1000 commands over 2 s");
+    assert_eq!(sim.core.counters().commands_refused, 1000);
+    sim.gcs_sends(pipeline_command(0.0, 0.0));
+    sim.run_for(Duration::from_millis(100));
+    let last = sim.sent.iter().rev().find_map(|(_, m)| match m {
+        MavMessage::COMMAND_ACK(a) => Some(a.target_system),
+        _ => None,
+    });
+    assert_eq!(last, Some(255), "the ground station is answered");
+}
