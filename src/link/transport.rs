@@ -424,9 +424,16 @@ impl Link {
             let rx = Instant::now();
             if let Endpoint::Udp { peers, fixed: None, .. } = endpoint {
                 if self.trust.vouches(&f) {
-                    match peers.heard(from, rx) {
+                    // `vouches` took only an 8-bit system id.
+                    match peers.heard(from, f.header.system_id as u8, rx) {
                         Heard::Added => tracing::info!(
                             "udp peer {from} (system {}) added; {} peer(s)",
+                            f.header.system_id,
+                            peers.len()
+                        ),
+                        Heard::Returned(out) => tracing::warn!(
+                            "udp peer {from} (system {}) is back and takes its place from {out}, which \
+                             came while it was silent; {} peer(s)",
                             f.header.system_id,
                             peers.len()
                         ),
