@@ -32,6 +32,41 @@ use tokio::time::Instant;
 
 use super::codec::{Decoder, Encoder, Frame, SkipCounts};
 use super::peers::{Heard, Peers, Trust, MAX_PEERS, PEER_EXPIRY};
+
+/// Lines about `tcpin` clients connecting and leaving, per 10 s.
+const CLIENT_LINES: u32 = 20;
+
+/// The budget of [`CLIENT_LINES`]: the lines beyond it are counted and summed up in the
+/// first line of the next period.
+#[derive(Default)]
+struct ClientLines {
+    period: Option<Instant>,
+    said: u32,
+    unsaid: u64,
+}
+
+impl ClientLines {
+    fn say(&mut self, line: String) {
+        let now = Instant::now();
+        if self.period.is_none_or(|p| now.saturating_duration_since(p) >= Duration::from_secs(10)) {
+            self.period = Some(now);
+            self.said = 0;
+            if self.unsaid > 0 {
+                tracing::info!(
+                    "{} more lines about tcp clients connecting and leaving were not logged",
+                    self.unsaid
+                );
+                self.unsaid = 0;
+            }
+        }
+        if self.said < CLIENT_LINES {
+            self.said += 1;
+            tracing::info!("{line}");
+        } else {
+            self.unsaid += 1;
+        }
+    }
+}
 use super::signing::{Signer, SAVE_INTERVAL_S};
 use super::LinkAddress;
 
@@ -342,6 +377,9 @@ impl Link {
         let mut buf = vec![0u8; 65536];
         let mut housekeeping = tokio::time::interval((self.expiry / 10).min(Duration::from_secs(1)));
         let mut save_tick = tokio::time::interval(Duration::from_secs(SAVE_INTERVAL_S));
+        // Client comings and goings are logged, but a client reconnecting in a loop would
+        // fill the disk: at most CLIENT_LINES lines per 10 s, the rest summed up.
+        let mut client_lines = ClientLines::default();
         loop {
             tokio::select! {
                 r = recv_datagram(&endpoint, &mut buf) => match r {
@@ -353,16 +391,35 @@ impl Link {
                 a = accept(&endpoint) => match a {
                     Ok((s, peer)) => {
                         if conns.len() >= MAX_PEERS {
-                            // Closing at once tells the client, and costs nothing.
-                            self.stats.peers_refused.fetch_add(1, Relaxed);
-                            drop(s);
-                            continue;
+                            // A full table of clients that never vouched (connections held
+                            // open and silent) would lock every ground station out: the
+                            // longest-open of them gives way. No grace: an attacker who
+                            // reconnects faster than a grace would keep every place young,
+                            // while a ground station that sends its heartbeat on connecting
+                            // is the newest and goes last.
+                            let idle = conns
+                                .iter()
+                                .filter(|(_, c)| c.vouched.is_none())
+                                .min_by_key(|(_, c)| c.opened)
+                                .map(|(&id, _)| id);
+                            match idle.and_then(|id| conns.remove(&id)) {
+                                Some(c) => {
+                                    self.stats.peers_dropped.fetch_add(1, Relaxed);
+                                    client_lines.say(format!("{}: no frame from the autopilot or ground station yet, and the clients are full; disconnected for tcp client {peer}", c.what));
+                                }
+                                None => {
+                                    // Closing at once tells the client, and costs nothing.
+                                    self.stats.peers_refused.fetch_add(1, Relaxed);
+                                    drop(s);
+                                    continue;
+                                }
+                            }
                         }
                         if let Err(e) = tune(&s) {
                             tracing::info!("tcp client {peer}: {e}; not accepted");
                             continue;
                         }
-                        tracing::info!("tcp client {peer} connected");
+                        client_lines.say(format!("tcp client {peer} connected"));
                         conns.insert(next_id, start_conn(next_id, format!("tcp client {peer}"), Box::new(s), wire_tx.clone()));
                         next_id += 1;
                     }
@@ -380,7 +437,7 @@ impl Link {
                             if !listening {
                                 return End::Down(format!("{}: {reason}", self.address));
                             }
-                            tracing::info!("{}: {reason}; disconnected", c.what);
+                            client_lines.say(format!("{}: {reason}; disconnected", c.what));
                         }
                     }
                     None => return End::Down(format!("{}: connection tasks ended", self.address)),
@@ -405,7 +462,7 @@ impl Link {
                         for id in idle {
                             if let Some(c) = conns.remove(&id) {
                                 self.stats.peers_dropped.fetch_add(1, Relaxed);
-                                tracing::info!("{}: no frame from the autopilot or ground station for {:?}; disconnected", c.what, self.expiry);
+                                client_lines.say(format!("{}: no frame from the autopilot or ground station for {:?}; disconnected", c.what, self.expiry));
                             }
                         }
                     }
@@ -758,5 +815,40 @@ mod tests {
         h.outgoing.send(out()).await.unwrap();
         assert!(hears_tcp(&mut a, Duration::from_secs(1)).await);
         assert!(hears_tcp(&mut b, Duration::from_secs(1)).await);
+    }
+
+    /// The audit's attack on `tcpin`: connections held open and silent take every other
+    /// place. A ground station connecting later is served, the longest-silent of them
+    /// giving way, and a client that vouched never does.
+    #[tokio::test]
+    async fn silent_connections_give_way_to_a_new_client_when_the_places_are_full() {
+        let port = free_port();
+        let (_stop, rx) = broadcast::channel(1);
+        let addr = LinkAddress::TcpIn { host: "127.0.0.1".into(), port };
+        let mut h = spawn_with_expiry(addr, trust(false), None, rx, Duration::from_secs(30));
+        up(&mut h).await;
+        let mut autopilot = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        autopilot.write_all(&heartbeat(1, None)).await.unwrap();
+        frames(&mut h, 1).await;
+        let mut silent = Vec::new();
+        for _ in 1..MAX_PEERS {
+            silent.push(TcpStream::connect(("127.0.0.1", port)).await.unwrap());
+        }
+        let mut gcs = TcpStream::connect(("127.0.0.1", port)).await.unwrap();
+        gcs.write_all(&heartbeat(255, None)).await.unwrap();
+        frames(&mut h, 1).await;
+        h.outgoing.send(out()).await.unwrap();
+        assert!(hears_tcp(&mut gcs, Duration::from_secs(1)).await, "the ground station is served");
+        assert!(hears_tcp(&mut autopilot, Duration::from_secs(1)).await, "the autopilot keeps its place");
+        assert_eq!(h.stats.peers_dropped.load(Relaxed), 1, "one silent connection gave way");
+        assert_eq!(h.stats.peers_refused.load(Relaxed), 0);
+        let mut closed = 0;
+        for s in &mut silent {
+            let mut buf = [0u8; 64];
+            if matches!(tokio::time::timeout(Duration::from_millis(200), s.read(&mut buf)).await, Ok(Ok(0))) {
+                closed += 1;
+            }
+        }
+        assert_eq!(closed, 1);
     }
 }
