@@ -251,17 +251,48 @@ struct Shell {
     link_full: bool,
     /// The area result set last handed to the core for MAVLink FTP (the link's target).
     served_area: Option<PathBuf>,
+    /// `status.json` writes failing since the last line said so (a full disk fails every
+    /// second): said once, then once a minute with the count.
+    status_failing: Option<(Mono, u64)>,
 }
+
+/// How often a `status.json` that keeps failing is said again.
+const STATUS_FAILURE_EVERY: Duration = Duration::from_secs(60);
 
 /// A result file larger than this is not served over MAVLink FTP (at its 239 bytes a
 /// packet and 4 ms between packets, 8 MB take over two minutes).
 const MAX_SERVED_BYTES: u64 = 8 << 20;
 
 impl Shell {
-    /// Rewrites `status.json` with the daemon's state now.
-    fn write_status(&self, core: &Core, now: Mono) -> std::io::Result<()> {
+    /// Rewrites `status.json` with the daemon's state now; a failure is logged once a
+    /// minute while it lasts, and the recovery once.
+    fn write_status(&mut self, core: &Core, now: Mono) -> std::io::Result<()> {
         let recording = self.live.recorder.as_ref().map(RecordingJson::of);
-        write_status(&self.dir, core, &self.link, &self.link_state, now, recording)
+        let r = write_status(&self.dir, core, &self.link, &self.link_state, now, recording);
+        let path = self.dir.join("status.json");
+        match (&r, &mut self.status_failing) {
+            (Err(e), None) => {
+                tracing::warn!(
+                    "cannot write {}: {e} (said again once a minute while it fails)",
+                    path.display()
+                );
+                self.status_failing = Some((now, 0));
+            }
+            (Err(e), Some((said, unsaid))) => {
+                *unsaid += 1;
+                if now.saturating_sub(*said) >= STATUS_FAILURE_EVERY {
+                    tracing::warn!("cannot write {}: {e} ({unsaid} more failures)", path.display());
+                    *said = now;
+                    *unsaid = 0;
+                }
+            }
+            (Ok(()), Some(_)) => {
+                tracing::info!("{} written again", path.display());
+                self.status_failing = None;
+            }
+            (Ok(()), None) => {}
+        }
+        r
     }
 
     fn now(&self) -> Mono {
@@ -564,6 +595,7 @@ pub async fn run(
         live,
         link_full: false,
         served_area: None,
+        status_failing: None,
     };
     serve(&mut core, &mut shell, shutdown).await?;
 
@@ -589,7 +621,9 @@ pub async fn run(
         json
     });
     let now = Mono(started.elapsed().as_micros() as u64);
-    let _ = write_status(&dir, &core, &link, "shutting down", now, recording);
+    if let Err(e) = write_status(&dir, &core, &link, "shutting down", now, recording) {
+        tracing::warn!("cannot write {}/status.json: {e}", dir.display());
+    }
     let _ = shutdown_tx.send(());
     if tokio::time::timeout(Duration::from_millis(1500), &mut link.task).await.is_err() {
         tracing::warn!("link task did not stop within 1.5 s; leaving it");
@@ -893,7 +927,6 @@ fn write_status(
     };
     let json = serde_json::to_string_pretty(&status).expect("status serialises");
     crate::output::write_atomic(&dir.join("status.json"), json.as_bytes())
-        .inspect_err(|e| tracing::warn!("cannot write {}/status.json: {e}", dir.display()))
 }
 
 #[cfg(test)]
@@ -954,6 +987,7 @@ mod shell_tests {
                 live,
                 link_full: false,
                 served_area: None,
+                status_failing: None,
             };
             serve(&mut core, &mut shell, async {
                 let _ = stop_rx.await;
