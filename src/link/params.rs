@@ -201,6 +201,18 @@ pub fn set(settings: &Settings, name: &str, w: Wire) -> Result<(Settings, f64), 
     origins.insert(def.key.to_string(), "PARAM_SET".to_string());
     let problems = settings::validate(&new, &origins);
     if let Some(p) = problems.first() {
+        // A value can break another key's bound (AREA_L_MAX below AREA_TURNOVER): that
+        // key is named, with the parameter it is, or its range would read as this one's.
+        if p.key != def.key {
+            let other =
+                PARAMS.iter().find(|d| d.key == p.key).map(|d| format!(" ({})", d.name)).unwrap_or_default();
+            return Err(refuse(format!(
+                "{x} would leave {}{other} = {} {}",
+                p.key,
+                p.value.as_deref().unwrap_or("?"),
+                p.expected
+            )));
+        }
         return Err(refuse(p.expected.clone()));
     }
     Ok((new, x))
@@ -407,6 +419,12 @@ mod tests {
         let (s2, _) = set(&s, "AREA_RATIO", real(0.7)).unwrap();
         assert!((s2.area.ratio_test - 0.7).abs() < 1e-6);
         assert!(matches!(set(&s, "AREA_RATIO", real(3.0)), Err(SetError::Refused { .. })));
+        // A value that breaks another key's bound names that key, not its range as this one's.
+        let mut low = s.clone();
+        low.area.turnover = 20;
+        let ten = Wire { value: f32::from_bits(10), ty: MavParamType::MAV_PARAM_TYPE_INT32 };
+        let e = set(&low, "AREA_L_MAX", ten).unwrap_err().to_string();
+        assert!(e.starts_with("AREA_L_MAX: 10 would leave area.turnover (AREA_TURNOVER) = 20"), "{e}");
         assert!(matches!(set(&s, "NOPE", real(1.0)), Err(SetError::Unknown(_))));
         let (s3, _) = set(&s, "LOC_PIPELINE", int(2)).unwrap();
         assert_eq!(s3.daemon.pipeline, settings::PipelineKind::Indoor);
