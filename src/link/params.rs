@@ -226,16 +226,24 @@ pub enum Unreadable {
     Io(std::io::Error),
 }
 
+/// The largest `params.json` read: every parameter tuned takes a few kB, so anything
+/// larger is not one (a link to `/dev/zero` was read until the kernel killed mavloc).
+const MAX_PARAMS_FILE: u64 = 1 << 20;
+
 /// Reads `params.json` without changing anything: `None` when there is none.
 pub fn read_tuned(path: &Path) -> Result<Option<BTreeMap<String, f64>>, Unreadable> {
-    let text = match std::fs::read_to_string(path) {
-        Ok(t) => t,
+    use std::io::Read;
+    let file = match std::fs::File::open(path) {
+        Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) if e.kind() == std::io::ErrorKind::InvalidData => {
-            return Err(Unreadable::Corrupt(format!("not text: {e}")))
-        }
         Err(e) => return Err(Unreadable::Io(e)),
     };
+    let mut bytes = Vec::new();
+    file.take(MAX_PARAMS_FILE + 1).read_to_end(&mut bytes).map_err(Unreadable::Io)?;
+    if bytes.len() as u64 > MAX_PARAMS_FILE {
+        return Err(Unreadable::Corrupt(format!("larger than {MAX_PARAMS_FILE} bytes")));
+    }
+    let text = String::from_utf8(bytes).map_err(|e| Unreadable::Corrupt(format!("not text: {e}")))?;
     serde_json::from_str(&text).map(Some).map_err(|e| Unreadable::Corrupt(e.to_string()))
 }
 
@@ -480,6 +488,10 @@ mod tests {
         std::fs::write(&path, [0xff, 0xfe, 0x00]).unwrap();
         ParamStore::open(&path, &mut Settings::default(), &BTreeSet::new());
         assert!(!path.exists());
+        // And one without end (a link to /dev/zero was read until memory ran out).
+        std::os::unix::fs::symlink("/dev/zero", &path).unwrap();
+        ParamStore::open(&path, &mut Settings::default(), &BTreeSet::new());
+        assert!(std::fs::symlink_metadata(&path).is_err(), "moved aside");
     }
 
     #[test]

@@ -81,6 +81,20 @@ fn parse_state(text: &str) -> Option<(u64, Streams)> {
     Some((ts, streams))
 }
 
+/// The state file's text; one larger than any signer writes (a stream a line, 255 x 255
+/// x 255 of them at most in theory, a few hundred in practice) reads as empty, which does
+/// not parse: a link to `/dev/zero` must not be read until memory runs out.
+fn read_bounded(p: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    const MAX: u64 = 4 << 20;
+    let mut bytes = Vec::new();
+    std::fs::File::open(p)?.take(MAX + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX {
+        return Ok(String::new());
+    }
+    String::from_utf8(bytes).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))
+}
+
 fn now_units() -> u64 {
     let unix = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default();
     (unix.as_micros() as u64 / 10).saturating_sub(EPOCH_2015_UNIX_S * 100_000)
@@ -131,7 +145,7 @@ impl Signer {
     /// A state file that does not parse is moved aside (named in a warning): starting
     /// matters more, and the spec's one-minute window still guards new streams.
     pub fn new(key: [u8; 32], link_id: u8, state_file: Option<PathBuf>) -> Signer {
-        let (stored, streams) = match state_file.as_deref().map(|p| (p, std::fs::read_to_string(p))) {
+        let (stored, streams) = match state_file.as_deref().map(|p| (p, read_bounded(p))) {
             Some((p, Ok(text))) => match parse_state(&text) {
                 Some((t, streams)) => (t + SAVE_INTERVAL_S * 100_000, streams),
                 None => {
@@ -316,6 +330,11 @@ mod tests {
         let file = dir.path().join("signing-timestamp");
         std::fs::write(&file, "not a number\n").unwrap();
         let s = Signer::new([1; 32], 0, Some(file.clone()));
+        // One without end is not read to its end (a link to /dev/zero ran mavloc out of
+        // memory): it reads as empty, which does not parse, so it goes aside as this one.
+        let zero = dir.path().join("zero");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        assert_eq!(read_bounded(&zero).unwrap(), "");
         assert!(s.timestamp() > 0);
         let aside: Vec<_> = std::fs::read_dir(dir.path())
             .unwrap()
