@@ -131,7 +131,8 @@ impl Runs {
     /// Start-up tidying (see the module docs). Removals are best effort: what is left is
     /// tried again at the next start and never read as a result.
     fn tidy(&self, layout: Layout) -> io::Result<()> {
-        fs::create_dir_all(&self.root)?;
+        fs::create_dir_all(&self.root)
+            .map_err(|e| io::Error::new(e.kind(), format!("cannot create {}: {e}", self.root.display())))?;
         let _ = remove_file_if_any(&self.tmp_link());
         self.adopt_legacy(layout)?;
         if layout == Layout::Sets {
@@ -147,6 +148,16 @@ impl Runs {
     fn adopt_legacy(&self, layout: Layout) -> io::Result<()> {
         let meta = match fs::symlink_metadata(&self.link) {
             Ok(m) if m.is_dir() => m,
+            // Someone's file: replacing it with the link would delete it.
+            Ok(m) if m.is_file() => {
+                return Err(io::Error::new(
+                    io::ErrorKind::AlreadyExists,
+                    format!(
+                        "{} is a file where mavloc keeps its results link; move it away",
+                        self.link.display()
+                    ),
+                ))
+            }
             _ => return Ok(()),
         };
         if fs::read_dir(&self.link)?.next().is_none() {
@@ -503,6 +514,22 @@ mod tests {
         assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "two", "the link moved to the newest");
         assert_eq!(names(dir.path()), ["area", "area.runs"]);
         assert_eq!(names(sets.runs().root()), ["r1", "r2"]);
+    }
+
+    /// A file where the link goes is someone's: named, kept, and nothing opened (the link
+    /// renamed over it deleted it). A file where the runs go is named too.
+    #[test]
+    fn a_file_in_the_results_places_is_named_and_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        fs::write(&link, "my notes").unwrap();
+        let e = ResultSets::open(&link, "r1").unwrap_err().to_string();
+        assert!(e.contains(&format!("{} is a file", link.display())), "{e}");
+        assert_eq!(fs::read_to_string(&link).unwrap(), "my notes");
+        let other = dir.path().join("indoor");
+        fs::write(dir.path().join("indoor.runs"), "x").unwrap();
+        let e = open_run_dir(&other, "r1").unwrap_err().to_string();
+        assert!(e.contains(&format!("cannot create {}", dir.path().join("indoor.runs").display())), "{e}");
     }
 
     #[test]
