@@ -395,6 +395,53 @@ def test_hostile_peers_on_udpin():
     assert code == 0, f"exit status {code}"
 
 
+def test_spoofed_autopilots_leave_room_for_the_ground_station():
+    """Unsigned frames claiming the autopilot's system id from twelve ports (an autopilot
+    cannot be told from a forgery without signatures): they hold at most the autopilot's
+    share of the peer table, so the ground station arriving after them is served."""
+    d = Daemon()
+    try:
+        spoof = raw_frame(1, lambda m: m.heartbeat_encode(mav2.MAV_TYPE_QUADROTOR, mav2.MAV_AUTOPILOT_PX4, 0, 0, 0))
+        spoofers = []
+        for _ in range(12):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(0.05)
+            spoofers.append(s)
+        t0 = time.time()
+        while time.time() - t0 < 2.0:
+            for s in spoofers:
+                s.sendto(spoof, ("127.0.0.1", d.port))
+            time.sleep(0.2)
+        c = d.connect()
+        hello(c)
+        beats = 0
+        t0 = time.time()
+        while time.time() - t0 < 3.0:
+            for s in spoofers:
+                s.sendto(spoof, ("127.0.0.1", d.port))
+            m = c.recv_match(type="HEARTBEAT", blocking=True, timeout=0.3)
+            beats += m is not None and m.get_srcComponent() == MAVLOC_COMP
+        assert beats >= 2, f"the ground station heard {beats} heartbeats in 3 s"
+        served = 0
+        for s in spoofers:
+            try:
+                while True:
+                    s.recv(4096)
+                    served += 1
+                    break
+            except socket.timeout:
+                pass
+        assert served <= 4, f"{served} of the 12 spoofing ports were sent to: more than the autopilot's share"
+        assert d.status()["peers_refused"] > 0
+        for s in spoofers:
+            s.close()
+        c.close()
+    finally:
+        code = d.stop()
+    assert code == 0, f"exit status {code}"
+
+
 def test_signed_replay_after_a_crash_is_refused():
     key = bytes(range(1, 33))
     d = Daemon(f'signing_key = "{key_file(key)}"')

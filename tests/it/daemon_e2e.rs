@@ -62,6 +62,11 @@ fn hostile_peers_on_udpin_cannot_hijack_flood_or_poison() {
 }
 
 #[test]
+fn spoofed_autopilots_leave_room_for_the_ground_station() {
+    run_python(&["test_spoofed_autopilots_leave_room_for_the_ground_station"], Duration::from_secs(40));
+}
+
+#[test]
 fn a_signed_command_replayed_after_a_crash_is_refused() {
     run_python(&["test_signed_replay_after_a_crash_is_refused"], Duration::from_secs(40));
 }
