@@ -33,6 +33,9 @@ use tokio::time::Instant;
 use super::codec::{Decoder, Encoder, Frame, SkipCounts};
 use super::peers::{Heard, Peers, Trust, MAX_PEERS, PEER_EXPIRY};
 
+/// Frames dropped for their signature are said at most this often.
+const SIGNATURE_LINE_EVERY: Duration = Duration::from_secs(60);
+
 /// Lines about `tcpin` clients connecting and leaving, per 10 s.
 const CLIENT_LINES: u32 = 20;
 
@@ -380,6 +383,9 @@ impl Link {
         // Client comings and goings are logged, but a client reconnecting in a loop would
         // fill the disk: at most CLIENT_LINES lines per 10 s, the rest summed up.
         let mut client_lines = ClientLines::default();
+        // Frames dropped for their signature, and when that was last said: a wrong key or
+        // a clock a minute off otherwise shows only as a counter in status.json.
+        let mut signatures_said = (0u64, None::<Instant>);
         loop {
             tokio::select! {
                 r = recv_datagram(&endpoint, &mut buf) => match r {
@@ -448,6 +454,18 @@ impl Link {
                 },
                 _ = housekeeping.tick() => {
                     let now = Instant::now();
+                    let bad = self.stats.skipped.lock().expect("stats lock").bad_signature;
+                    if bad > signatures_said.0
+                        && signatures_said.1.is_none_or(|t| now.saturating_duration_since(t) >= SIGNATURE_LINE_EVERY)
+                    {
+                        tracing::warn!(
+                            "{} frames dropped for a wrong signature or a replayed or stale timestamp ({bad} in all): \
+                             check the peers' key, and their clocks (a new stream more than a minute behind \
+                             mavloc's signing time is a replay by MAVLink's rule)",
+                            bad - signatures_said.0
+                        );
+                        signatures_said = (bad, Some(now));
+                    }
                     if let Endpoint::Udp { peers, fixed: None, .. } = &mut endpoint {
                         for gone in peers.expire(now) {
                             tracing::info!("udp peer {gone} silent for {PEER_EXPIRY:?}; no longer sent to");
