@@ -91,7 +91,7 @@ pub struct Mavlink {
 impl Default for Mavlink {
     fn default() -> Self {
         Mavlink {
-            connection: "udpin:0.0.0.0:14540".into(),
+            connection: "udpin:127.0.0.1:14540".into(),
             system_id: 0,
             component_id: 191,
             autopilot_system_id: 1,
