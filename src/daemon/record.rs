@@ -321,6 +321,17 @@ fn run(spec: RecordSpec, shared: Arc<(Mutex<Mailbox>, Condvar)>, stats: Arc<Reco
             last_sync = std::time::Instant::now();
         }
         if let Err(e) = result {
+            // The frames written before the failure keep their lines if the disk still
+            // takes them (a lossless replay fills a second's worth fast: without this, a
+            // full disk left every image of such a recording without a line); if not,
+            // they are counted as not recorded.
+            if let Some(w) = &mut writer {
+                let n = w.pending.bytes().filter(|b| *b == b'\n').count() as u64;
+                match w.sync() {
+                    Ok(()) => stats.recorded.fetch_add(n, Ordering::Relaxed),
+                    Err(_) => stats.dropped.fetch_add(n, Ordering::Relaxed),
+                };
+            }
             fail(&shared, &stats, e);
             return;
         }
@@ -696,6 +707,40 @@ mod tests {
         assert_eq!(stats.recorded.load(Ordering::Relaxed), 1);
         let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
         assert_eq!(ds.records.len(), 1);
+    }
+
+    /// Frames written before a failed write, within the second their lines wait for the
+    /// sync, keep their lines (the audit's lossless replay onto a full disk left 36 images
+    /// and an empty `telemetry.jsonl`, counted as neither recorded nor lost).
+    #[test]
+    fn a_failed_write_keeps_the_lines_of_the_frames_written_before_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let rec_dir = dir.path().join("run-1");
+        let r = Recorder::start(RecordSpec { lossless: true, ..spec(&rec_dir, RecordFormat::Png) });
+        let origin = Some(Geodetic::new(57.0, 10.0, 12.0));
+        r.offer(&frame(0, origin), [0.0; 3]);
+        let start = std::time::Instant::now();
+        while !rec_dir.join("frames/000000.png").exists() {
+            assert!(start.elapsed().as_secs() < 10, "the first frame was not written");
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        // Frame 3's image cannot be put in place: a folder is in its way.
+        std::fs::create_dir(rec_dir.join("frames/000003.png")).unwrap();
+        for i in 1..=4 {
+            r.offer(&frame(i, origin), [0.0; 3]);
+        }
+        while r.stats.failed.lock().unwrap().is_none() {
+            assert!(start.elapsed().as_secs() < 10, "the failure was not reported");
+            std::thread::sleep(std::time::Duration::from_millis(5));
+        }
+        let stats = r.stop();
+        assert!(stats.failed.lock().unwrap().clone().unwrap().contains("000003.png"));
+        assert_eq!(stats.recorded.load(Ordering::Relaxed), 3);
+        // Frame 4 is counted if it was waiting when the write failed; offered after, it
+        // is ignored with the recording stopped.
+        assert!(stats.dropped.load(Ordering::Relaxed) <= 1);
+        let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
+        assert_eq!(ds.records.iter().map(|r| r.frame).collect::<Vec<_>>(), [0, 1, 2]);
     }
 
     /// A position in another origin (the autopilot moved its EKF origin during the flight)
