@@ -18,9 +18,32 @@ pub struct Replay {
     settings: Settings,
     ctx: SourceContext,
     next: usize,
-    /// Local time of the first frame; frame i is due at start + (t_i - t_0).
-    start: f64,
+    /// Local time the next frame is due: the one before's plus their gap in the dataset.
+    due: f64,
+    /// The dataset time of the frame before.
+    prev_t: Option<f64>,
     realtime: bool,
+}
+
+/// The longest gap between two frames a real-time replay waits for: a recording spans a
+/// flight, and a longer gap (between two flights, or a wrong time: one frame at t = 1e12
+/// stalled a replay for good, with no word) is replayed at once.
+const MAX_WAIT_S: f64 = 60.0;
+
+/// How long to wait after the frame at `prev` for the one at `t`, and why not as long as
+/// their times say, when not.
+fn paced_gap(prev: Option<f64>, t: f64) -> (f64, Option<String>) {
+    let Some(prev) = prev else { return (0.0, None) };
+    let gap = t - prev;
+    if gap.is_finite() && (0.0..=MAX_WAIT_S).contains(&gap) {
+        return (gap, None);
+    }
+    let why = if gap < 0.0 {
+        format!("comes {:.3} s before the frame before it (the dataset's times run backwards)", -gap)
+    } else {
+        format!("comes {gap:.1} s after the frame before it (more than {MAX_WAIT_S} s)")
+    };
+    (0.0, Some(why))
 }
 
 impl Replay {
@@ -32,7 +55,15 @@ impl Replay {
         if ds.records.is_empty() {
             return Err(SourceError::Fatal(format!("dataset {} has no frames", s.camera.path)));
         }
-        Ok(Replay { ds, settings: s.clone(), start: ctx.now(), ctx, next: 0, realtime: s.camera.realtime })
+        Ok(Replay {
+            ds,
+            settings: s.clone(),
+            due: ctx.now(),
+            prev_t: None,
+            ctx,
+            next: 0,
+            realtime: s.camera.realtime,
+        })
     }
 }
 
@@ -41,10 +72,17 @@ impl FrameSource for Replay {
         loop {
             let Some(r) = self.ds.records.get(self.next) else { return Ok(None) };
             self.next += 1;
-            let t0 = self.ds.records[0].t;
-            if self.realtime && !self.ctx.sleep_until(self.start + (r.t - t0)) {
-                return Ok(None);
+            if self.realtime {
+                let (gap, why) = paced_gap(self.prev_t, r.t);
+                if let Some(why) = why {
+                    tracing::warn!("dataset frame {} {why}: replayed without waiting", r.frame);
+                }
+                self.due += gap;
+                if !self.ctx.sleep_until(self.due) {
+                    return Ok(None);
+                }
             }
+            self.prev_t = Some(r.t);
             let (fp, mp) = (self.ds.frame_path(r), self.ds.mask_path(r));
             let image = crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR).ok();
             let k = self.ds.camera.intrinsics();
@@ -89,5 +127,27 @@ impl FrameSource for Replay {
             self.ds.records.len(),
             if self.realtime { "at the recorded rate" } else { "as fast as the pipeline goes" }
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A real-time replay waits the dataset's gaps, except a gap it must not wait for:
+    /// times that run backwards, or one so long (a frame at t = 1e12) that the replay
+    /// would stall for good; those are named and not waited for.
+    #[test]
+    fn a_replay_waits_the_gaps_but_not_a_backwards_or_endless_one() {
+        assert_eq!(paced_gap(None, 5.0), (0.0, None));
+        assert_eq!(paced_gap(Some(5.0), 5.25), (0.25, None));
+        assert_eq!(paced_gap(Some(5.0), 65.0), (60.0, None));
+        let (gap, why) = paced_gap(Some(5.0), 1e12);
+        assert_eq!(gap, 0.0);
+        assert!(why.unwrap().contains("more than 60 s"));
+        let (gap, why) = paced_gap(Some(5.0), 4.0);
+        assert_eq!(gap, 0.0);
+        assert!(why.unwrap().contains("run backwards"));
+        assert_eq!(paced_gap(Some(5.0), f64::NAN).0, 0.0);
     }
 }
