@@ -84,13 +84,26 @@ impl FrameSource for Replay {
             }
             self.prev_t = Some(r.t);
             let (fp, mp) = (self.ds.frame_path(r), self.ds.mask_path(r));
-            let image = crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR).ok();
             let k = self.ds.camera.intrinsics();
-            let Some(image) = image.filter(|i| (i.cols(), i.rows()) == (k.width as i32, k.height as i32))
-            else {
-                // As `mavloc area` does: a bad frame is skipped with a warning, not fatal.
-                tracing::warn!(frame = r.frame, path = %fp.display(), "unreadable or wrongly sized frame, skipped");
-                continue;
+            // As `mavloc area` does: a bad frame is skipped with a warning saying why, not fatal.
+            let image = match crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR) {
+                Ok(i) if (i.cols(), i.rows()) == (k.width as i32, k.height as i32) => i,
+                Ok(i) => {
+                    tracing::warn!(
+                        "dataset frame {} ({}) is {}x{} px, but the dataset's camera is {}x{}: skipped",
+                        r.frame,
+                        fp.display(),
+                        i.cols(),
+                        i.rows(),
+                        k.width,
+                        k.height
+                    );
+                    continue;
+                }
+                Err(e) => {
+                    tracing::warn!("dataset frame {} skipped: {e}", r.frame);
+                    continue;
+                }
             };
             let mask = if mp.exists() {
                 crate::imaging::read_image(&mp, imgcodecs::IMREAD_GRAYSCALE).ok()
