@@ -43,6 +43,15 @@ pub fn unique_name(base: &str, taken: impl Fn(&str) -> bool) -> String {
     (2u32..).map(|i| format!("{base}-{i}")).find(|n| !taken(n)).expect("a free name")
 }
 
+/// A state file's bytes, read to at most `max`: `None` when it is longer, which no state
+/// file mavloc writes is (a link to `/dev/zero` must not be read until memory runs out).
+pub fn read_capped(path: &Path, max: u64) -> io::Result<Option<Vec<u8>>> {
+    use std::io::Read;
+    let mut bytes = Vec::new();
+    fs::File::open(path)?.take(max + 1).read_to_end(&mut bytes)?;
+    Ok((bytes.len() as u64 <= max).then_some(bytes))
+}
+
 /// Moves a state file that does not parse out of the way: renamed to
 /// `NAME.corrupt-<UTC stamp>` in `into` (same file system, so a rename), never deleted.
 /// Returns where it went. The caller says so at WARN, naming both paths.

@@ -311,8 +311,7 @@ fn run(spec: RecordSpec, shared: Arc<(Mutex<Mailbox>, Condvar)>, stats: Arc<Reco
         }
         if result.is_ok() && (stopping || last_sync.elapsed().as_secs_f64() >= SYNC_EVERY_S) {
             if let Some(w) = &mut writer {
-                // One line a frame.
-                let n = w.pending.bytes().filter(|b| *b == b'\n').count() as u64;
+                let n = w.pending_frames();
                 result = w.sync();
                 if result.is_ok() {
                     stats.recorded.fetch_add(n, Ordering::Relaxed);
@@ -326,7 +325,7 @@ fn run(spec: RecordSpec, shared: Arc<(Mutex<Mailbox>, Condvar)>, stats: Arc<Reco
             // full disk left every image of such a recording without a line); if not,
             // they are counted as not recorded.
             if let Some(w) = &mut writer {
-                let n = w.pending.bytes().filter(|b| *b == b'\n').count() as u64;
+                let n = w.pending_frames();
                 match w.sync() {
                     Ok(()) => stats.recorded.fetch_add(n, Ordering::Relaxed),
                     Err(_) => stats.dropped.fetch_add(n, Ordering::Relaxed),
@@ -427,6 +426,11 @@ impl Writer {
         self.pending.push('\n');
         self.last = Some((item.index, n));
         Ok(())
+    }
+
+    /// Frames written whose lines wait for the next sync (one line a frame).
+    fn pending_frames(&self) -> u64 {
+        self.pending.bytes().filter(|b| *b == b'\n').count() as u64
     }
 
     /// Makes the images written so far durable, then appends their lines (in one write:

@@ -232,17 +232,12 @@ const MAX_PARAMS_FILE: u64 = 1 << 20;
 
 /// Reads `params.json` without changing anything: `None` when there is none.
 pub fn read_tuned(path: &Path) -> Result<Option<BTreeMap<String, f64>>, Unreadable> {
-    use std::io::Read;
-    let file = match std::fs::File::open(path) {
-        Ok(f) => f,
+    let bytes = match mavloc_data::state::read_capped(path, MAX_PARAMS_FILE) {
+        Ok(Some(b)) => b,
+        Ok(None) => return Err(Unreadable::Corrupt(format!("larger than {MAX_PARAMS_FILE} bytes"))),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(Unreadable::Io(e)),
     };
-    let mut bytes = Vec::new();
-    file.take(MAX_PARAMS_FILE + 1).read_to_end(&mut bytes).map_err(Unreadable::Io)?;
-    if bytes.len() as u64 > MAX_PARAMS_FILE {
-        return Err(Unreadable::Corrupt(format!("larger than {MAX_PARAMS_FILE} bytes")));
-    }
     let text = String::from_utf8(bytes).map_err(|e| Unreadable::Corrupt(format!("not text: {e}")))?;
     serde_json::from_str(&text).map(Some).map_err(|e| Unreadable::Corrupt(e.to_string()))
 }

@@ -64,7 +64,7 @@ type Streams = HashMap<(u8, u8, u8), u64>;
 /// stream's memory, not a reason to refuse to start).
 fn parse_state(text: &str) -> Option<(u64, Streams)> {
     let mut lines = text.lines();
-    // Room for the restart's step ahead too.
+    // Below half the 48-bit range (the year 2059), leaving room to count up from it.
     let ts = lines.next()?.trim().parse::<u64>().ok().filter(|t| *t < TIMESTAMP_LIMIT / 2)?;
     let mut streams = HashMap::new();
     for l in lines {
@@ -81,17 +81,10 @@ fn parse_state(text: &str) -> Option<(u64, Streams)> {
     Some((ts, streams))
 }
 
-/// The state file's text; one larger than any signer writes (a stream a line, 255 x 255
-/// x 255 of them at most in theory, a few hundred in practice) reads as empty, which does
-/// not parse: a link to `/dev/zero` must not be read until memory runs out.
+/// The state file's text; one larger than any signer writes (a stream a line, a few
+/// hundred in practice) reads as empty, which does not parse.
 fn read_bounded(p: &Path) -> std::io::Result<String> {
-    use std::io::Read;
-    const MAX: u64 = 4 << 20;
-    let mut bytes = Vec::new();
-    std::fs::File::open(p)?.take(MAX + 1).read_to_end(&mut bytes)?;
-    if bytes.len() as u64 > MAX {
-        return Ok(String::new());
-    }
+    let bytes = mavloc_data::state::read_capped(p, 4 << 20)?.unwrap_or_default();
     String::from_utf8(bytes).map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidData, e))
 }
 
@@ -345,9 +338,9 @@ mod tests {
         assert!(file.exists(), "a fresh state file is written");
     }
 
-    /// A timestamp that does not fit the signature's 48 bits is no signer's: the file is
-    /// moved aside and signing starts from the clock (u64::MAX once made every start
-    /// panic), and a stream's such value is forgotten.
+    /// A saved timestamp past half the signature's 48 bits (2059) is no signer's: the
+    /// file is moved aside and signing starts from the clock (u64::MAX once made every
+    /// start panic); a stream's value beyond 48 bits is forgotten.
     #[test]
     fn a_timestamp_beyond_48_bits_is_a_corrupt_state_file() {
         let dir = tempfile::tempdir().unwrap();
