@@ -28,11 +28,29 @@ pub fn jpeg_truncated(bytes: &[u8]) -> bool {
     }
 }
 
+/// The images of a folder a `file` camera reads (PNG, JPEG, BMP, TIFF by extension),
+/// sorted by name.
+pub fn image_files(dir: &std::path::Path) -> std::io::Result<Vec<std::path::PathBuf>> {
+    let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+            ["png", "jpg", "jpeg", "bmp", "tif", "tiff"].contains(&ext.as_str())
+        })
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
 /// Reads and decodes an image file (`flags`: `imgcodecs::IMREAD_*`), with the reason in
 /// words and the file's name when it cannot be used: missing, unreadable, truncated JPEG,
 /// or not an image.
 pub fn read_image(path: &std::path::Path, flags: i32) -> Result<Mat, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: cannot read it ({e})", path.display()))?;
+    // OpenCV answers an empty buffer with its raw assertion text (`!buf.empty()`).
+    if bytes.is_empty() {
+        return Err(format!("{}: empty file (0 bytes)", path.display()));
+    }
     if let Some(img) = plain_png(&bytes, flags) {
         return img.map_err(|e| format!("{}: {e}", path.display()));
     }
@@ -150,5 +168,10 @@ mod tests {
         assert!(e.contains("not an image"), "{e}");
         let e = read_image(&dir.path().join("gone.png"), opencv::imgcodecs::IMREAD_COLOR).unwrap_err();
         assert!(e.contains("gone.png") && e.contains("cannot read"), "{e}");
+        // A frame left empty by a full card: named, not OpenCV's assertion text.
+        std::fs::write(&p, b"").unwrap();
+        let e = read_image(&p, opencv::imgcodecs::IMREAD_COLOR).unwrap_err();
+        assert!(e.contains("ok.jpg") && e.contains("empty file"), "{e}");
+        assert!(!e.contains("Assertion"), "{e}");
     }
 }

@@ -350,7 +350,7 @@ impl Dataset {
         let tpath = dir.join(TELEMETRY_FILE);
         let text = fs::read_to_string(&tpath)
             .map_err(|e| format!("{}: {e} (an interrupted render leaves no telemetry)", tpath.display()))?;
-        let lines: Vec<&str> = text.split_inclusive('\n').collect();
+        let lines: Vec<&str> = crate::table::strip_bom(&text).split_inclusive('\n').collect();
         let mut records = Vec::new();
         let mut torn = None;
         for (n, line) in lines.iter().enumerate() {
@@ -548,6 +548,9 @@ mod tests {
         fs::write(d.join(TELEMETRY_FILE), format!("{}\n{torn}\n", line(0))).unwrap();
         let e = Dataset::open(d).unwrap_err();
         assert!(e.contains("telemetry.jsonl line 2"), "a complete bad last line is an error: {e}");
+        // A byte-order mark (a Windows editor's save) is not a bad first record.
+        fs::write(d.join(TELEMETRY_FILE), format!("\u{feff}{}\n{}\n", line(0), line(1))).unwrap();
+        assert_eq!(Dataset::open(d).unwrap().records, vec![rec(0), rec(1)]);
     }
 
     /// A folder that is not there, a file, or a folder without camera.toml is named for

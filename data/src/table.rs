@@ -84,6 +84,12 @@ pub fn to_string<'a, T: Row + 'a>(rows: impl IntoIterator<Item = &'a T>) -> Stri
     s
 }
 
+/// `text` without a leading UTF-8 byte-order mark: spreadsheet and Windows editors write
+/// one, and it would otherwise be read as part of the first column's name or value.
+pub fn strip_bom(text: &str) -> &str {
+    text.strip_prefix('\u{feff}').unwrap_or(text)
+}
+
 /// Parses a table whose header is exactly `T::COLUMNS` and whose rows have as many fields.
 pub fn parse<T: Row>(text: &str, origin: &str) -> Result<Vec<T>, TableError> {
     parse_with(text, origin, Header::Exact, Columns::Exact)
@@ -97,6 +103,7 @@ pub fn parse_with<T: Row>(
     header: Header,
     columns: Columns,
 ) -> Result<Vec<T>, TableError> {
+    let text = strip_bom(text);
     let (first, _) = text.split_once('\n').unwrap_or((text, ""));
     let first = first.trim();
     let ok = match header {
@@ -162,6 +169,7 @@ pub fn parse_with<T: Row>(
 /// The rows of a table that parse, skipping the first line and any row that does not
 /// (for optional extras whose absence or damage must not stop a run).
 pub fn parse_lenient<T: Row>(text: &str) -> Vec<T> {
+    let text = strip_bom(text);
     let mut reader = csv::ReaderBuilder::new()
         .has_headers(true)
         .flexible(true)
@@ -313,6 +321,18 @@ mod tests {
         assert_eq!((back[0].ok, back[1].ok, back[1].m), (true, false, None));
         assert_eq!(back[1].name, "b, c");
         assert_eq!(to_string::<T>(&[]), "id,x,ok,m,name\n", "an empty table keeps its header");
+    }
+
+    /// A spreadsheet's save starts with a byte-order mark: read as the table it is, not
+    /// refused for its header, and an error in it still names the right line.
+    #[test]
+    fn a_byte_order_mark_is_not_part_of_the_header() {
+        let text = format!("\u{feff}{}", to_string(&rows()));
+        let back: Vec<T> = parse(&text, "t.csv").unwrap();
+        assert_eq!(back.len(), 2);
+        assert_eq!(parse_lenient::<T>(&text).len(), 2);
+        let e = parse::<T>("\u{feff}id,x,ok,m,name\n1,2,1,,a\n3,x,1,,a\n", "t.csv").unwrap_err().to_string();
+        assert!(e.contains("line 3"), "{e}");
     }
 
     #[test]

@@ -64,6 +64,12 @@ pub trait FrameSource: Send {
     fn next(&mut self) -> Result<Option<Captured>, SourceError>;
     /// What it reads, for logs.
     fn describe(&self) -> String;
+    /// Frames this source skipped since it opened because they could not be used (an
+    /// unreadable or wrong-size file): each is warned of by name, and the daemon counts
+    /// them in `status.json` (`frames_unreadable`).
+    fn unreadable(&self) -> u64 {
+        0
+    }
 }
 
 /// What sources share with the daemon: its clock, the latest pose (for the sim camera),
@@ -182,6 +188,8 @@ pub enum CameraEvent {
     },
     /// A file or dataset ended.
     Ended(String),
+    /// Frames skipped as unusable since the daemon started (the new total).
+    Unreadable(u64),
 }
 
 /// Runs the configured source on its own thread until `ctx.stop` or the end of its input,
@@ -198,6 +206,8 @@ pub fn spawn(
             let mut backoff = 0.5;
             let mut up = false;
             let mut last_error = String::new();
+            // Unusable frames of the sources closed before this one, and the total last told.
+            let (mut unreadable_before, mut unreadable_told) = (0, 0);
             while !ctx.stopped() {
                 let mut source = match open(&s, &ctx) {
                     Ok(src) => src,
@@ -225,7 +235,13 @@ pub fn spawn(
                             continue;
                         }
                     }
-                    match source.next() {
+                    let result = source.next();
+                    let unreadable = unreadable_before + source.unreadable();
+                    if unreadable != unreadable_told {
+                        unreadable_told = unreadable;
+                        let _ = tx.blocking_send(CameraEvent::Unreadable(unreadable));
+                    }
+                    match result {
                         Ok(Some(frame)) => {
                             if !up {
                                 up = true;
@@ -256,6 +272,7 @@ pub fn spawn(
                         }
                     }
                 }
+                unreadable_before += source.unreadable();
                 if !ctx.sleep_until(ctx.now() + backoff) {
                     return;
                 }
@@ -279,5 +296,42 @@ mod tests {
         std::thread::sleep(Duration::from_millis(20));
         c.give();
         assert!(t.join().unwrap());
+    }
+
+    /// The source thread tells the daemon how many frames its camera could not use, as
+    /// they happen, so `status.json` counts what the log names one by one.
+    #[test]
+    fn the_source_thread_tells_the_unreadable_frames_it_skipped() {
+        use opencv::{core, imgcodecs, prelude::*};
+        let dir = tempfile::tempdir().unwrap();
+        let grey = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(90.0)).unwrap();
+        for name in ["1.png", "4.png"] {
+            imgcodecs::imwrite(dir.path().join(name), &grey, &core::Vector::new()).unwrap();
+        }
+        std::fs::write(dir.path().join("2.jpg"), b"").unwrap();
+        std::fs::write(dir.path().join("3.png"), b"not a picture").unwrap();
+        let mut s = Settings::default();
+        s.camera.source = CameraSource::File;
+        s.camera.path = dir.path().to_string_lossy().into();
+        (s.camera.width, s.camera.height, s.camera.realtime) = (32, 24, false);
+        let ctx = SourceContext {
+            started: Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: None,
+        };
+        let (tx, mut rx) = tokio::sync::mpsc::channel(16);
+        spawn(s, ctx, tx).join().unwrap();
+        let mut told = Vec::new();
+        let mut frames = 0;
+        while let Ok(e) = rx.try_recv() {
+            match e {
+                CameraEvent::Frame(_) => frames += 1,
+                CameraEvent::Unreadable(n) => told.push(n),
+                _ => {}
+            }
+        }
+        assert_eq!(frames, 2);
+        assert_eq!(told, vec![2], "two unreadable images, told once with their total");
     }
 }

@@ -23,6 +23,9 @@ pub struct Replay {
     /// The dataset time of the frame before.
     prev_t: Option<f64>,
     realtime: bool,
+    /// Frames skipped because their image (or, where the masks are the target, their
+    /// mask) could not be used.
+    unreadable: u64,
 }
 
 /// The longest gap between two frames a real-time replay waits for: a recording spans a
@@ -63,6 +66,7 @@ impl Replay {
             ctx,
             next: 0,
             realtime: s.camera.realtime,
+            unreadable: 0,
         })
     }
 }
@@ -85,30 +89,22 @@ impl FrameSource for Replay {
             self.prev_t = Some(r.t);
             let (fp, mp) = (self.ds.frame_path(r), self.ds.mask_path(r));
             let k = self.ds.camera.intrinsics();
-            // As `mavloc area` does: a bad frame is skipped with a warning saying why, not fatal.
-            let image = match crate::imaging::read_image(&fp, imgcodecs::IMREAD_COLOR) {
-                Ok(i) if (i.cols(), i.rows()) == (k.width as i32, k.height as i32) => i,
-                Ok(i) => {
+            // The area pipeline with `masks` takes the dataset's masks as its target.
+            let mask_needed = self.settings.daemon.pipeline == crate::settings::PipelineKind::Area
+                && self.settings.area.segmenter == crate::settings::Segmenter::Masks;
+            let (image, mask) = match read_frame(&fp, &mp, (k.width, k.height), mask_needed) {
+                Ok(v) => v,
+                // As `mavloc area` does: a bad frame is skipped with a warning saying why,
+                // not fatal, and counted.
+                Err(why) => {
+                    self.unreadable += 1;
                     tracing::warn!(
-                        "dataset frame {} ({}) is {}x{} px, but the dataset's camera is {}x{}: skipped",
+                        "dataset frame {} skipped: {why} ({} skipped in all)",
                         r.frame,
-                        fp.display(),
-                        i.cols(),
-                        i.rows(),
-                        k.width,
-                        k.height
+                        self.unreadable
                     );
                     continue;
                 }
-                Err(e) => {
-                    tracing::warn!("dataset frame {} skipped: {e}", r.frame);
-                    continue;
-                }
-            };
-            let mask = if mp.exists() {
-                crate::imaging::read_image(&mp, imgcodecs::IMREAD_GRAYSCALE).ok()
-            } else {
-                None
             };
             let m = &r.measured;
             let a = m.attitude_deg.map(f64::to_radians);
@@ -134,12 +130,77 @@ impl FrameSource for Replay {
     }
 
     fn describe(&self) -> String {
+        let skipped = match self.unreadable {
+            0 => String::new(),
+            n => format!(", {n} unreadable skipped"),
+        };
         format!(
-            "dataset {} ({} frames, {})",
+            "dataset {} ({} frames, {}{skipped})",
             self.ds.dir.display(),
             self.ds.records.len(),
             if self.realtime { "at the recorded rate" } else { "as fast as the pipeline goes" }
         )
+    }
+
+    fn unreadable(&self) -> u64 {
+        self.unreadable
+    }
+}
+
+/// A dataset frame of `size` px and its mask, or why the frame cannot be replayed. Where
+/// the masks are the target (`needed`: the area pipeline with `area.segmenter =
+/// "masks"`) the mask must be there, readable and of the frame's size, as `mavloc area`
+/// wants it; otherwise a bad mask is left out with a warning (a stretched mask would put
+/// the border elsewhere).
+fn read_frame(
+    frame: &std::path::Path,
+    mask: &std::path::Path,
+    size: (u32, u32),
+    needed: bool,
+) -> Result<(opencv::core::Mat, Option<opencv::core::Mat>), String> {
+    let image = crate::imaging::read_image(frame, imgcodecs::IMREAD_COLOR)?;
+    let want = (size.0 as i32, size.1 as i32);
+    if (image.cols(), image.rows()) != want {
+        return Err(format!(
+            "{} is {}x{} px, but the dataset's camera is {}x{}",
+            frame.display(),
+            image.cols(),
+            image.rows(),
+            size.0,
+            size.1
+        ));
+    }
+    if !mask.exists() {
+        // A dataset with no masks at all is the live pipeline's to say once (it names the
+        // segmenter to set); one missing among others is this frame's fault.
+        let has_masks = mask.parent().is_some_and(|d| d.is_dir());
+        return if needed && has_masks {
+            Err(format!("{} is missing (area.segmenter = \"masks\")", mask.display()))
+        } else {
+            Ok((image, None))
+        };
+    }
+    let read = crate::imaging::read_image(mask, imgcodecs::IMREAD_GRAYSCALE).and_then(|m| {
+        if (m.cols(), m.rows()) == want {
+            Ok(m)
+        } else {
+            Err(format!(
+                "{}: the mask is {}x{} px, the frame {}x{}",
+                mask.display(),
+                m.cols(),
+                m.rows(),
+                want.0,
+                want.1
+            ))
+        }
+    });
+    match read {
+        Ok(m) => Ok((image, Some(m))),
+        Err(why) if needed => Err(why),
+        Err(why) => {
+            tracing::warn!("{why}; the frame is replayed without it");
+            Ok((image, None))
+        }
     }
 }
 
@@ -162,5 +223,43 @@ mod tests {
         assert_eq!(gap, 0.0);
         assert!(why.unwrap().contains("run backwards"));
         assert_eq!(paced_gap(Some(5.0), f64::NAN).0, 0.0);
+    }
+
+    /// A replayed frame is skipped, with the file and the reason, as `mavloc area` skips
+    /// it: a frame of another size than the dataset's camera, and, where the masks are
+    /// the target, a mask that is unreadable, of another size or missing among others.
+    /// Where they are not, a bad mask is left out and the frame plays.
+    #[test]
+    fn a_replayed_frame_with_a_bad_image_or_mask_is_skipped_as_offline() {
+        use opencv::core;
+        let dir = tempfile::tempdir().unwrap();
+        let (frames, masks) = (dir.path().join("frames"), dir.path().join("masks"));
+        std::fs::create_dir_all(&frames).unwrap();
+        let write = |p: &std::path::Path, w: i32, h: i32| {
+            let m = Mat::new_rows_cols_with_default(h, w, core::CV_8UC1, core::Scalar::all(255.0)).unwrap();
+            imgcodecs::imwrite(p, &m, &core::Vector::new()).unwrap();
+        };
+        write(&frames.join("1.png"), 32, 24);
+        write(&frames.join("2.png"), 16, 24);
+        let (f1, m1) = (frames.join("1.png"), masks.join("1.png"));
+        // No masks at all: the live pipeline says so once; the frame plays.
+        let (_, mask) = read_frame(&f1, &m1, (32, 24), true).unwrap();
+        assert!(mask.is_none());
+        let e = read_frame(&frames.join("2.png"), &m1, (32, 24), false).unwrap_err();
+        assert!(e.contains("2.png is 16x24 px") && e.contains("camera is 32x24"), "{e}");
+        std::fs::create_dir_all(&masks).unwrap();
+        let e = read_frame(&f1, &m1, (32, 24), true).unwrap_err();
+        assert!(e.contains("1.png is missing"), "{e}");
+        write(&m1, 16, 12);
+        let e = read_frame(&f1, &m1, (32, 24), true).unwrap_err();
+        assert!(e.contains("the mask is 16x12 px, the frame 32x24"), "{e}");
+        let (_, mask) = read_frame(&f1, &m1, (32, 24), false).unwrap();
+        assert!(mask.is_none(), "a wrong-size mask is not stretched over the frame");
+        std::fs::write(&m1, b"").unwrap();
+        let e = read_frame(&f1, &m1, (32, 24), true).unwrap_err();
+        assert!(e.contains("empty file"), "{e}");
+        write(&m1, 32, 24);
+        let (image, mask) = read_frame(&f1, &m1, (32, 24), true).unwrap();
+        assert_eq!((image.cols(), mask.unwrap().rows()), (32, 24));
     }
 }

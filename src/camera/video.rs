@@ -114,15 +114,8 @@ impl Video {
         }
         let size = (c.width as i32, c.height as i32);
         let (input, rate, what) = if path.is_dir() {
-            let mut files: Vec<PathBuf> = std::fs::read_dir(path)
-                .map_err(|e| SourceError::Fatal(format!("{}: {e}", path.display())))?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| {
-                    let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
-                    ["png", "jpg", "jpeg", "bmp", "tif", "tiff"].contains(&ext.as_str())
-                })
-                .collect();
-            files.sort();
+            let files = crate::imaging::image_files(path)
+                .map_err(|e| SourceError::Fatal(format!("{}: {e}", path.display())))?;
             if files.is_empty() {
                 return Err(SourceError::Fatal(format!("{} holds no images", path.display())));
             }
@@ -252,11 +245,8 @@ impl FrameSource for Video {
             n => format!("{} ({n} unreadable skipped)", self.what),
         }
     }
-}
 
-impl Video {
-    /// Images of a folder skipped because they could not be read.
-    pub fn skipped(&self) -> u64 {
+    fn unreadable(&self) -> u64 {
         self.skipped
     }
 }
@@ -330,7 +320,7 @@ mod tests {
         assert_eq!(shade_of(&first), 10);
         let third = v.next().expect("the camera goes on").unwrap();
         assert!((shade_of(&third) as i32 - 200).abs() <= 2, "frame 3 follows frame 1");
-        assert_eq!(v.skipped(), 2);
+        assert_eq!(v.unreadable(), 2);
         assert!(v.describe().contains("2 unreadable skipped"), "{}", v.describe());
         assert!(v.next().unwrap().is_none());
     }

@@ -96,6 +96,8 @@ pub struct AreaLive {
     minute_start: std::time::Instant,
     minute_medians: Vec<f64>,
     no_mask_warned: bool,
+    /// A mask of another size than its frame was said (once).
+    bad_mask_warned: bool,
     started: std::time::Instant,
     settings: crate::settings::Area,
     /// `gimbal.aim = "border"`: report where the border is, per frame, smoothed over
@@ -176,6 +178,7 @@ impl AreaLive {
             minute_start: std::time::Instant::now(),
             minute_medians: Vec::new(),
             no_mask_warned: false,
+            bad_mask_warned: false,
             started: std::time::Instant::now(),
             settings: s.area.clone(),
             aim: s.gimbal.aim == crate::settings::GimbalAim::Border,
@@ -318,6 +321,23 @@ impl LivePipeline for AreaLive {
             }
             return report;
         };
+        // `prepare` would stretch a mask of another size over the frame: the border
+        // somewhere else, with no word.
+        use opencv::prelude::MatTraitConst;
+        if (mask.cols(), mask.rows()) != (frame.image.cols(), frame.image.rows()) {
+            if !self.bad_mask_warned {
+                self.bad_mask_warned = true;
+                report.events.push(format!(
+                    "area: frame {} skipped: its mask is {}x{} px, the frame {}x{} (frames with such masks are skipped)",
+                    frame.index,
+                    mask.cols(),
+                    mask.rows(),
+                    frame.image.cols(),
+                    frame.image.rows()
+                ));
+            }
+            return report;
+        }
         let (grey, small_mask) = match prepare(&frame.image, mask, self.downscale) {
             Ok(v) => v,
             Err(e) => {

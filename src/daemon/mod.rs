@@ -679,6 +679,7 @@ async fn serve(
                     Some(CameraEvent::Up(what)) => Some(CoreCamera::Up(what)),
                     Some(CameraEvent::Down { why, fatal }) => Some(CoreCamera::Down { why, fatal }),
                     Some(CameraEvent::Ended(what)) => Some(CoreCamera::Ended(what)),
+                    Some(CameraEvent::Unreadable(n)) => Some(CoreCamera::Unreadable(n)),
                     None => {
                         shell.live.camera_thread = None;
                         None

@@ -579,10 +579,30 @@ pub fn preflight(loaded: &Loaded, model: &dyn Fn(&Path) -> Result<(), String>) -
         }
         CameraSource::File => {
             need_file("camera.path", &s.camera.path, "a video or image folder for this camera source", &|p| {
-                match std::fs::metadata(p) {
-                    Ok(m) if m.is_file() && m.len() == 0 => Err(format!("{} is empty", p.display())),
-                    _ => Ok(()),
+                use std::os::unix::fs::FileTypeExt;
+                let m = std::fs::metadata(p).map_err(|e| format!("cannot read {}: {e}", p.display()))?;
+                let kind = m.file_type();
+                if m.is_dir() {
+                    // An empty folder (or one of other files) passed, and `run` then idled
+                    // with no camera.
+                    let n = crate::imaging::image_files(p)
+                        .map_err(|e| format!("cannot list {}: {e}", p.display()))?
+                        .len();
+                    if n == 0 {
+                        return Err(format!(
+                            "{} holds no images (.png, .jpg, .jpeg, .bmp, .tif, .tiff)",
+                            p.display()
+                        ));
+                    }
+                } else if kind.is_char_device() || kind.is_block_device() {
+                    return Err(format!(
+                        "{} is a device, not a video file: for a camera set camera.source = \"v4l2\" and camera.device",
+                        p.display()
+                    ));
+                } else if m.is_file() && m.len() == 0 {
+                    return Err(format!("{} is empty", p.display()));
                 }
+                Ok(())
             })
         }
         _ => {}

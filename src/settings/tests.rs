@@ -316,7 +316,8 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
             overrides: vec![
                 format!("area.segmenter={segmenter}"),
                 format!("camera.source={source}"),
-                "camera.path=/".into(),
+                // A folder with images in it, so the path itself passes.
+                format!("camera.path={}/docs", env!("CARGO_MANIFEST_DIR")),
             ],
             ..Layers::default()
         };
@@ -365,4 +366,39 @@ fn photo_surveys_trust_aligned_poses_more_than_the_tags() {
     // The defaults leave video as it was.
     let d = crate::settings::Settings::default().area;
     assert_eq!((d.aligned_bearing_noise_deg, d.aligned_min_observations), (0.0, 0));
+}
+
+/// A `file` camera on something that gives no frames is refused before `run` starts (it
+/// used to start and idle with "camera failed" in its log): an empty folder, a folder of
+/// other files, a device (a camera set as a file), an empty file.
+#[test]
+fn a_file_camera_on_what_gives_no_frames_is_refused_before_run() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("notes")).unwrap();
+    std::fs::write(dir.path().join("notes/readme.txt"), "flight notes").unwrap();
+    std::fs::create_dir(dir.path().join("frames")).unwrap();
+    std::fs::write(dir.path().join("frames/0001.JPG"), b"\xff\xd8").unwrap();
+    std::fs::write(dir.path().join("empty.mp4"), b"").unwrap();
+    let check = |path: &Path| {
+        let layers = Layers {
+            overrides: vec![
+                "camera.source=file".into(),
+                "area.segmenter=water".into(),
+                format!("camera.path={}", path.display()),
+            ],
+            ..Layers::default()
+        };
+        check(&layers, &|_| Ok(())).err().map(|e| e.to_string())
+    };
+    std::fs::create_dir(dir.path().join("empty")).unwrap();
+    let said = check(&dir.path().join("empty")).expect("an empty folder is refused");
+    assert!(said.contains("camera.path") && said.contains("holds no images"), "{said}");
+    let said = check(&dir.path().join("notes")).expect("a folder of notes is refused");
+    assert!(said.contains("holds no images"), "{said}");
+    let said = check(Path::new("/dev/null")).expect("a device is refused");
+    assert!(said.contains("is a device") && said.contains("camera.source = \"v4l2\""), "{said}");
+    let said = check(&dir.path().join("empty.mp4")).expect("an empty file is refused");
+    assert!(said.contains("empty.mp4 is empty"), "{said}");
+    // A folder with an image in it (by its extension, in any case) passes.
+    assert_eq!(check(&dir.path().join("frames")), None);
 }

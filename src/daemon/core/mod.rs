@@ -179,8 +179,13 @@ pub enum PipelineEvent {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum CameraEvent {
     Up(String),
-    Down { why: String, fatal: bool },
+    Down {
+        why: String,
+        fatal: bool,
+    },
     Ended(String),
+    /// Frames the camera skipped as unusable so far (the new total).
+    Unreadable(u64),
 }
 
 /// Counters the shell keeps (link and frame queues), handed in once a second.
@@ -282,6 +287,9 @@ pub struct Counters {
     /// Frames the pipeline was given but skipped (see [`Report::processed`]).
     pub frames_skipped: u64,
     pub frames_dropped: u64,
+    /// Frames the camera source could not use (an unreadable or wrong-size file of a
+    /// folder or dataset), each named in the log.
+    pub frames_unreadable: u64,
     pub pipeline_panics: u64,
     pub commands_refused: u64,
     pub params_refused: u64,
@@ -1408,6 +1416,7 @@ impl Core {
                 self.camera_live = false;
                 self.notes.info(&format!("camera source ended: {what}"));
             }
+            CameraEvent::Unreadable(n) => self.counters.frames_unreadable = n,
         }
     }
 
