@@ -482,6 +482,19 @@ impl Aligner {
         self.gimbal_seen = Some(local_now);
     }
 
+    /// The newest autopilot time with telemetry for a whole pose at local time `now`:
+    /// the vehicle's newest sample, or the gimbal's when that is older (a gimbal device's
+    /// clock, mapped onto the autopilot's, can put its report a hair before the
+    /// vehicle's sent at the same moment). Where a pose can be had now, for the sim
+    /// camera.
+    pub fn newest_complete(&self, now: f64) -> Option<f64> {
+        let (v, _) = self.vehicle.newest()?;
+        match self.gimbal.newest() {
+            Some((g, _)) if self.gimbal_live(now) => Some(v.min(g)),
+            _ => Some(v),
+        }
+    }
+
     /// Whether gimbal telemetry is in use at local time `now` (reported within 2 s).
     pub fn gimbal_live(&self, now: f64) -> bool {
         self.params.use_gimbal && matches!(self.gimbal_seen, Some(t) if now - t < 2.0)

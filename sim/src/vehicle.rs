@@ -14,8 +14,10 @@
 //!   `duration_s` of mission, or on MAV_CMD_NAV_LAND (ACKed), it descends vertically and
 //!   reports LANDING, then ON_GROUND, and disarms.
 //! - As gimbal manager (like PX4 with MNT_MODE_IN=4) it accepts
-//!   MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE (one primary controller) and
-//!   MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW from that controller, passed to the gimbal.
+//!   MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE (one primary controller; -3 lets go) and
+//!   MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW from that controller, passed to the gimbal (the
+//!   pitch relative to the airframe without PITCH_LOCK, as PX4 v1.16), and says who
+//!   holds the gimbal in GIMBAL_MANAGER_STATUS (every 2 s, and when it changes hands).
 //! - The gimbal (component 154, MAV_COMP_ID_GIMBAL) points the camera at the mission's
 //!   border targets and reports GIMBAL_DEVICE_ATTITUDE_STATUS with YAW_IN_EARTH_FRAME, or,
 //!   when GIMBAL_DEVICE_SET_ATTITUDE arrives, holds the commanded attitude for as long as
@@ -47,6 +49,10 @@ use crate::state::State;
 use crate::world::World;
 
 pub const GIMBAL_COMPONENT: u8 = 154;
+/// The gimbal's clock runs this far ahead of the autopilot's (it was powered up first): a
+/// receiver that took its stamps for the autopilot's would pair every frame with the
+/// wrong gimbal attitude, or with none.
+pub const GIMBAL_BOOTED_EARLIER_S: f64 = 2.5;
 /// A commanded gimbal attitude is held this long after the last setpoint.
 const SETPOINT_HOLD_S: f64 = 2.0;
 /// Descent speeds as PX4's defaults: MPC_Z_VEL_MAX_DN high up, MPC_LAND_SPEED below
@@ -150,6 +156,7 @@ const DEFAULT_RATES: &[(u32, f64)] = &[
     (1, 1.0),    // SYS_STATUS
     (2, 1.0),    // SYSTEM_TIME
     (285, 20.0), // GIMBAL_DEVICE_ATTITUDE_STATUS
+    (281, 0.5),  // GIMBAL_MANAGER_STATUS (PX4's onboard default)
     (115, 0.0),  // HIL_STATE_QUATERNION: the ground truth, off until asked for (as PX4 SITL)
 ];
 
@@ -166,7 +173,7 @@ impl Vehicle {
         let has_gimbal = mission.gimbal_frame == GimbalFrame::Earth;
         let rates = DEFAULT_RATES
             .iter()
-            .filter(|(id, _)| has_gimbal || *id != 285)
+            .filter(|(id, _)| has_gimbal || (*id != 285 && *id != 281))
             .map(|&(id, hz)| Stream { id, default_hz: hz, hz, next: 0.0 })
             .collect();
         Ok(Vehicle {
@@ -470,6 +477,16 @@ impl Vehicle {
                     .unwrap_or(0),
                 time_boot_ms: ms,
             }),
+            281 if self.has_gimbal => {
+                let (sys, comp) = self.manager.unwrap_or((0, 0));
+                MavMessage::GIMBAL_MANAGER_STATUS(GIMBAL_MANAGER_STATUS_DATA {
+                    time_boot_ms: ms,
+                    gimbal_device_id: GIMBAL_COMPONENT,
+                    primary_control_sysid: sys,
+                    primary_control_compid: comp,
+                    ..Default::default()
+                })
+            }
             285 => {
                 let q = self.gimbal_attitude(t);
                 let flags = GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
@@ -479,7 +496,9 @@ impl Vehicle {
                 let yaw = s.attitude[2];
                 let gimbal_yaw = self.state.gimbal.yaw;
                 let m = MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(GIMBAL_DEVICE_ATTITUDE_STATUS_DATA {
-                    time_boot_ms: ms,
+                    // The device's own boot clock, as a MAVLink gimbal's (PX4 forwards
+                    // its reports unchanged).
+                    time_boot_ms: ((t + GIMBAL_BOOTED_EARLIER_S) * 1000.0) as u32,
                     q: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
                     angular_velocity_x: f32::NAN,
                     angular_velocity_y: f32::NAN,
@@ -564,7 +583,13 @@ impl Vehicle {
                         let primary = (c.param1, c.param2);
                         if primary.0 >= 0.0 && primary.1 >= 0.0 {
                             self.manager = Some((primary.0 as u8, primary.1 as u8));
+                        } else if primary.0 == -3.0 && self.manager == Some(from) {
+                            // -3: the primary controller lets go.
+                            self.manager = None;
+                            self.setpoint = None;
                         }
+                        // PX4 says who holds the gimbal when it changes hands.
+                        self.emit(281, t);
                         MavResult::MAV_RESULT_ACCEPTED
                     }
                     MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW if self.has_gimbal => {
@@ -579,8 +604,13 @@ impl Vehicle {
                             // earth-fixed only with GIMBAL_MANAGER_FLAGS_YAW_LOCK (16);
                             // YAW_IN_EARTH_FRAME (64) alone is ignored, the yaw then
                             // taken relative to the vehicle.
-                            let earth = (c.param5 as u32) & 16 != 0;
+                            let flags = c.param5 as u32;
+                            let earth = flags & 16 != 0;
                             let yaw = if earth { yaw } else { yaw + self.state.attitude[2] };
+                            // Nor is the pitch held to the horizon without PITCH_LOCK (8):
+                            // PX4 stops stabilising it and the camera tilts with the
+                            // airframe (measured on SIH: flags 80 against 92).
+                            let pitch = if flags & 8 != 0 { pitch } else { pitch + self.state.attitude[1] };
                             let r = mavloc_geometry::GimbalChain::YawPitchRoll
                                 .rotation(mavloc_geometry::GimbalAngles { yaw, pitch, roll: 0.0 });
                             self.setpoint = Some((t, UnitQuaternion::from_rotation_matrix(&r)));
@@ -1041,5 +1071,57 @@ mod tests {
         let got = a.yaw.to_degrees().rem_euclid(360.0);
         assert!((got - want).abs() < 1e-3 || (got - want).abs() > 359.999, "{got} vs {want}");
         assert!(v.state.attitude[2].to_degrees().abs() > 1.0, "the test needs a vehicle not facing north");
+    }
+
+    /// As PX4 v1.16 (measured on SIH): a pitch without PITCH_LOCK is relative to the
+    /// airframe, which tilts the camera with it; with the lock, to the horizon. The
+    /// manager says who holds the gimbal when it changes hands, and a primary controller
+    /// that lets go (-3) leaves it to nobody.
+    #[test]
+    fn the_gimbal_manager_locks_pitch_only_when_asked_and_says_who_holds_it() {
+        let mut v = vehicle("coastline");
+        v.state.attitude[1] = 5f64.to_radians();
+        let mavloc = (1, 191);
+        let cmd = |command, p: [f32; 5]| {
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command,
+                param1: p[0],
+                param2: p[1],
+                param3: p[2],
+                param4: p[3],
+                param5: p[4],
+                target_system: 1,
+                target_component: 1,
+                ..Default::default()
+            })
+        };
+        let configure =
+            |p1: f32, p2: f32| cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, [p1, p2, -1.0, -1.0, 0.0]);
+        let primary = |v: &Vehicle| {
+            v.out.iter().rev().find_map(|(comp, m)| match m {
+                MavMessage::GIMBAL_MANAGER_STATUS(s) if *comp == 1 => {
+                    Some((s.primary_control_sysid, s.primary_control_compid))
+                }
+                _ => None,
+            })
+        };
+        v.handle(mavloc, &configure(1.0, 191.0), 1.0);
+        assert_eq!(primary(&v), Some(mavloc));
+        let pitch_after = |v: &mut Vehicle, flags: f32| {
+            v.handle(
+                mavloc,
+                &cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, [-30.0, 45.0, f32::NAN, f32::NAN, flags]),
+                1.0,
+            );
+            let r = v.gimbal_attitude(1.2).to_rotation_matrix();
+            mavloc_geometry::GimbalChain::YawPitchRoll.angles(&r).pitch.to_degrees()
+        };
+        assert!((pitch_after(&mut v, 80.0) - (-25.0)).abs() < 1e-3, "tilted with the airframe");
+        assert!((pitch_after(&mut v, 92.0) - (-30.0)).abs() < 1e-3, "held to the horizon");
+        // Only the holder lets go.
+        v.handle((255, 190), &configure(-3.0, -3.0), 1.5);
+        assert_eq!(primary(&v), Some(mavloc));
+        v.handle(mavloc, &configure(-3.0, -3.0), 1.6);
+        assert_eq!(primary(&v), Some((0, 0)));
     }
 }

@@ -598,6 +598,8 @@ pub async fn run(
         status_failing: None,
     };
     serve(&mut core, &mut shell, shutdown).await?;
+    core.shutting_down();
+    shell.flush(&mut core);
 
     // Shutdown: stop frames, flush results, tell the link (which saves the signing
     // timestamp), all within systemd's patience and our 2 s promise.
@@ -715,7 +717,7 @@ fn feed_pose(core: &Core, live: &mut Live, now: Mono) {
     }
     let now = now.secs();
     let a = core.aligner();
-    let Some((t, _)) = a.vehicle.newest() else { return };
+    let Some(t) = a.newest_complete(now) else { return };
     let Some(local) = a.clock.to_local(t) else { return };
     if local <= live.fed_pose_local || local > now + MAX_POSE_LEAD_S {
         return;

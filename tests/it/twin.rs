@@ -117,7 +117,7 @@ pub fn fly_vehicle(
         next_frame += period;
         // The sim camera: the newest telemetry's pose, never the same one twice.
         let a = core.aligner();
-        let Some((stamp, _)) = a.vehicle.newest() else { continue };
+        let Some(stamp) = a.newest_complete(t) else { continue };
         let Some(capture) = a.clock.to_local(stamp) else { continue };
         if capture <= last_rendered || core.on_ground() || core.too_low() {
             continue;

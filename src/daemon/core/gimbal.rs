@@ -1,7 +1,14 @@
-//! Pointing the camera (`gimbal.aim = "border"`): take gimbal-manager control with
-//! MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, then send MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW with
-//! an earth-frame yaw, at most 5 times a second; between sends only the newest aim is
-//! kept. Control is released when the autopilot reboots or vanishes, and taken again.
+//! Pointing the camera (`gimbal.aim = "border"`), as a gimbal-manager client (MAVLink
+//! gimbal protocol v2): take primary control with MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+//! then send MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW with an earth-frame yaw and a
+//! horizon-stabilised pitch, at most 5 times a second; between sends only the newest aim
+//! is kept.
+//!
+//! mavloc shares the gimbal: GIMBAL_MANAGER_STATUS names the primary controller, and
+//! while another holds it (a ground station, the autopilot's own mission, RTL or landing)
+//! mavloc sends nothing and takes control again only once it is let go, and not while
+//! the vehicle is landing. It lets go itself (CONFIGURE -3) when it stops aiming or shuts
+//! down. Control is released when the autopilot reboots or vanishes, and taken again.
 
 use std::time::Duration;
 
@@ -10,19 +17,44 @@ use mavlink::dialects::common::*;
 use super::time::Mono;
 
 pub const MIN_INTERVAL: Duration = Duration::from_millis(200);
-/// GIMBAL_MANAGER_FLAGS_YAW_LOCK (16) | GIMBAL_MANAGER_FLAGS_YAW_IN_EARTH_FRAME (64): the
-/// yaw is earth-fixed. PX4 v1.16's gimbal manager honours only YAW_LOCK and takes the yaw
-/// relative to the vehicle otherwise (issue #18: median pointing error 15.7 degrees with
-/// 64 alone); managers that follow the newer spec read YAW_IN_EARTH_FRAME. Both say the
-/// same here.
-const YAW_IN_EARTH_FRAME: f32 = 80.0;
+/// ROLL_LOCK (4) | PITCH_LOCK (8) | YAW_LOCK (16) | YAW_IN_EARTH_FRAME (64): every axis
+/// held in the earth frame. PX4 v1.16's gimbal manager takes an axis relative to the
+/// vehicle unless its LOCK flag is set (with 80, no roll or pitch lock, it stopped
+/// stabilising and the camera tilted with the airframe, measured on SIH); it honours only
+/// YAW_LOCK for the yaw (issue #18: median pointing error 15.7 degrees with 64 alone),
+/// while managers that follow the newer spec read YAW_IN_EARTH_FRAME. Both say the same.
+const FLAGS: f32 = 92.0;
+/// CONFIGURE's "primary control": -3 lets go if we hold it, -1 leaves it as it is.
+const LET_GO: f32 = -3.0;
+const UNCHANGED: f32 = -1.0;
+
+/// A CONFIGURE unanswered this long: the autopilot runs no gimbal manager (PX4's default
+/// MNT_MODE_IN = -1 leaves the commands unanswered); asked again after [`RETRY_QUIET`].
+pub const ACK_WAIT: Duration = Duration::from_secs(3);
+pub const RETRY_QUIET: Duration = Duration::from_secs(10);
+/// After a refused setpoint, the manager's status (PX4 streams it every 2 s unless asked
+/// for more) says who took the gimbal; a manager that says nothing in this time is asked
+/// for control again.
+pub const RETAKE: Duration = Duration::from_secs(3);
+/// Before the manager's first status: control is not taken from a controller that may
+/// already hold the gimbal until a status had this long to arrive.
+pub const FIRST_STATUS_WAIT: Duration = Duration::from_secs(3);
+/// A status saying nobody holds the gimbal this soon after mavloc's CONFIGURE was
+/// accepted is older than the acceptance.
+const STATUS_GRACE: Duration = Duration::from_secs(3);
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Control {
     Released,
-    /// CONFIGURE sent; setpoints follow (the manager acknowledges or refuses).
-    Requested,
+    /// CONFIGURE sent at this time; setpoints wait for its acknowledgement.
+    Requested(Mono),
     InControl,
+    /// A setpoint was refused at this time: another controller took the gimbal. Nothing is
+    /// sent until the manager's status says who, or [`RETAKE`] passes without one.
+    Refused(Mono),
+    /// The manager says this controller (system, component) holds the gimbal: nothing is
+    /// sent until it lets go.
+    Yielded((u8, u8)),
 }
 
 /// A setpoint is given this long to be reached before the gimbal's report is compared.
@@ -49,10 +81,21 @@ pub struct Gimbal {
     /// (yaw, pitch) radians, newest aim not yet sent.
     pending: Option<(f64, f64)>,
     next: Mono,
+    /// No CONFIGURE before this (after an unanswered or refused one, and until the
+    /// manager's first status had time to come).
+    retry_at: Option<Mono>,
+    /// When a held-back CONFIGURE may go.
+    wake: Option<Mono>,
+    /// When mavloc's CONFIGURE was last accepted.
+    configured_at: Option<Mono>,
+    /// The manager has sent its status at least once: it says who holds the gimbal.
+    status_seen: bool,
+    /// Let go of the gimbal at the next send (mavloc stops aiming or shuts down).
+    let_go: bool,
     refused_once: bool,
-    /// A setpoint was accepted since the last refusal: a refusal now means the autopilot
-    /// took the gimbal back (PX4's navigator does for RTL and landing), not that it has no
-    /// gimbal manager.
+    unanswered_said: bool,
+    /// A setpoint was accepted since control was last taken: the reports answer mavloc's
+    /// setpoints, and a refusal now means another controller took the gimbal.
     in_use: bool,
     /// A setpoint was ever accepted.
     ever_accepted: bool,
@@ -67,10 +110,25 @@ impl Default for Gimbal {
             flight: vec![0; (180.0 / BIN_DEG) as usize + 1],
             pending: None,
             next: Mono::ZERO,
+            retry_at: None,
+            wake: None,
+            configured_at: None,
+            status_seen: false,
+            let_go: false,
             refused_once: false,
+            unanswered_said: false,
             in_use: false,
             ever_accepted: false,
         }
+    }
+}
+
+/// Who a controller is, in words.
+fn who(c: (u8, u8), autopilot: u8) -> String {
+    match c {
+        (s, 1) if s == autopilot => format!("the autopilot ({s}/1: its mission, RTL or landing)"),
+        (s, 190) => format!("a ground station ({s}/190)"),
+        (s, k) => format!("system {s} component {k}"),
     }
 }
 
@@ -87,7 +145,12 @@ impl Gimbal {
     /// setpoint sent at least [`SETTLE`] before is kept for [`RECENT`] and, when the
     /// vehicle is `airborne`, counted in the flight's median (on the ground an autopilot
     /// holds the camera in its landing range whatever it is told: PX4's MNT_LND_P_*).
+    /// Only while mavloc's setpoints are taken: another controller's pointing, or an
+    /// autopilot that answers nothing, is not mavloc's error.
     pub fn on_report(&mut self, now: Mono, axis: [f64; 3], airborne: bool) {
+        if self.control != Control::InControl || !self.in_use {
+            return;
+        }
         let Some(&(_, want)) = self.sent.iter().rev().find(|(t, _)| *t + SETTLE <= now) else { return };
         let dot: f64 = (0..3).map(|i| axis[i] * want[i]).sum();
         let error = dot.clamp(-1.0, 1.0).acos().to_degrees();
@@ -129,22 +192,79 @@ impl Gimbal {
         None
     }
 
+    /// The autopilot rebooted or vanished: whatever control mavloc had is gone.
     pub fn release(&mut self) {
         self.control = Control::Released;
         self.pending = None;
         self.sent.clear();
+        self.in_use = false;
+        self.let_go = false;
+        self.status_seen = false;
+        self.retry_at = None;
+    }
+
+    /// Lets go of the gimbal at the next send, if mavloc holds or asked for it (the
+    /// daemon shuts down): a manager keeps a departed primary controller otherwise, and
+    /// refuses everyone else's setpoints.
+    pub fn let_go(&mut self) {
+        if matches!(self.control, Control::InControl | Control::Requested(_)) {
+            self.let_go = true;
+        }
     }
 
     pub fn deadline(&self) -> Option<Mono> {
-        self.pending.map(|_| self.next)
+        let timer = match self.control {
+            Control::Requested(at) => Some(at + ACK_WAIT),
+            Control::Refused(at) => Some(at + RETAKE),
+            _ => None,
+        };
+        let send = match (self.let_go, self.pending, self.control) {
+            (true, _, _) => Some(Mono::ZERO),
+            (_, Some(_), Control::InControl) => Some(self.next),
+            // A CONFIGURE held back until `retry_at` (a past time here would wake the
+            // loop for nothing while control may not be taken).
+            (_, Some(_), Control::Released) => self.wake,
+            _ => None,
+        };
+        super::time::earliest([timer, send])
     }
 
-    /// `me` is mavloc's (system, component): the manager's new primary controller.
-    pub fn poll_transmit(&mut self, now: Mono, target: u8, me: (u8, u8)) -> Option<MavMessage> {
-        let (yaw, pitch) = self.pending?;
-        if now < self.next {
-            return None;
+    /// Expires a CONFIGURE the manager did not answer, and a refusal no status explained.
+    /// Returns a line to report: the first unanswered CONFIGURE.
+    pub fn on_timeout(&mut self, now: Mono) -> Option<String> {
+        match self.control {
+            Control::Requested(at) if now >= at + ACK_WAIT => {
+                self.control = Control::Released;
+                self.retry_at = Some(now + RETRY_QUIET);
+                self.sent.clear();
+                (!std::mem::replace(&mut self.unanswered_said, true)).then(|| {
+                    format!(
+                        "the autopilot did not answer MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE in {} s: is it a gimbal manager (PX4: MNT_MODE_IN=4)? mavloc asks again every {} s",
+                        ACK_WAIT.as_secs(),
+                        RETRY_QUIET.as_secs()
+                    )
+                })
+            }
+            Control::Refused(at) if now >= at + RETAKE => {
+                self.control = Control::Released;
+                None
+            }
+            _ => None,
         }
+    }
+
+    /// The next command: letting go, taking control, or the newest aim. `aiming`: mavloc
+    /// points the gimbal (`gimbal.aim = "border"` with an autopilot present); `may_take`:
+    /// control may be taken now (not while the vehicle lands: the autopilot levels the
+    /// camera for the touchdown). `me` is mavloc's (system, component).
+    pub fn poll_transmit(
+        &mut self,
+        now: Mono,
+        target: u8,
+        me: (u8, u8),
+        aiming: bool,
+        may_take: bool,
+    ) -> Option<MavMessage> {
         let command = |command, p: [f32; 7]| {
             MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
                 param1: p[0],
@@ -160,72 +280,172 @@ impl Gimbal {
                 confirmation: 0,
             })
         };
-        if self.control == Control::Released {
-            self.control = Control::Requested;
-            // Primary control to us; secondary unchanged (-1); all gimbals (device id 0).
+        let holding = matches!(self.control, Control::InControl | Control::Requested(_));
+        if self.let_go || (!aiming && holding) {
+            self.let_go = false;
+            self.control = Control::Released;
+            self.pending = None;
+            self.sent.clear();
+            self.in_use = false;
             return Some(command(
                 MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
-                [me.0 as f32, me.1 as f32, -1.0, -1.0, 0.0, 0.0, 0.0],
+                [LET_GO, LET_GO, UNCHANGED, UNCHANGED, 0.0, 0.0, 0.0],
             ));
         }
-        self.pending = None;
-        self.next = now + MIN_INTERVAL;
-        let (cp, sp) = (pitch.cos(), pitch.sin());
-        self.sent.push_back((now, [cp * yaw.cos(), cp * yaw.sin(), -sp]));
-        while self.sent.len() > 16 {
-            self.sent.pop_front();
+        if !aiming {
+            self.pending = None;
+            return None;
         }
-        // Rates NaN: angles only.
-        Some(command(
-            MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
-            [
-                pitch.to_degrees() as f32,
-                yaw.to_degrees() as f32,
-                f32::NAN,
-                f32::NAN,
-                YAW_IN_EARTH_FRAME,
-                0.0,
-                0.0,
-            ],
-        ))
+        let (yaw, pitch) = self.pending?;
+        self.wake = None;
+        match self.control {
+            Control::Released => {
+                if !may_take {
+                    return None;
+                }
+                // Before the manager's first status, give it time to say whether someone
+                // holds the gimbal already (a ground station at mavloc's start).
+                if !self.status_seen && self.retry_at.is_none() {
+                    self.retry_at = Some(now + FIRST_STATUS_WAIT);
+                }
+                if let Some(t) = self.retry_at.filter(|t| now < *t) {
+                    self.wake = Some(t);
+                    return None;
+                }
+                self.control = Control::Requested(now);
+                // Primary control to us; secondary unchanged (-1); all gimbals (device id 0).
+                Some(command(
+                    MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE,
+                    [me.0 as f32, me.1 as f32, UNCHANGED, UNCHANGED, 0.0, 0.0, 0.0],
+                ))
+            }
+            Control::InControl if now >= self.next => {
+                self.pending = None;
+                self.next = now + MIN_INTERVAL;
+                let (cp, sp) = (pitch.cos(), pitch.sin());
+                self.sent.push_back((now, [cp * yaw.cos(), cp * yaw.sin(), -sp]));
+                while self.sent.len() > 16 {
+                    self.sent.pop_front();
+                }
+                // Rates NaN: angles only.
+                Some(command(
+                    MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+                    [pitch.to_degrees() as f32, yaw.to_degrees() as f32, f32::NAN, f32::NAN, FLAGS, 0.0, 0.0],
+                ))
+            }
+            _ => None,
+        }
+    }
+
+    /// The manager's status (GIMBAL_MANAGER_STATUS): who holds the gimbal. Returns a line
+    /// to report when another controller takes it from mavloc, or lets it go.
+    pub fn on_manager_status(
+        &mut self,
+        now: Mono,
+        primary: (u8, u8),
+        me: (u8, u8),
+        autopilot: u8,
+    ) -> Option<String> {
+        self.status_seen = true;
+        if self.control == Control::Released
+            && self.retry_at.is_some_and(|t| now < t)
+            && !self.unanswered_said
+        {
+            // The first status came: no need to wait out the rest of its time.
+            self.retry_at = None;
+        }
+        match (primary.0 != 0).then_some(primary) {
+            Some(p) if p == me => {
+                // Ours (a status from before a refusal does not undo it).
+                if matches!(self.control, Control::Yielded(_)) {
+                    self.control = Control::InControl;
+                }
+                None
+            }
+            Some(p) => {
+                if self.control == Control::Yielded(p) {
+                    return None;
+                }
+                self.control = Control::Yielded(p);
+                self.pending = None;
+                self.sent.clear();
+                self.in_use = false;
+                Some(format!(
+                    "gimbal held by {}: mavloc stops pointing it until it is let go",
+                    who(p, autopilot)
+                ))
+            }
+            None => match self.control {
+                Control::Yielded(p) => {
+                    self.control = Control::Released;
+                    self.retry_at = None;
+                    Some(format!("gimbal let go by {}: mavloc points it again", who(p, autopilot)))
+                }
+                Control::InControl if self.configured_at.is_some_and(|t| now >= t + STATUS_GRACE) => {
+                    // Released by someone else's CONFIGURE: ask again.
+                    self.control = Control::Released;
+                    self.in_use = false;
+                    self.sent.clear();
+                    None
+                }
+                _ => None,
+            },
+        }
     }
 
     /// The manager's answer to CONFIGURE or PITCHYAW. Returns a line to report: the first
     /// refusal of a manager that never took a setpoint (likely no gimbal manager), and
-    /// each time an autopilot that took setpoints starts refusing them (it points the
-    /// camera itself); while it keeps refusing, nothing more.
-    pub fn on_ack(&mut self, command: MavCmd, result: MavResult) -> Option<String> {
-        match result {
-            MavResult::MAV_RESULT_ACCEPTED | MavResult::MAV_RESULT_IN_PROGRESS => {
-                if command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE {
-                    self.control = Control::InControl;
-                } else if command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW {
-                    self.in_use = true;
-                    self.ever_accepted = true;
-                }
+    /// each time a manager that took setpoints starts refusing them without saying who
+    /// holds the gimbal instead; while it keeps refusing, nothing more.
+    pub fn on_ack(&mut self, now: Mono, command: MavCmd, result: MavResult) -> Option<String> {
+        let accepted = matches!(result, MavResult::MAV_RESULT_ACCEPTED | MavResult::MAV_RESULT_IN_PROGRESS);
+        match (command, accepted, self.control) {
+            (MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, true, Control::Requested(_)) => {
+                self.control = Control::InControl;
+                self.configured_at = Some(now);
+                self.unanswered_said = false;
                 None
             }
-            other => {
-                // Take control again before the next setpoint. The refused setpoints are
-                // not where the gimbal was told to go: the autopilot points it (PX4's
-                // navigator takes it back for the landing), and comparing its reports with
-                // them would count the autopilot's choice as mavloc's pointing error.
+            (MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, true, Control::InControl) => {
+                self.in_use = true;
+                self.ever_accepted = true;
+                None
+            }
+            (MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, false, Control::Requested(_)) => {
                 self.control = Control::Released;
+                self.retry_at = Some(now + RETAKE);
+                let first = !std::mem::replace(&mut self.refused_once, true);
+                (first && !self.ever_accepted).then(|| {
+                    format!("autopilot refused {command:?}: {result:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?")
+                })
+            }
+            (MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, false, Control::InControl) => {
+                // The refused setpoints are not where the gimbal was told to go: another
+                // controller points it, and comparing its reports with them would count
+                // its choice as mavloc's pointing error.
+                self.control = Control::Refused(now);
                 self.sent.clear();
                 let first = !std::mem::replace(&mut self.refused_once, true);
                 if std::mem::replace(&mut self.in_use, false) {
-                    Some(format!(
-                        "autopilot took the gimbal back ({command:?}: {other:?}): it points the camera itself \
-                         (PX4 does in RTL and landing); mavloc asks for control again"
-                    ))
+                    // A manager that reports its status names the new holder itself.
+                    (!self.status_seen).then(|| {
+                        format!(
+                            "the gimbal manager refused mavloc's setpoint ({result:?}): another controller took the gimbal \
+                             (PX4's navigator does for RTL and landing); mavloc asks again in {} s",
+                            RETAKE.as_secs()
+                        )
+                    })
                 } else if first && !self.ever_accepted {
                     Some(format!(
-                        "autopilot refused {command:?}: {other:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?"
+                        "autopilot refused {command:?}: {result:?}; is it a gimbal manager (PX4: MNT_MODE_IN=4)?"
                     ))
                 } else {
                     None
                 }
             }
+            // Late answers (to a CONFIGURE that let go, to setpoints sent before control
+            // changed hands) change nothing.
+            _ => None,
         }
     }
 }
@@ -234,6 +454,13 @@ impl Gimbal {
 mod tests {
     use super::*;
 
+    const ME: (u8, u8) = (1, 191);
+    const QGC: (u8, u8) = (255, 190);
+    const CONFIGURE: MavCmd = MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE;
+    const PITCHYAW: MavCmd = MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW;
+    const OK: MavResult = MavResult::MAV_RESULT_ACCEPTED;
+    const DENIED: MavResult = MavResult::MAV_RESULT_DENIED;
+
     fn command(m: &MavMessage) -> (MavCmd, [f32; 2], f32) {
         match m {
             MavMessage::COMMAND_LONG(c) => (c.command, [c.param1, c.param2], c.param5),
@@ -241,81 +468,101 @@ mod tests {
         }
     }
 
+    fn ms(t: u64) -> Mono {
+        Mono::from_millis(t)
+    }
+
+    /// Everything sent at `now` while aiming and free to take control.
+    fn send(g: &mut Gimbal, now: Mono) -> Vec<(MavCmd, [f32; 2], f32)> {
+        std::iter::from_fn(|| g.poll_transmit(now, 1, ME, true, true)).map(|m| command(&m)).collect()
+    }
+
+    /// A gimbal in mavloc's control at `now`, its first setpoint accepted (the manager's
+    /// status seen, saying nobody held it).
+    fn in_control(now: Mono) -> Gimbal {
+        let mut g = Gimbal::default();
+        assert!(g.on_manager_status(now, (0, 0), ME, 1).is_none());
+        g.aim(0.0, -1.0);
+        assert_eq!(send(&mut g, now)[0].0, CONFIGURE);
+        g.on_ack(now, CONFIGURE, OK);
+        g.aim(0.0, -1.0);
+        assert_eq!(send(&mut g, now)[0].0, PITCHYAW);
+        g.on_ack(now, PITCHYAW, OK);
+        g
+    }
+
     #[test]
     fn takes_control_once_then_at_most_5_hz_with_the_newest_aim() {
         let mut g = Gimbal::default();
-        let me = (1, 191);
+        g.on_manager_status(ms(900), (0, 0), ME, 1);
         let mut sent = Vec::new();
         for i in 0..10u64 {
-            let now = Mono::from_millis(1000 + i * 100);
+            let now = ms(1000 + i * 100);
             g.aim(0.3 + i as f64 * 0.01, -0.5);
-            while let Some(m) = g.poll_transmit(now, 1, me) {
-                sent.push((now, command(&m)));
+            sent.extend(send(&mut g, now).into_iter().map(|c| (now, c)));
+            if i == 0 {
+                assert_eq!(sent.len(), 1, "setpoints wait for the CONFIGURE's answer");
+                g.on_ack(now, CONFIGURE, OK);
             }
         }
-        assert_eq!(sent[0].1 .0, MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE);
-        let setpoints: Vec<_> =
-            sent.iter().filter(|s| s.1 .0 == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW).collect();
+        assert_eq!(sent[0].1 .0, CONFIGURE);
+        let setpoints: Vec<_> = sent.iter().filter(|s| s.1 .0 == PITCHYAW).collect();
         assert_eq!(setpoints.len(), 5, "1 s at 5 Hz");
         for w in setpoints.windows(2) {
             assert!(w[1].0.saturating_sub(w[0].0) >= MIN_INTERVAL);
         }
         let (_, [p, y], flags) = setpoints[1].1;
         assert!((p - (-0.5f32).to_degrees()).abs() < 1e-4);
-        assert!((y - 0.32f32.to_degrees()).abs() < 1e-3, "the aim of its own time, {y}");
-        assert_eq!(flags, 80.0, "earth-frame yaw: YAW_LOCK for PX4, YAW_IN_EARTH_FRAME for the spec");
-        // The held-back newest aim goes out at the next slot.
-        assert_eq!(g.deadline(), Some(Mono::from_millis(2000)));
-        assert!(g.poll_transmit(Mono::from_millis(2000), 1, me).is_some());
+        assert!((y - 0.33f32.to_degrees()).abs() < 1e-3, "the aim of its own time, {y}");
+        // Every axis locked to the earth: PX4 takes an unlocked pitch or roll relative to
+        // the airframe and stops stabilising it.
+        assert_eq!(flags, 92.0, "ROLL_LOCK | PITCH_LOCK | YAW_LOCK | YAW_IN_EARTH_FRAME");
+        // A newer aim waits for the next slot.
+        g.aim(0.5, -0.5);
+        assert!(send(&mut g, ms(2000)).is_empty());
+        assert_eq!(g.deadline(), Some(ms(2100)));
+        assert_eq!(send(&mut g, ms(2100)).len(), 1);
     }
 
-    /// Reports are compared with the setpoint in force; once the autopilot refuses
-    /// setpoints (it points the gimbal itself), its pointing is not counted as an error.
+    /// Reports are compared with the setpoint in force, once the manager took one; once
+    /// it refuses setpoints (another controller points the gimbal), or while it answers
+    /// nothing, its pointing is not counted as mavloc's error.
     #[test]
     fn pointing_errors_count_only_setpoints_the_autopilot_took() {
-        let mut g = Gimbal::default();
-        let me = (1, 191);
-        g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::ZERO, 1, me); // CONFIGURE
-        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_ACCEPTED);
-        g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::from_millis(300), 1, me).unwrap();
         let axis = |pitch: f64| [pitch.cos(), 0.0, -pitch.sin()];
-        // Before the setpoint has settled nothing is compared; after, the report is on it.
-        g.on_report(Mono::from_millis(500), axis(0.0), true);
-        assert!(g.errors.is_empty());
-        g.on_report(Mono::from_millis(900), axis(-1.0), true);
-        assert!(g.median_error_deg().unwrap() < 1e-6);
-        // Refused: the autopilot levels the camera for its landing.
+        // Control asked for and never answered: nothing counted.
+        let mut g = Gimbal::default();
+        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
         g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::from_millis(1100), 1, me);
-        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, MavResult::MAV_RESULT_DENIED);
-        for ms in [2000, 2500, 3000] {
-            g.on_report(Mono::from_millis(ms), axis(0.0), true);
+        send(&mut g, Mono::ZERO);
+        g.on_report(ms(900), axis(0.0), true);
+        assert!(g.errors.is_empty());
+        let mut g = in_control(Mono::ZERO);
+        // Before the setpoint has settled nothing is compared; after, the report is on it.
+        g.on_report(ms(400), axis(0.0), true);
+        assert!(g.errors.is_empty());
+        g.on_report(ms(900), axis(-1.0), true);
+        assert!(g.median_error_deg().unwrap() < 1e-6);
+        // Refused: another controller levels the camera.
+        g.aim(0.0, -1.0);
+        send(&mut g, ms(1100));
+        g.on_ack(ms(1100), PITCHYAW, DENIED);
+        for t in [2000, 2500, 3000] {
+            g.on_report(ms(t), axis(0.0), true);
         }
         assert_eq!(g.errors.len(), 1, "{:?}", g.errors);
         // A wrong pointing under a setpoint in force does count (57 degrees off).
-        g.aim(0.0, -1.0);
-        while g.poll_transmit(Mono::from_millis(3100), 1, me).is_some() {}
-        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_ACCEPTED);
-        g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::from_millis(3400), 1, me).unwrap();
-        g.on_report(Mono::from_millis(4000), axis(0.0), true);
-        assert_eq!(g.errors.len(), 2);
-        assert!((g.errors[1].1 - 57.3).abs() < 0.1, "{:?}", g.errors);
+        let mut g = in_control(ms(3100));
+        g.on_report(ms(4000), axis(0.0), true);
+        assert_eq!(g.errors.len(), 1);
+        assert!((g.errors[0].1 - 57.3).abs() < 0.1, "{:?}", g.errors);
     }
 
     /// The recent median is over the last minute whatever the report rate (PX4 sends up
     /// to 70 a second); the flight's counts airborne reports only, all of them.
     #[test]
     fn the_recent_median_is_a_minute_and_the_flights_is_airborne() {
-        let mut g = Gimbal::default();
-        let me = (1, 191);
-        g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::ZERO, 1, me);
-        g.on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_ACCEPTED);
-        g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::ZERO, 1, me).unwrap();
+        let mut g = in_control(Mono::ZERO);
         let off = |deg: f64| {
             let p = -1.0 - deg.to_radians();
             [p.cos(), 0.0, -p.sin()]
@@ -323,11 +570,11 @@ mod tests {
         // 82 s airborne at 50 Hz: the first 42 s 3 degrees off, then 40 s 1 degree off.
         for i in 0..4100u64 {
             let deg = if i < 2100 { 3.0 } else { 1.0 };
-            g.on_report(Mono::from_millis(1000 + i * 20), off(deg), true);
+            g.on_report(ms(1000 + i * 20), off(deg), true);
         }
         // Then 10 s on the ground, levelled by the autopilot (57 degrees off).
         for i in 0..500u64 {
-            g.on_report(Mono::from_millis(83_000 + i * 20), off(57.3), false);
+            g.on_report(ms(83_000 + i * 20), off(57.3), false);
         }
         let flight = g.flight_median_error_deg().unwrap();
         assert!((flight - 3.0).abs() < 0.02, "flight median {flight}");
@@ -337,61 +584,156 @@ mod tests {
         assert!(g.errors.len() <= 3001, "a minute of reports: {}", g.errors.len());
         // A flood is capped: 10 s at 1 kHz keeps the newest RECENT_MAX.
         for i in 0..10_000u64 {
-            g.on_report(Mono::from_millis(93_000) + Duration::from_micros(i * 1000), off(2.0), true);
+            g.on_report(ms(93_000) + Duration::from_micros(i * 1000), off(2.0), true);
         }
         assert_eq!(g.errors.len(), RECENT_MAX);
         assert!(g.errors.iter().all(|e| (e.1 - 2.0).abs() < 1e-9));
     }
 
+    /// A refused CONFIGURE is said once (the manager hint) and asked again after
+    /// [`RETAKE`], not at the next aim.
     #[test]
-    fn a_refusal_is_reported_once_and_control_is_asked_again() {
+    fn a_refusal_is_reported_once_and_control_is_asked_again_later() {
         let mut g = Gimbal::default();
+        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
         g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::ZERO, 1, (1, 191));
-        assert!(g
-            .on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_DENIED)
-            .is_some());
+        send(&mut g, Mono::ZERO);
+        let said = g.on_ack(Mono::ZERO, CONFIGURE, DENIED).expect("said");
+        assert!(said.contains("MNT_MODE_IN=4"), "{said}");
         assert_eq!(g.control(), Control::Released);
-        assert!(g
-            .on_ack(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, MavResult::MAV_RESULT_DENIED)
-            .is_none());
-        let (c, _, _) = command(&g.poll_transmit(Mono::ZERO, 1, (1, 191)).unwrap());
-        assert_eq!(c, MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE);
+        assert!(send(&mut g, ms(1000)).is_empty(), "not again at once");
+        assert_eq!(send(&mut g, ms(3000))[0].0, CONFIGURE);
+        assert!(g.on_ack(ms(3000), CONFIGURE, DENIED).is_none(), "said once");
     }
 
-    /// PX4 takes the gimbal for RTL after mavloc has pointed it for the whole mission (every
-    /// SITL coastline flight): that is said as such, once per time it happens, not as a
-    /// missing gimbal manager. Its loop of accepted CONFIGUREs and refused setpoints stays
-    /// quiet.
+    /// QGroundControl takes the gimbal while mavloc points it (audit, session 37: mavloc
+    /// took it back within 0.3 s, every time). mavloc's next setpoint is refused, the
+    /// manager's status names the holder: mavloc sends nothing, not even a CONFIGURE,
+    /// until the holder lets go; then it takes control again.
     #[test]
-    fn an_autopilot_taking_the_gimbal_back_is_told_from_one_without_a_manager() {
-        let me = (1, 191);
-        let yaw = MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW;
-        let configure = MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE;
-        let (ok, denied) = (MavResult::MAV_RESULT_ACCEPTED, MavResult::MAV_RESULT_DENIED);
+    fn another_controller_holding_the_gimbal_is_left_alone_until_it_lets_go() {
+        let mut g = in_control(Mono::ZERO);
+        g.aim(0.1, -1.0);
+        send(&mut g, ms(1000));
+        assert!(g.on_ack(ms(1000), PITCHYAW, DENIED).is_none(), "the status names the holder");
+        let said = g.on_manager_status(ms(1500), QGC, ME, 1).expect("the holder is named");
+        assert!(said.contains("ground station (255/190)"), "{said}");
+        assert_eq!(g.control(), Control::Yielded(QGC));
+        for t in (1600..60_000).step_by(100) {
+            g.aim(0.1, -1.0);
+            g.on_timeout(ms(t));
+            assert!(send(&mut g, ms(t)).is_empty(), "nothing sent at {t} ms");
+            if t % 2000 == 0 {
+                assert!(g.on_manager_status(ms(t), QGC, ME, 1).is_none(), "said once");
+            }
+        }
+        let said = g.on_manager_status(ms(60_000), (0, 0), ME, 1).expect("the release is said");
+        assert!(said.contains("let go"), "{said}");
+        g.aim(0.1, -1.0);
+        assert_eq!(send(&mut g, ms(60_100))[0].0, CONFIGURE);
+        // The autopilot itself (RTL) is named as such.
+        let mut g = in_control(Mono::ZERO);
+        let said = g.on_manager_status(ms(500), (1, 1), ME, 1).unwrap();
+        assert!(said.contains("the autopilot"), "{said}");
+    }
+
+    /// At start, a ground station may hold the gimbal already: no CONFIGURE until the
+    /// manager's first status had time to say so, and none at all when it names a holder.
+    #[test]
+    fn control_is_not_taken_before_the_manager_could_say_who_holds_it() {
         let mut g = Gimbal::default();
-        let flight = |g: &mut Gimbal| {
-            assert!(g.on_ack(configure, ok).is_none());
-            for _ in 0..3 {
-                assert!(g.on_ack(yaw, ok).is_none());
-            }
-            let said = g.on_ack(yaw, denied).expect("the first refusal after accepted setpoints is reported");
-            assert!(said.contains("took the gimbal back") && !said.contains("MNT_MODE_IN"), "{said}");
-            for _ in 0..10 {
-                assert!(g.on_ack(configure, ok).is_none());
-                assert!(g.on_ack(yaw, denied).is_none(), "refused again while the autopilot holds it");
-            }
-        };
         g.aim(0.0, -1.0);
-        g.poll_transmit(Mono::ZERO, 1, me);
-        flight(&mut g);
-        // The next flight: pointed again, then taken back again, said again.
-        flight(&mut g);
-        // A manager that never took a setpoint: the configuration hint.
+        assert!(send(&mut g, Mono::ZERO).is_empty());
+        assert_eq!(g.deadline(), Some(Mono::ZERO + FIRST_STATUS_WAIT));
+        assert!(g.on_manager_status(ms(1000), QGC, ME, 1).is_some());
+        g.aim(0.0, -1.0);
+        assert!(send(&mut g, ms(5000)).is_empty(), "held by the ground station");
+        // A manager that sends no status: control is asked after the wait.
         let mut g = Gimbal::default();
-        assert!(g.on_ack(configure, ok).is_none());
-        let said = g.on_ack(yaw, denied).unwrap();
-        assert!(said.contains("MNT_MODE_IN=4"), "{said}");
-        assert!(g.on_ack(yaw, denied).is_none());
+        g.aim(0.0, -1.0);
+        assert!(send(&mut g, ms(2900)).is_empty());
+        assert!(send(&mut g, ms(2900) + FIRST_STATUS_WAIT).iter().any(|c| c.0 == CONFIGURE));
+    }
+
+    /// A manager that refuses setpoints and sends no status (so cannot say who holds the
+    /// gimbal) is told of once per time it happens, and asked for control after
+    /// [`RETAKE`], not at 5 Hz.
+    #[test]
+    fn a_refusal_without_a_status_is_said_and_control_asked_after_a_while() {
+        let mut g = Gimbal::default();
+        g.aim(0.0, -1.0);
+        assert!(send(&mut g, Mono::ZERO).is_empty());
+        let t0 = Mono::ZERO + FIRST_STATUS_WAIT;
+        assert_eq!(send(&mut g, t0)[0].0, CONFIGURE);
+        g.on_ack(t0, CONFIGURE, OK);
+        g.aim(0.0, -1.0);
+        send(&mut g, t0);
+        g.on_ack(t0, PITCHYAW, OK);
+        g.aim(0.0, -1.0);
+        send(&mut g, t0 + MIN_INTERVAL);
+        let said = g.on_ack(t0 + MIN_INTERVAL, PITCHYAW, DENIED).expect("said");
+        assert!(said.contains("another controller took the gimbal"), "{said}");
+        g.aim(0.0, -1.0);
+        assert!(send(&mut g, t0 + Duration::from_secs(2)).is_empty());
+        g.on_timeout(t0 + MIN_INTERVAL + RETAKE);
+        assert_eq!(send(&mut g, t0 + MIN_INTERVAL + RETAKE)[0].0, CONFIGURE);
+    }
+
+    /// PX4 with no gimbal manager (MNT_MODE_IN = -1, its default) answers nothing: one
+    /// warning naming the parameter, no setpoints into the void, a CONFIGURE every 10 s.
+    #[test]
+    fn an_unanswered_configure_is_said_once_and_retried_quietly() {
+        let mut g = Gimbal::default();
+        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
+        let mut configures = 0;
+        let mut said = Vec::new();
+        for t in (0..30_000).step_by(100) {
+            g.aim(0.0, -1.0);
+            if let Some(line) = g.on_timeout(ms(t)) {
+                said.push(line);
+            }
+            for c in send(&mut g, ms(t)) {
+                assert_eq!(c.0, CONFIGURE, "no setpoint before control");
+                configures += 1;
+            }
+        }
+        assert_eq!(said.len(), 1, "{said:?}");
+        assert!(said[0].contains("MNT_MODE_IN=4"), "{}", said[0]);
+        assert_eq!(configures, 3, "at 0, 13 and 26 s");
+    }
+
+    /// Not while landing (the autopilot levels the camera for the touchdown).
+    #[test]
+    fn control_is_not_taken_while_landing() {
+        let mut g = Gimbal::default();
+        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
+        g.aim(0.0, -1.0);
+        assert!(g.poll_transmit(ms(100), 1, ME, true, false).is_none());
+        assert_eq!(g.deadline(), None, "no busy wake-ups while landing");
+        assert!(g.poll_transmit(ms(200), 1, ME, true, true).is_some());
+    }
+
+    /// mavloc lets go of the gimbal when it stops aiming (GMB_AIM set back to the mission)
+    /// or shuts down: a manager keeps a departed primary and refuses everyone else.
+    #[test]
+    fn control_is_let_go_when_aiming_stops_or_the_daemon_does() {
+        let let_go = |m: Option<MavMessage>| match m {
+            Some(MavMessage::COMMAND_LONG(c)) => {
+                c.command == CONFIGURE && c.param1 == -3.0 && c.param2 == -3.0
+            }
+            _ => false,
+        };
+        let mut g = in_control(Mono::ZERO);
+        assert!(let_go(g.poll_transmit(ms(300), 1, ME, false, true)));
+        assert_eq!(g.control(), Control::Released);
+        assert!(g.poll_transmit(ms(400), 1, ME, false, true).is_none(), "once");
+        let mut g = in_control(Mono::ZERO);
+        g.let_go();
+        assert_eq!(g.deadline(), Some(Mono::ZERO));
+        assert!(let_go(g.poll_transmit(ms(300), 1, ME, true, true)));
+        // Not held: nothing to let go.
+        let mut g = Gimbal::default();
+        g.let_go();
+        assert!(g.poll_transmit(ms(300), 1, ME, false, true).is_none());
     }
 }

@@ -523,6 +523,17 @@ impl Core {
         &self.gimbal
     }
 
+    #[cfg(test)]
+    pub fn telemetry(&self) -> &Telemetry {
+        &self.telemetry
+    }
+
+    /// The daemon stops: let go of the gimbal if mavloc holds it (sent by the next
+    /// `poll_transmit`), so the ground station can point it without taking it first.
+    pub fn shutting_down(&mut self) {
+        self.gimbal.let_go();
+    }
+
     pub fn set_event_metadata(&mut self, m: events::EventMetadata) {
         self.events.set_metadata(m);
     }
@@ -625,6 +636,9 @@ impl Core {
             self.prearm_ok = None;
         }
         self.update_gps_phase();
+        if let Some(line) = self.gimbal.on_timeout(now) {
+            self.notes.warn(&line);
+        }
         if let Some(LandingNotice::GaveUp(tries)) = self.landing.on_timeout(now) {
             let command = self.landing.command();
             self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
@@ -690,7 +704,13 @@ impl Core {
             .or_else(|| self.streams.poll_transmit(now, target))
             .or_else(|| self.timesync.poll_transmit(now, target))
             .or_else(|| self.landing.poll_transmit(now, target))
-            .or_else(|| self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id)))
+            .or_else(|| {
+                let aiming = self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present();
+                // Not while landing: the autopilot levels the camera for the touchdown.
+                let may_take =
+                    self.autopilot.landed_state() != Some(MavLandedState::MAV_LANDED_STATE_LANDING);
+                self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id), aiming, may_take)
+            })
             .or_else(|| self.ftp.poll(now).map(|(to, payload)| ftp_message(to, payload)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;
         Some(Outgoing {
@@ -813,9 +833,7 @@ impl Core {
             if self.telemetry.on_message(rx, &f.message, fc).is_some() {
                 self.on_reboot(rx);
             }
-            if let (MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(_), Some((_, axis))) =
-                (&f.message, self.telemetry.gimbal_pointing)
-            {
+            if let Some(axis) = self.telemetry.take_gimbal_report() {
                 let airborne = !self.on_ground();
                 self.gimbal.on_report(rx, [axis.x, axis.y, axis.z], airborne);
             }
@@ -885,7 +903,20 @@ impl Core {
                     }
                 }
             }
-            MavMessage::COMMAND_ACK(a) if self.is_autopilot(&f) => self.on_autopilot_ack(rx, a),
+            // Answers to mavloc's own commands only: an ACK the autopilot sends a ground
+            // station (seen by a router's broadcast) says nothing about them.
+            MavMessage::COMMAND_ACK(a)
+                if self.is_autopilot(&f) && self.for_us(a.target_system, a.target_component, true) =>
+            {
+                self.on_autopilot_ack(rx, a)
+            }
+            MavMessage::GIMBAL_MANAGER_STATUS(g) if self.is_autopilot(&f) => {
+                let me = (self.system_id, self.component_id);
+                let primary = (g.primary_control_sysid, g.primary_control_compid);
+                if let Some(line) = self.gimbal.on_manager_status(rx, primary, me, from.0) {
+                    self.notes.info(&line);
+                }
+            }
             MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
                 let (reply, sample) = self.timesync.on_timesync(rx, t, from);
                 if let Some(r) = reply {
@@ -1111,7 +1142,7 @@ impl Core {
                 }
             }
             MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
-                if let Some(line) = self.gimbal.on_ack(a.command, a.result) {
+                if let Some(line) = self.gimbal.on_ack(now, a.command, a.result) {
                     self.notes.warn(&line);
                 }
             }

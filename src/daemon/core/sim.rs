@@ -58,6 +58,12 @@ pub struct FakeAutopilot {
     next_status: Mono,
     event_sequence: u16,
     pub gimbal_commands: Vec<(Mono, COMMAND_LONG_DATA)>,
+    /// A gimbal manager (PX4 with MNT_MODE_IN=4): it answers CONFIGURE and PITCHYAW and
+    /// says who holds the gimbal every 2 s. Without one (PX4's default), it answers none.
+    pub gimbal_manager: bool,
+    /// The gimbal's primary controller, (0, 0) for none.
+    pub gimbal_primary: (u8, u8),
+    next_gimbal_status: Mono,
     streaming: bool,
     next_heartbeat: Mono,
     next_telemetry: Mono,
@@ -85,6 +91,9 @@ impl FakeAutopilot {
             next_status: boot,
             event_sequence: 0,
             gimbal_commands: Vec::new(),
+            gimbal_manager: true,
+            gimbal_primary: (0, 0),
+            next_gimbal_status: boot,
             streaming: false,
             next_heartbeat: boot,
             next_telemetry: boot,
@@ -150,9 +159,28 @@ impl FakeAutopilot {
         ((now.0 - self.booted.0) / 1000) as u32
     }
 
+    /// Another controller (a ground station) takes the gimbal: the manager's status
+    /// saying so, which PX4 sends at once.
+    pub fn gimbal_taken_by(&mut self, who: (u8, u8), now: Mono) -> MavMessage {
+        self.gimbal_primary = who;
+        self.gimbal_status(now)
+    }
+
+    fn gimbal_status(&self, now: Mono) -> MavMessage {
+        MavMessage::GIMBAL_MANAGER_STATUS(GIMBAL_MANAGER_STATUS_DATA {
+            time_boot_ms: self.boot_ms(now),
+            primary_control_sysid: self.gimbal_primary.0,
+            primary_control_compid: self.gimbal_primary.1,
+            ..Default::default()
+        })
+    }
+
     pub fn next_event(&self) -> Option<Mono> {
         self.alive.then(|| {
-            let next = self.next_heartbeat.min(self.next_status);
+            let mut next = self.next_heartbeat.min(self.next_status);
+            if self.gimbal_manager {
+                next = next.min(self.next_gimbal_status);
+            }
             if self.streaming {
                 next.min(self.next_telemetry)
             } else {
@@ -191,6 +219,10 @@ impl FakeAutopilot {
                     },
                 }));
             }
+        }
+        if self.gimbal_manager && self.next_gimbal_status <= now {
+            self.next_gimbal_status = now + Duration::from_secs(2);
+            out.push(self.gimbal_status(now));
         }
         if self.next_status <= now {
             self.next_status = now + Duration::from_secs(1);
@@ -247,9 +279,27 @@ impl FakeAutopilot {
                     self.precision_commands += (c.command == MavCmd::MAV_CMD_NAV_LAND_LOCAL) as u32;
                     self.land_answer.map(|r| vec![ack(c.command, r)]).unwrap_or_default()
                 }
+                // What mavloc (1/191) sends, as PX4's gimbal manager takes it: anyone may
+                // take control; setpoints only from the primary controller.
                 MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE | MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW => {
                     self.gimbal_commands.push((now, c.clone()));
-                    vec![ack(c.command, MavResult::MAV_RESULT_ACCEPTED)]
+                    if !self.gimbal_manager {
+                        return vec![];
+                    }
+                    let mavloc = (1, 191);
+                    let result = if c.command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE {
+                        if c.param1 >= 0.0 {
+                            self.gimbal_primary = (c.param1 as u8, c.param2 as u8);
+                        } else if c.param1 == -3.0 && self.gimbal_primary == mavloc {
+                            self.gimbal_primary = (0, 0);
+                        }
+                        MavResult::MAV_RESULT_ACCEPTED
+                    } else if self.gimbal_primary == mavloc {
+                        MavResult::MAV_RESULT_ACCEPTED
+                    } else {
+                        MavResult::MAV_RESULT_DENIED
+                    };
+                    vec![ack(c.command, result)]
                 }
                 _ => vec![],
             },

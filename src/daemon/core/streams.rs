@@ -15,6 +15,9 @@ pub const STREAMS: &[(u32, &str, i32)] = &[
     (33, "GLOBAL_POSITION_INT", 100_000),
     (242, "HOME_POSITION", 1_000_000),
     (285, "GIMBAL_DEVICE_ATTITUDE_STATUS", 20_000),
+    // Who holds the gimbal (gimbal::Gimbal yields to another controller): PX4 sends it
+    // every 2 s unless asked.
+    (281, "GIMBAL_MANAGER_STATUS", 500_000),
     (2, "SYSTEM_TIME", 1_000_000),
     (245, "EXTENDED_SYS_STATE", 200_000),
 ];

@@ -12,7 +12,7 @@
 use mavlink::dialects::common::*;
 
 use super::time::Mono;
-use crate::align::{AlignParams, Aligner, FixedMount, GimbalOffsets, GimbalSample, VehicleSample};
+use crate::align::{AlignParams, Aligner, ClockSync, FixedMount, GimbalOffsets, GimbalSample, VehicleSample};
 use crate::geometry::{Geodetic, LocalFrame, Vec3};
 use crate::settings::Settings;
 use mavloc_geometry::GimbalAngles;
@@ -54,6 +54,13 @@ pub struct Telemetry {
     pub truth: Option<(Mono, HIL_STATE_QUATERNION_DATA)>,
     /// Where the gimbal reports the camera looks (unit vector, NED) and when.
     pub gimbal_pointing: Option<(Mono, Vec3)>,
+    /// The optical axis of the gimbal report just taken in (NED, unit), for the pointing
+    /// statistics: none for a report that was refused (a bad quaternion, a stamp from
+    /// the future), which must not count again the last good one.
+    gimbal_report: Option<Vec3>,
+    /// A MAVLink gimbal device's clock against the autopilot's (device stamp as the
+    /// "autopilot" side, autopilot time at arrival as the "local" side).
+    gimbal_clock: ClockSync,
     /// The downward rangefinder (DISTANCE_SENSOR, PITCH_270) and when: metres, 0 when
     /// it reads below its minimum (PX4 reports 0 standing on the ground).
     pub range_down: Option<(Mono, f64)>,
@@ -94,6 +101,8 @@ impl Telemetry {
             global: None,
             truth: None,
             gimbal_pointing: None,
+            gimbal_report: None,
+            gimbal_clock: ClockSync::new(),
             range_down: None,
         }
     }
@@ -162,6 +171,7 @@ impl Telemetry {
         let now = rx.secs();
         if self.aligner.clock.observe_stamp(stamp, now) {
             self.aligner.reset();
+            self.gimbal_clock = ClockSync::new();
             // reset() cleared the clock; keep this stamp.
             self.aligner.clock.observe_stamp(stamp, now);
             return Some(Rebooted);
@@ -171,6 +181,12 @@ impl Telemetry {
 
     /// A message from the autopilot's system; `component` says whether it came from the
     /// flight controller itself (component 1).
+    /// The optical axis of the gimbal report the last message brought, if it was one
+    /// and was taken in (see `gimbal_report`).
+    pub fn take_gimbal_report(&mut self) -> Option<Vec3> {
+        self.gimbal_report.take()
+    }
+
     pub fn on_message(&mut self, rx: Mono, m: &MavMessage, flight_controller: bool) -> Option<Rebooted> {
         let stamp_ms = match m {
             MavMessage::ATTITUDE(a) => Some(a.time_boot_ms),
@@ -247,10 +263,38 @@ impl Telemetry {
                 None
             }
             MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g) => {
-                if let Some(s) = GimbalSample::from_status(g.q, g.flags.bits()) {
-                    self.aligner.push_gimbal(g.time_boot_ms as f64 * 1e-3, s, rx.secs());
-                    self.gimbal_pointing = self.earth_direction(&s).map(|d| (rx, d));
-                }
+                let s = GimbalSample::from_status(g.q, g.flags.bits())?;
+                let now = rx.secs();
+                let stamp = if flight_controller {
+                    // The autopilot's own gimbal driver (PX4 with MNT_MODE_OUT = AUX):
+                    // its clock. One stamp from the future would have made the history
+                    // drop every true report after it (5 s behind the newest) and
+                    // stopped the area pipeline for good.
+                    let stamp = g.time_boot_ms as f64 * 1e-3;
+                    if !self.aligner.clock.plausible(stamp, now) {
+                        self.implausible += 1;
+                        return None;
+                    }
+                    stamp
+                } else {
+                    // A MAVLink gimbal device (component 154): its own boot clock, which
+                    // PX4 forwards as it is (a gimbal powered up 3 s after the autopilot
+                    // gave no aligned frame at all). Mapped onto the autopilot's clock the
+                    // way the autopilot's is onto ours: by the lower envelope of its
+                    // arrivals (on the autopilot's clock) against its stamps.
+                    let arrival = self.aligner.clock.to_autopilot(now)?;
+                    let stamp = g.time_boot_ms as f64 * 1e-3;
+                    if !self.gimbal_clock.plausible(stamp, arrival) {
+                        self.implausible += 1;
+                        return None;
+                    }
+                    // A backwards step is the device rebooting; the clock starts over.
+                    self.gimbal_clock.observe_stamp(stamp, arrival);
+                    self.gimbal_clock.to_local(stamp)?
+                };
+                self.aligner.push_gimbal(stamp, s, now);
+                self.gimbal_pointing = self.earth_direction(&s).map(|d| (rx, d));
+                self.gimbal_report = self.gimbal_pointing.map(|(_, d)| d);
                 None
             }
             _ => None,

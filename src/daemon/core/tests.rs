@@ -289,14 +289,9 @@ fn an_unanswered_landing_gives_up_after_five_tries_with_an_error() {
     assert!(sim.statustexts().concat().contains("did not acknowledge MAV_CMD_NAV_LAND"));
 }
 
-#[test]
-fn border_aiming_takes_control_and_streams_at_most_5_hz() {
-    let mut s = settings();
-    s.gimbal.aim = GimbalAim::Border;
-    let mut sim = Sim::new(s);
-    sim.ap = FakeAutopilot::new(Mono::ZERO);
-    sim.run_until(secs(2));
-    for _ in 0..30 {
+/// The pipeline's aim, 30 times a second for `for_s` seconds.
+fn aim_for(sim: &mut Sim, for_s: u64) {
+    for _ in 0..for_s * 30 {
         sim.input(Input::Pipeline {
             now: sim.now,
             event: PipelineEvent::Report {
@@ -307,6 +302,21 @@ fn border_aiming_takes_control_and_streams_at_most_5_hz() {
         });
         sim.run_for(Duration::from_millis(33)); // a 30 Hz camera
     }
+}
+
+fn border_aiming() -> Sim {
+    let mut s = settings();
+    s.gimbal.aim = GimbalAim::Border;
+    let mut sim = Sim::new(s);
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(2));
+    sim
+}
+
+#[test]
+fn border_aiming_takes_control_and_streams_at_most_5_hz() {
+    let mut sim = border_aiming();
+    aim_for(&mut sim, 1);
     let cmds = &sim.ap.gimbal_commands;
     assert_eq!(cmds[0].1.command, MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE);
     assert_eq!(cmds.iter().filter(|c| c.1.command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE).count(), 1);
@@ -317,6 +327,140 @@ fn border_aiming_takes_control_and_streams_at_most_5_hz() {
     for w in setpoints.windows(2) {
         assert!(w[1].0.saturating_sub(w[0].0) >= gimbal::MIN_INTERVAL);
     }
+    assert!(setpoints.iter().all(|s| s.1.param5 == 92.0), "every axis earth-locked");
+    assert_eq!(sim.core.gimbal().control(), gimbal::Control::InControl);
+}
+
+/// A ground station takes the gimbal while mavloc points it (audit, session 37: mavloc
+/// took it back within 0.3 s, every time): mavloc sends the gimbal nothing while the
+/// manager names another holder, says so once, and points it again once it is let go.
+#[test]
+fn border_aiming_leaves_a_gimbal_the_ground_station_took_until_it_is_let_go() {
+    let mut sim = border_aiming();
+    aim_for(&mut sim, 1);
+    let taken = sim.now;
+    let status = sim.ap.gimbal_taken_by((255, 190), taken);
+    sim.deliver(frame(1, 1, status));
+    aim_for(&mut sim, 20);
+    let after: Vec<_> =
+        sim.ap.gimbal_commands.iter().filter(|c| c.0 > taken + Duration::from_millis(300)).collect();
+    assert!(after.is_empty(), "sent while the ground station held it: {:?}", after.len());
+    assert_eq!(sim.ap.gimbal_primary, (255, 190));
+    let said = sim.statustexts().concat();
+    assert_eq!(said.matches("gimbal held by a ground station (255/190)").count(), 1, "{said}");
+    let released = sim.now;
+    let status = sim.ap.gimbal_taken_by((0, 0), released);
+    sim.deliver(frame(1, 1, status));
+    aim_for(&mut sim, 1);
+    assert_eq!(sim.ap.gimbal_primary, (1, 191), "taken again once let go");
+    assert!(sim
+        .ap
+        .gimbal_commands
+        .iter()
+        .any(|c| c.0 > released && c.1.command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW));
+}
+
+/// PX4 runs no gimbal manager by default (MNT_MODE_IN = -1) and answers nothing: one
+/// warning naming the parameter; no setpoints into the void; the autopilot's own
+/// pointing is not reported as mavloc's error.
+#[test]
+fn border_aiming_without_a_gimbal_manager_says_so_and_sends_no_setpoints() {
+    let mut sim = border_aiming();
+    sim.ap.gimbal_manager = false;
+    aim_for(&mut sim, 20);
+    let cmds = &sim.ap.gimbal_commands;
+    assert!(cmds.iter().all(|c| c.1.command == MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE));
+    assert!((2..=3).contains(&cmds.len()), "a CONFIGURE every 13 s: {}", cmds.len());
+    let said = sim.statustexts().concat();
+    assert_eq!(said.matches("MNT_MODE_IN=4").count(), 1, "{said}");
+    assert_eq!(sim.core.gimbal_error_median_deg(), None);
+}
+
+/// The daemon stopping lets go of the gimbal it holds, so the ground station can point
+/// it at once.
+#[test]
+fn border_aiming_lets_go_of_the_gimbal_at_shutdown() {
+    let mut sim = border_aiming();
+    aim_for(&mut sim, 1);
+    assert_eq!(sim.ap.gimbal_primary, (1, 191));
+    sim.core.shutting_down();
+    sim.run_for(Duration::from_millis(10));
+    assert_eq!(sim.ap.gimbal_primary, (0, 0));
+}
+
+fn gimbal_report(time_boot_ms: u32, q: [f32; 4]) -> MavMessage {
+    MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(GIMBAL_DEVICE_ATTITUDE_STATUS_DATA {
+        time_boot_ms,
+        q,
+        flags: GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+        ..Default::default()
+    })
+}
+
+/// Gimbal reports are put on the autopilot's clock whoever sends them (audit, session
+/// 37): one report from the autopilot stamped 600 s ahead stopped every frame's
+/// alignment for good, and a MAVLink gimbal device (its own boot clock, 3 s behind)
+/// gave no aligned frame at all. The first is refused and counted; the device's report
+/// is placed at its arrival.
+#[test]
+fn gimbal_reports_are_on_the_autopilots_clock_whoever_sends_them() {
+    let mut sim = border_aiming();
+    sim.ap.streams = StreamAnswer::Accept;
+    sim.run_until(secs(10));
+    let level = [1.0, 0.0, 0.0, 0.0];
+    let at = |sim: &Sim| ((sim.now.0 / 1000) as u32, sim.now.secs());
+    // From the autopilot, 600 s ahead: refused.
+    let (ms, _) = at(&sim);
+    sim.deliver(frame(1, 1, gimbal_report(ms + 600_000, level)));
+    sim.run_for(Duration::from_millis(10));
+    assert_eq!(sim.core.telemetry().implausible, 1);
+    // From a gimbal device (component 154) whose clock is 3 s behind: placed at its
+    // arrival, so the frame captured now finds it.
+    let now = sim.now.secs() + 0.2;
+    for _ in 0..10 {
+        let (ms, _) = at(&sim);
+        sim.deliver(frame(1, 154, gimbal_report(ms.saturating_sub(3000), level)));
+        sim.run_for(Duration::from_millis(50));
+    }
+    let pose = sim.core.telemetry().aligner.align(now, sim.now.secs());
+    assert!(pose.is_ok(), "{pose:?}");
+}
+
+/// A refused report (a NaN quaternion) does not count the last good one again in the
+/// pointing statistics (a flood of them moved the median from 1.27 to 0.61 degrees).
+#[test]
+fn refused_gimbal_reports_are_not_counted_as_pointing() {
+    let mut sim = border_aiming();
+    aim_for(&mut sim, 2);
+    let good = |sim: &Sim| gimbal_report((sim.now.0 / 1000) as u32, [1.0, 0.0, 0.0, 0.0]);
+    let m = good(&sim);
+    sim.deliver(frame(1, 1, m));
+    sim.run_for(Duration::from_millis(20));
+    let counted = sim.core.gimbal().errors.len();
+    assert_eq!(counted, 1);
+    for _ in 0..50 {
+        let ms = (sim.now.0 / 1000) as u32;
+        sim.deliver(frame(1, 1, gimbal_report(ms, [f32::NAN, 0.0, 0.0, 0.0])));
+        sim.run_for(Duration::from_millis(5));
+    }
+    assert_eq!(sim.core.gimbal().errors.len(), counted);
+}
+
+/// An acknowledgement the autopilot sends someone else (a router shows mavloc every
+/// ACK) is not an answer to mavloc's command.
+#[test]
+fn an_ack_addressed_to_another_component_is_not_mavlocs() {
+    let mut sim = border_aiming();
+    aim_for(&mut sim, 1);
+    let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+        command: MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+        result: MavResult::MAV_RESULT_DENIED,
+        target_system: 255,
+        target_component: 190,
+        ..Default::default()
+    });
+    sim.deliver(frame(1, 1, ack));
+    sim.run_for(Duration::from_millis(10));
     assert_eq!(sim.core.gimbal().control(), gimbal::Control::InControl);
 }
 
