@@ -38,6 +38,45 @@ pub fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
     )
 }
 
+/// A device's reports stamped with one time this long, in at least [`FROZEN_REPEATS`]
+/// reports, come from a clock that stands still (some gimbals fill in no time at all).
+const FROZEN_S: f64 = 0.5;
+const FROZEN_REPEATS: u32 = 3;
+
+/// A MAVLink gimbal device's boot clock mapped onto the autopilot's, the way the
+/// autopilot's is mapped onto mavloc's ([`ClockSync`]: the lower envelope of arrivals
+/// against stamps; a backwards step is the device rebooting and starts it over). A clock
+/// that stands still has no timing to give: its reports are placed at their arrival, and
+/// when it moves again the mapping starts over, not skewed by the stamps it repeated.
+#[derive(Debug, Default)]
+struct DeviceClock {
+    sync: ClockSync,
+    /// The newest stamp, the arrival when it first came, and how often it came since.
+    last: Option<(f64, f64, u32)>,
+}
+
+impl DeviceClock {
+    /// The autopilot time of a report stamped `stamp` (device seconds) that arrived at
+    /// autopilot time `arrival`; none for a stamp from the future.
+    fn map(&mut self, stamp: f64, arrival: f64) -> Option<f64> {
+        let frozen = |(_, since, n): (f64, f64, u32)| n >= FROZEN_REPEATS && arrival - since > FROZEN_S;
+        match self.last {
+            Some(l) if l.0 == stamp => {
+                self.last = Some((l.0, l.1, l.2 + 1));
+                return if frozen((l.0, l.1, l.2 + 1)) { Some(arrival) } else { self.sync.to_local(stamp) };
+            }
+            Some(l) if frozen(l) => self.sync = ClockSync::new(),
+            _ => {}
+        }
+        if !self.sync.plausible(stamp, arrival) {
+            return None;
+        }
+        self.sync.observe_stamp(stamp, arrival);
+        self.last = Some((stamp, arrival, 1));
+        self.sync.to_local(stamp)
+    }
+}
+
 pub struct Telemetry {
     pub aligner: Aligner,
     /// Messages dropped for a stamp from the future (see `ClockSync::plausible`).
@@ -60,7 +99,7 @@ pub struct Telemetry {
     gimbal_report: Option<Vec3>,
     /// A MAVLink gimbal device's clock against the autopilot's (device stamp as the
     /// "autopilot" side, autopilot time at arrival as the "local" side).
-    gimbal_clock: ClockSync,
+    gimbal_clock: DeviceClock,
     /// The downward rangefinder (DISTANCE_SENSOR, PITCH_270) and when: metres, 0 when
     /// it reads below its minimum (PX4 reports 0 standing on the ground).
     pub range_down: Option<(Mono, f64)>,
@@ -102,7 +141,7 @@ impl Telemetry {
             truth: None,
             gimbal_pointing: None,
             gimbal_report: None,
-            gimbal_clock: ClockSync::new(),
+            gimbal_clock: DeviceClock::default(),
             range_down: None,
         }
     }
@@ -171,7 +210,7 @@ impl Telemetry {
         let now = rx.secs();
         if self.aligner.clock.observe_stamp(stamp, now) {
             self.aligner.reset();
-            self.gimbal_clock = ClockSync::new();
+            self.gimbal_clock = DeviceClock::default();
             // reset() cleared the clock; keep this stamp.
             self.aligner.clock.observe_stamp(stamp, now);
             return Some(Rebooted);
@@ -283,14 +322,13 @@ impl Telemetry {
                     // way the autopilot's is onto ours: by the lower envelope of its
                     // arrivals (on the autopilot's clock) against its stamps.
                     let arrival = self.aligner.clock.to_autopilot(now)?;
-                    let stamp = g.time_boot_ms as f64 * 1e-3;
-                    if !self.gimbal_clock.plausible(stamp, arrival) {
-                        self.implausible += 1;
-                        return None;
+                    match self.gimbal_clock.map(g.time_boot_ms as f64 * 1e-3, arrival) {
+                        Some(t) => t,
+                        None => {
+                            self.implausible += 1;
+                            return None;
+                        }
                     }
-                    // A backwards step is the device rebooting; the clock starts over.
-                    self.gimbal_clock.observe_stamp(stamp, arrival);
-                    self.gimbal_clock.to_local(stamp)?
                 };
                 self.aligner.push_gimbal(stamp, s, now);
                 self.gimbal_pointing = self.earth_direction(&s).map(|d| (rx, d));
@@ -299,5 +337,60 @@ impl Telemetry {
             }
             _ => None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Reports every 20 ms from `from` to `to` (autopilot seconds), each arriving 3 ms
+    /// after it was sent plus up to 4 ms of jitter, stamped by `device`; the mapped
+    /// times' largest error against the true sending times.
+    fn worst_error(c: &mut DeviceClock, from: f64, to: f64, device: impl Fn(f64) -> f64) -> f64 {
+        let mut worst: f64 = 0.0;
+        let mut t = from;
+        let mut i = 0u32;
+        while t < to {
+            let jitter = 0.004 * ((i * 7919) % 13) as f64 / 13.0;
+            let mapped = c.map(device(t), t + 0.003 + jitter).expect("mapped");
+            worst = worst.max((mapped - t).abs());
+            t += 0.02;
+            i += 1;
+        }
+        worst
+    }
+
+    /// A gimbal device's clock, whatever its offset to the autopilot's, maps onto it
+    /// within the link's latency; a stamp from the future is refused; a reboot of the
+    /// device (its clock back to 0) starts the mapping over.
+    #[test]
+    fn a_gimbal_devices_clock_maps_onto_the_autopilots() {
+        let mut c = DeviceClock::default();
+        // Booted 3 s after the autopilot, ms stamps.
+        let behind = |t: f64| ((t - 3.0) * 1000.0).floor() / 1000.0;
+        assert!(worst_error(&mut c, 3.5, 20.0, behind) < 0.009);
+        assert_eq!(c.map(700.0, 20.0), None, "600 s ahead");
+        assert!(worst_error(&mut c, 20.0, 25.0, behind) < 0.009, "the mapping survives the forged stamp");
+        let rebooted = |t: f64| t - 24.9;
+        assert!(worst_error(&mut c, 25.0, 30.0, rebooted) < 0.009);
+    }
+
+    /// Some gimbals fill in no time at all: reports with one stamp are placed at their
+    /// arrival. A clock that stood still at first (0 until it starts) does not skew the
+    /// mapping once it runs.
+    #[test]
+    fn a_gimbal_clock_that_stands_still_gives_the_arrival() {
+        let mut c = DeviceClock::default();
+        let mut last = 0.0;
+        for i in 0..100 {
+            let arrival = 1.0 + i as f64 * 0.02;
+            last = c.map(0.0, arrival).unwrap();
+        }
+        assert!((last - 2.98).abs() < 1e-9, "{last}");
+        let mut c = DeviceClock::default();
+        let clamped = |t: f64| ((t - 2.0) * 1000.0).floor().max(0.0) / 1000.0;
+        worst_error(&mut c, 0.5, 2.0, clamped);
+        assert!(worst_error(&mut c, 2.5, 10.0, clamped) < 0.009);
     }
 }
