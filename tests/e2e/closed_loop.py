@@ -135,6 +135,8 @@ while time.time() - start < SECONDS:
                     seen["named"][m.name] = m.value
                 elif t == "COMMAND_LONG":
                     seen["commands"][str(m.command)] = seen["commands"].get(str(m.command), 0) + 1
+                    if m.command == mav2.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE:
+                        seen.setdefault("gimbal_configure_param1", []).append(m.param1)
                     if m.command in (mav2.MAV_CMD_NAV_LAND, mav2.MAV_CMD_NAV_LAND_LOCAL):
                         seen["land_commands"] += 1
                 elif t == "HEARTBEAT":

@@ -6,9 +6,10 @@
 //!
 //! mavloc shares the gimbal: GIMBAL_MANAGER_STATUS names the primary controller, and
 //! while another holds it (a ground station, the autopilot's own mission, RTL or landing)
-//! mavloc sends nothing and takes control again only once it is let go, and not while
-//! the vehicle is landing. It lets go itself (CONFIGURE -3) when it stops aiming or shuts
-//! down. Control is released when the autopilot reboots or vanishes, and taken again.
+//! mavloc sends nothing and takes control again only once it is let go. It lets go itself
+//! (CONFIGURE -3) when it stops aiming (the mission's aim chosen, or the vehicle landing:
+//! the autopilot levels the camera for the touchdown) or shuts down. Control is released
+//! when the autopilot reboots or vanishes, and taken again.
 
 use std::time::Duration;
 
@@ -254,17 +255,9 @@ impl Gimbal {
     }
 
     /// The next command: letting go, taking control, or the newest aim. `aiming`: mavloc
-    /// points the gimbal (`gimbal.aim = "border"` with an autopilot present); `may_take`:
-    /// control may be taken now (not while the vehicle lands: the autopilot levels the
-    /// camera for the touchdown). `me` is mavloc's (system, component).
-    pub fn poll_transmit(
-        &mut self,
-        now: Mono,
-        target: u8,
-        me: (u8, u8),
-        aiming: bool,
-        may_take: bool,
-    ) -> Option<MavMessage> {
+    /// points the gimbal now (`gimbal.aim = "border"`, an autopilot present, the vehicle
+    /// not landing); when it stops, mavloc lets go. `me` is mavloc's (system, component).
+    pub fn poll_transmit(&mut self, now: Mono, target: u8, me: (u8, u8), aiming: bool) -> Option<MavMessage> {
         let command = |command, p: [f32; 7]| {
             MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
                 param1: p[0],
@@ -300,9 +293,6 @@ impl Gimbal {
         self.wake = None;
         match self.control {
             Control::Released => {
-                if !may_take {
-                    return None;
-                }
                 // Before the manager's first status, give it time to say whether someone
                 // holds the gimbal already (a ground station at mavloc's start).
                 if !self.status_seen && self.retry_at.is_none() {
@@ -474,7 +464,7 @@ mod tests {
 
     /// Everything sent at `now` while aiming and free to take control.
     fn send(g: &mut Gimbal, now: Mono) -> Vec<(MavCmd, [f32; 2], f32)> {
-        std::iter::from_fn(|| g.poll_transmit(now, 1, ME, true, true)).map(|m| command(&m)).collect()
+        std::iter::from_fn(|| g.poll_transmit(now, 1, ME, true)).map(|m| command(&m)).collect()
     }
 
     /// A gimbal in mavloc's control at `now`, its first setpoint accepted (the manager's
@@ -702,19 +692,8 @@ mod tests {
         assert_eq!(configures, 3, "at 0, 13 and 26 s");
     }
 
-    /// Not while landing (the autopilot levels the camera for the touchdown).
-    #[test]
-    fn control_is_not_taken_while_landing() {
-        let mut g = Gimbal::default();
-        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
-        g.aim(0.0, -1.0);
-        assert!(g.poll_transmit(ms(100), 1, ME, true, false).is_none());
-        assert_eq!(g.deadline(), None, "no busy wake-ups while landing");
-        assert!(g.poll_transmit(ms(200), 1, ME, true, true).is_some());
-    }
-
-    /// mavloc lets go of the gimbal when it stops aiming (GMB_AIM set back to the mission)
-    /// or shuts down: a manager keeps a departed primary and refuses everyone else.
+    /// mavloc lets go of the gimbal when it stops aiming (GMB_AIM set back to the mission,
+    /// the vehicle landing: the autopilot levels the camera for the touchdown) or shuts down: a manager keeps a departed primary and refuses everyone else.
     #[test]
     fn control_is_let_go_when_aiming_stops_or_the_daemon_does() {
         let let_go = |m: Option<MavMessage>| match m {
@@ -724,16 +703,16 @@ mod tests {
             _ => false,
         };
         let mut g = in_control(Mono::ZERO);
-        assert!(let_go(g.poll_transmit(ms(300), 1, ME, false, true)));
+        assert!(let_go(g.poll_transmit(ms(300), 1, ME, false)));
         assert_eq!(g.control(), Control::Released);
-        assert!(g.poll_transmit(ms(400), 1, ME, false, true).is_none(), "once");
+        assert!(g.poll_transmit(ms(400), 1, ME, false).is_none(), "once");
         let mut g = in_control(Mono::ZERO);
         g.let_go();
         assert_eq!(g.deadline(), Some(Mono::ZERO));
-        assert!(let_go(g.poll_transmit(ms(300), 1, ME, true, true)));
+        assert!(let_go(g.poll_transmit(ms(300), 1, ME, true)));
         // Not held: nothing to let go.
         let mut g = Gimbal::default();
         g.let_go();
-        assert!(g.poll_transmit(ms(300), 1, ME, false, true).is_none());
+        assert!(g.poll_transmit(ms(300), 1, ME, false).is_none());
     }
 }

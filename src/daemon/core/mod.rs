@@ -12,7 +12,7 @@
 //! * [`params`]: paced PARAM_VALUE output (lists, reads, set answers).
 //! * [`commands`]: inbound COMMAND_LONG decisions and the final ACKs owed.
 //! * [`timesync`]: TIMESYNC both ways.
-//! * [`gimbal`]: gimbal-manager control and rate-limited setpoints.
+//! * [`gimbal`]: gimbal-manager control shared with other controllers, rate-limited setpoints.
 //! * [`landing`]: MAV_CMD_NAV_LAND (or PX4's precision landing on the zone) until
 //!   acknowledged.
 //! * [`gpsdenied`]: with no GPS, vision estimates from power-on and then the origin.
@@ -705,11 +705,12 @@ impl Core {
             .or_else(|| self.timesync.poll_transmit(now, target))
             .or_else(|| self.landing.poll_transmit(now, target))
             .or_else(|| {
-                let aiming = self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present();
-                // Not while landing: the autopilot levels the camera for the touchdown.
-                let may_take =
-                    self.autopilot.landed_state() != Some(MavLandedState::MAV_LANDED_STATE_LANDING);
-                self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id), aiming, may_take)
+                // Not while landing: the autopilot levels the camera for the touchdown (PX4's
+                // RTL and land modes), so mavloc lets go of it and does not take it.
+                let landing = self.autopilot.landed_state() == Some(MavLandedState::MAV_LANDED_STATE_LANDING);
+                let aiming =
+                    self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present() && !landing;
+                self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id), aiming)
             })
             .or_else(|| self.ftp.poll(now).map(|(to, payload)| ftp_message(to, payload)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;

@@ -61,6 +61,8 @@ pub struct FakeAutopilot {
     /// A gimbal manager (PX4 with MNT_MODE_IN=4): it answers CONFIGURE and PITCHYAW and
     /// says who holds the gimbal every 2 s. Without one (PX4's default), it answers none.
     pub gimbal_manager: bool,
+    /// In the air and descending to land (RTL's or a land mode's last leg).
+    pub landing: bool,
     /// The gimbal's primary controller, (0, 0) for none.
     pub gimbal_primary: (u8, u8),
     next_gimbal_status: Mono,
@@ -92,6 +94,7 @@ impl FakeAutopilot {
             event_sequence: 0,
             gimbal_commands: Vec::new(),
             gimbal_manager: true,
+            landing: false,
             gimbal_primary: (0, 0),
             next_gimbal_status: boot,
             streaming: false,
@@ -212,7 +215,9 @@ impl FakeAutopilot {
             if self.says_landed_state {
                 out.push(MavMessage::EXTENDED_SYS_STATE(EXTENDED_SYS_STATE_DATA {
                     vtol_state: MavVtolState::MAV_VTOL_STATE_UNDEFINED,
-                    landed_state: if self.in_air {
+                    landed_state: if self.in_air && self.landing {
+                        MavLandedState::MAV_LANDED_STATE_LANDING
+                    } else if self.in_air {
                         MavLandedState::MAV_LANDED_STATE_IN_AIR
                     } else {
                         MavLandedState::MAV_LANDED_STATE_ON_GROUND

@@ -376,6 +376,22 @@ fn border_aiming_without_a_gimbal_manager_says_so_and_sends_no_setpoints() {
     assert_eq!(sim.core.gimbal_error_median_deg(), None);
 }
 
+/// The vehicle landing (PX4's RTL or land mode levels the camera for the touchdown):
+/// mavloc lets go of the gimbal and sends it nothing until the landing is over.
+#[test]
+fn border_aiming_lets_go_of_the_gimbal_while_landing() {
+    let mut sim = border_aiming();
+    sim.ap.in_air = true;
+    aim_for(&mut sim, 2);
+    assert_eq!(sim.ap.gimbal_primary, (1, 191));
+    sim.ap.landing = true;
+    aim_for(&mut sim, 2); // the landed state comes once a second
+    assert_eq!(sim.ap.gimbal_primary, (0, 0));
+    let since = sim.now;
+    aim_for(&mut sim, 10);
+    assert!(sim.ap.gimbal_commands.iter().all(|c| c.0 < since), "nothing sent while landing");
+}
+
 /// The daemon stopping lets go of the gimbal it holds, so the ground station can point
 /// it at once.
 #[test]
