@@ -595,6 +595,17 @@ impl Vehicle {
                     MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW if self.has_gimbal => {
                         if self.manager.is_some_and(|m| m != from) {
                             MavResult::MAV_RESULT_DENIED
+                        } else if (c.param5 as u32) & 2 != 0 {
+                            // GIMBAL_MANAGER_FLAGS_NEUTRAL: level, facing forward.
+                            let r = mavloc_geometry::GimbalChain::YawPitchRoll.rotation(
+                                mavloc_geometry::GimbalAngles {
+                                    yaw: self.state.attitude[2],
+                                    pitch: 0.0,
+                                    roll: 0.0,
+                                },
+                            );
+                            self.setpoint = Some((t, UnitQuaternion::from_rotation_matrix(&r)));
+                            MavResult::MAV_RESULT_ACCEPTED
                         } else if !(c.param1.is_finite() && c.param2.is_finite()) {
                             MavResult::MAV_RESULT_UNSUPPORTED // rate control is not simulated
                         } else {

@@ -89,9 +89,14 @@ impl FrameSource for Replay {
             self.prev_t = Some(r.t);
             let (fp, mp) = (self.ds.frame_path(r), self.ds.mask_path(r));
             let k = self.ds.camera.intrinsics();
-            // The area pipeline with `masks` takes the dataset's masks as its target.
+            // The area pipeline takes the dataset's masks as its target with `masks` (and
+            // `learned`, which segments nothing live); with `water` or `hsv`, and indoors,
+            // they are not used, so not read (a bad one warned of at every frame).
             let mask_needed = self.settings.daemon.pipeline == crate::settings::PipelineKind::Area
-                && self.settings.area.segmenter == crate::settings::Segmenter::Masks;
+                && matches!(
+                    self.settings.area.segmenter,
+                    crate::settings::Segmenter::Masks | crate::settings::Segmenter::Learned
+                );
             let (image, mask) = match read_frame(&fp, &mp, (k.width, k.height), mask_needed) {
                 Ok(v) => v,
                 // As `mavloc area` does: a bad frame is skipped with a warning saying why,
@@ -147,11 +152,11 @@ impl FrameSource for Replay {
     }
 }
 
-/// A dataset frame of `size` px and its mask, or why the frame cannot be replayed. Where
-/// the masks are the target (`needed`: the area pipeline with `area.segmenter =
-/// "masks"`) the mask must be there, readable and of the frame's size, as `mavloc area`
-/// wants it; otherwise a bad mask is left out with a warning (a stretched mask would put
-/// the border elsewhere).
+/// A dataset frame of `size` px and, where the masks are the target (`needed`: the area
+/// pipeline with `area.segmenter = "masks"` or `"learned"`), its mask, or why the frame
+/// cannot be replayed: the mask must then be there, readable and of the frame's size, as
+/// `mavloc area` wants it (a stretched mask would put the border elsewhere). Where they
+/// are not the target, the mask is not read.
 fn read_frame(
     frame: &std::path::Path,
     mask: &std::path::Path,
@@ -170,38 +175,29 @@ fn read_frame(
             size.1
         ));
     }
+    if !needed {
+        return Ok((image, None));
+    }
     if !mask.exists() {
         // A dataset with no masks at all is the live pipeline's to say once (it names the
         // segmenter to set); one missing among others is this frame's fault.
-        let has_masks = mask.parent().is_some_and(|d| d.is_dir());
-        return if needed && has_masks {
-            Err(format!("{} is missing (area.segmenter = \"masks\")", mask.display()))
-        } else {
-            Ok((image, None))
+        return match mask.parent().is_some_and(|d| d.is_dir()) {
+            true => Err(format!("{} is missing (area.segmenter = \"masks\")", mask.display())),
+            false => Ok((image, None)),
         };
     }
-    let read = crate::imaging::read_image(mask, imgcodecs::IMREAD_GRAYSCALE).and_then(|m| {
-        if (m.cols(), m.rows()) == want {
-            Ok(m)
-        } else {
-            Err(format!(
-                "{}: the mask is {}x{} px, the frame {}x{}",
-                mask.display(),
-                m.cols(),
-                m.rows(),
-                want.0,
-                want.1
-            ))
-        }
-    });
-    match read {
-        Ok(m) => Ok((image, Some(m))),
-        Err(why) if needed => Err(why),
-        Err(why) => {
-            tracing::warn!("{why}; the frame is replayed without it");
-            Ok((image, None))
-        }
+    let m = crate::imaging::read_image(mask, imgcodecs::IMREAD_GRAYSCALE)?;
+    if (m.cols(), m.rows()) != want {
+        return Err(format!(
+            "{}: the mask is {}x{} px, the frame {}x{}",
+            mask.display(),
+            m.cols(),
+            m.rows(),
+            want.0,
+            want.1
+        ));
     }
+    Ok((image, Some(m)))
 }
 
 #[cfg(test)]
@@ -228,7 +224,7 @@ mod tests {
     /// A replayed frame is skipped, with the file and the reason, as `mavloc area` skips
     /// it: a frame of another size than the dataset's camera, and, where the masks are
     /// the target, a mask that is unreadable, of another size or missing among others.
-    /// Where they are not, a bad mask is left out and the frame plays.
+    /// Where they are not, the mask is not read and the frame plays.
     #[test]
     fn a_replayed_frame_with_a_bad_image_or_mask_is_skipped_as_offline() {
         use opencv::core;
@@ -254,7 +250,7 @@ mod tests {
         let e = read_frame(&f1, &m1, (32, 24), true).unwrap_err();
         assert!(e.contains("the mask is 16x12 px, the frame 32x24"), "{e}");
         let (_, mask) = read_frame(&f1, &m1, (32, 24), false).unwrap();
-        assert!(mask.is_none(), "a wrong-size mask is not stretched over the frame");
+        assert!(mask.is_none(), "a mask that is not the target is not read");
         std::fs::write(&m1, b"").unwrap();
         let e = read_frame(&f1, &m1, (32, 24), true).unwrap_err();
         assert!(e.contains("empty file"), "{e}");

@@ -24,7 +24,7 @@ pub fn run(command: CalibrateCommand, global: Global) -> anyhow::Result<ExitCode
 fn marker_pixels(path: &std::path::Path) -> anyhow::Result<Vec<(u64, f64, f64)>> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
+    for (i, line) in mavloc_data::table::strip_bom(&text).lines().enumerate() {
         let fields: Vec<&str> = line.split(',').map(str::trim).collect();
         if line.trim().is_empty() || (i == 0 && fields[0].parse::<u64>().is_err()) {
             continue;

@@ -7,9 +7,9 @@
 //! mavloc shares the gimbal: GIMBAL_MANAGER_STATUS names the primary controller, and
 //! while another holds it (a ground station, the autopilot's own mission, RTL or landing)
 //! mavloc sends nothing and takes control again only once it is let go. It lets go itself
-//! (CONFIGURE -3) when it stops aiming (the mission's aim chosen, or the vehicle landing:
-//! the autopilot levels the camera for the touchdown) or shuts down. Control is released
-//! when the autopilot reboots or vanishes, and taken again.
+//! (CONFIGURE -3) when it stops aiming (the mission's aim chosen) or shuts down, and when
+//! the vehicle lands, after levelling the camera as PX4's navigator does for the
+//! touchdown. Control is released when the autopilot reboots or vanishes, and taken again.
 
 use std::time::Duration;
 
@@ -25,6 +25,9 @@ pub const MIN_INTERVAL: Duration = Duration::from_millis(200);
 /// YAW_LOCK for the yaw (issue #18: median pointing error 15.7 degrees with 64 alone),
 /// while managers that follow the newer spec read YAW_IN_EARTH_FRAME. Both say the same.
 const FLAGS: f32 = 92.0;
+/// GIMBAL_MANAGER_FLAGS_NEUTRAL: the gimbal's neutral attitude (level), as PX4's navigator
+/// sets it for the landing.
+const NEUTRAL: f32 = 2.0;
 /// CONFIGURE's "primary control": -3 lets go if we hold it, -1 leaves it as it is.
 const LET_GO: f32 = -3.0;
 const UNCHANGED: f32 = -1.0;
@@ -43,6 +46,19 @@ pub const FIRST_STATUS_WAIT: Duration = Duration::from_secs(3);
 /// A status saying nobody holds the gimbal this soon after mavloc's CONFIGURE was
 /// accepted is older than the acceptance.
 const STATUS_GRACE: Duration = Duration::from_secs(3);
+
+/// Whether mavloc points the gimbal now.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Aim {
+    /// `gimbal.aim = "border"` with an autopilot present.
+    On,
+    /// Not aiming (the mission's aim chosen, no autopilot): let go.
+    Off,
+    /// The vehicle is landing: level the camera, as PX4 does for the touchdown, then let go.
+    /// (PX4's RTL levels it and lets go at once when it starts; mavloc took it again for
+    /// the return leg, and it touched down pointing where mavloc had aimed it.)
+    Landing,
+}
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Control {
@@ -93,6 +109,10 @@ pub struct Gimbal {
     status_seen: bool,
     /// Let go of the gimbal at the next send (mavloc stops aiming or shuts down).
     let_go: bool,
+    /// The camera was levelled for a landing; letting go comes next.
+    levelled: bool,
+    /// `retry_at` is the wait for the manager's first status (which that status ends).
+    first_wait: bool,
     refused_once: bool,
     unanswered_said: bool,
     /// A setpoint was accepted since control was last taken: the reports answer mavloc's
@@ -116,6 +136,8 @@ impl Default for Gimbal {
             configured_at: None,
             status_seen: false,
             let_go: false,
+            levelled: false,
+            first_wait: false,
             refused_once: false,
             unanswered_said: false,
             in_use: false,
@@ -254,10 +276,14 @@ impl Gimbal {
         }
     }
 
-    /// The next command: letting go, taking control, or the newest aim. `aiming`: mavloc
-    /// points the gimbal now (`gimbal.aim = "border"`, an autopilot present, the vehicle
-    /// not landing); when it stops, mavloc lets go. `me` is mavloc's (system, component).
-    pub fn poll_transmit(&mut self, now: Mono, target: u8, me: (u8, u8), aiming: bool) -> Option<MavMessage> {
+    /// A let-go is waiting to be sent (the daemon sends it before anything else).
+    pub fn letting_go(&self) -> bool {
+        self.let_go
+    }
+
+    /// The next command: letting go (after levelling the camera for a landing), taking
+    /// control, or the newest aim. `me` is mavloc's (system, component).
+    pub fn poll_transmit(&mut self, now: Mono, target: u8, me: (u8, u8), aim: Aim) -> Option<MavMessage> {
         let command = |command, p: [f32; 7]| {
             MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
                 param1: p[0],
@@ -274,7 +300,17 @@ impl Gimbal {
             })
         };
         let holding = matches!(self.control, Control::InControl | Control::Requested(_));
-        if self.let_go || (!aiming && holding) {
+        if self.let_go || (aim != Aim::On && holding) {
+            if aim == Aim::Landing && self.control == Control::InControl && !self.levelled {
+                self.levelled = true;
+                self.pending = None;
+                self.sent.clear();
+                return Some(command(
+                    MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW,
+                    [f32::NAN, f32::NAN, f32::NAN, f32::NAN, NEUTRAL, 0.0, 0.0],
+                ));
+            }
+            self.levelled = false;
             self.let_go = false;
             self.control = Control::Released;
             self.pending = None;
@@ -285,7 +321,7 @@ impl Gimbal {
                 [LET_GO, LET_GO, UNCHANGED, UNCHANGED, 0.0, 0.0, 0.0],
             ));
         }
-        if !aiming {
+        if aim != Aim::On {
             self.pending = None;
             return None;
         }
@@ -297,6 +333,7 @@ impl Gimbal {
                 // holds the gimbal already (a ground station at mavloc's start).
                 if !self.status_seen && self.retry_at.is_none() {
                     self.retry_at = Some(now + FIRST_STATUS_WAIT);
+                    self.first_wait = true;
                 }
                 if let Some(t) = self.retry_at.filter(|t| now < *t) {
                     self.wake = Some(t);
@@ -337,18 +374,18 @@ impl Gimbal {
         autopilot: u8,
     ) -> Option<String> {
         self.status_seen = true;
-        if self.control == Control::Released
-            && self.retry_at.is_some_and(|t| now < t)
-            && !self.unanswered_said
-        {
-            // The first status came: no need to wait out the rest of its time.
+        if std::mem::replace(&mut self.first_wait, false) {
+            // The first status came: no need to wait out the rest of its time (only that
+            // wait: one after a refusal or an unanswered request stands).
             self.retry_at = None;
         }
         match (primary.0 != 0).then_some(primary) {
             Some(p) if p == me => {
-                // Ours (a status from before a refusal does not undo it).
-                if matches!(self.control, Control::Yielded(_)) {
+                // Ours: the manager took our CONFIGURE even if its answer was lost. (A
+                // status from before a refusal does not undo the refusal.)
+                if matches!(self.control, Control::Yielded(_) | Control::Requested(_)) {
                     self.control = Control::InControl;
+                    self.configured_at = Some(now);
                 }
                 None
             }
@@ -464,7 +501,7 @@ mod tests {
 
     /// Everything sent at `now` while aiming and free to take control.
     fn send(g: &mut Gimbal, now: Mono) -> Vec<(MavCmd, [f32; 2], f32)> {
-        std::iter::from_fn(|| g.poll_transmit(now, 1, ME, true)).map(|m| command(&m)).collect()
+        std::iter::from_fn(|| g.poll_transmit(now, 1, ME, Aim::On)).map(|m| command(&m)).collect()
     }
 
     /// A gimbal in mavloc's control at `now`, its first setpoint accepted (the manager's
@@ -692,6 +729,61 @@ mod tests {
         assert_eq!(configures, 3, "at 0, 13 and 26 s");
     }
 
+    /// The vehicle lands (PX4's RTL levelled the camera when it began, and mavloc took the
+    /// gimbal again for the return leg): the camera is levelled, as PX4 does for the
+    /// touchdown, then let go; nothing more is sent while landing.
+    #[test]
+    fn a_landing_levels_the_camera_then_lets_go() {
+        let mut g = in_control(Mono::ZERO);
+        g.aim(0.1, -1.0);
+        let level = g.poll_transmit(ms(300), 1, ME, Aim::Landing).unwrap();
+        let MavMessage::COMMAND_LONG(c) = &level else { panic!("{level:?}") };
+        assert_eq!((c.command, c.param5), (PITCHYAW, 2.0), "GIMBAL_MANAGER_FLAGS_NEUTRAL");
+        assert!(c.param1.is_nan() && c.param2.is_nan(), "no angles: the gimbal's neutral");
+        let let_go = command(&g.poll_transmit(ms(300), 1, ME, Aim::Landing).unwrap());
+        assert_eq!((let_go.0, let_go.1), (CONFIGURE, [-3.0, -3.0]));
+        for t in (400..10_000).step_by(100) {
+            g.aim(0.1, -1.0);
+            g.on_timeout(ms(t));
+            assert!(g.poll_transmit(ms(t), 1, ME, Aim::Landing).is_none());
+        }
+    }
+
+    /// The manager's answer to mavloc's CONFIGURE is lost, but its status names mavloc:
+    /// mavloc is in control and points the gimbal, with no false hint of a missing manager.
+    #[test]
+    fn a_status_naming_mavloc_stands_for_a_lost_answer() {
+        let mut g = Gimbal::default();
+        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
+        g.aim(0.0, -1.0);
+        assert_eq!(send(&mut g, Mono::ZERO)[0].0, CONFIGURE);
+        assert!(g.on_manager_status(ms(500), ME, ME, 1).is_none());
+        assert_eq!(g.control(), Control::InControl);
+        g.aim(0.0, -1.0);
+        assert_eq!(send(&mut g, ms(600))[0].0, PITCHYAW);
+        assert_eq!(g.on_timeout(ms(5000)), None);
+    }
+
+    /// A manager that refuses CONFIGURE and streams its status is asked again after
+    /// [`RETAKE`], not at each status (only the wait for the first status ends with it).
+    #[test]
+    fn a_refused_configure_is_not_asked_again_at_each_status() {
+        let mut g = Gimbal::default();
+        g.on_manager_status(Mono::ZERO, (0, 0), ME, 1);
+        let mut configures = 0;
+        for t in (0..2900).step_by(100) {
+            g.aim(0.0, -1.0);
+            if t % 500 == 0 {
+                g.on_manager_status(ms(t), (0, 0), ME, 1);
+            }
+            for c in send(&mut g, ms(t)) {
+                configures += 1;
+                g.on_ack(ms(t), c.0, DENIED);
+            }
+        }
+        assert_eq!(configures, 1);
+    }
+
     /// mavloc lets go of the gimbal when it stops aiming (GMB_AIM set back to the mission,
     /// the vehicle landing: the autopilot levels the camera for the touchdown) or shuts down: a manager keeps a departed primary and refuses everyone else.
     #[test]
@@ -703,16 +795,16 @@ mod tests {
             _ => false,
         };
         let mut g = in_control(Mono::ZERO);
-        assert!(let_go(g.poll_transmit(ms(300), 1, ME, false)));
+        assert!(let_go(g.poll_transmit(ms(300), 1, ME, Aim::Off)));
         assert_eq!(g.control(), Control::Released);
-        assert!(g.poll_transmit(ms(400), 1, ME, false).is_none(), "once");
+        assert!(g.poll_transmit(ms(400), 1, ME, Aim::Off).is_none(), "once");
         let mut g = in_control(Mono::ZERO);
         g.let_go();
         assert_eq!(g.deadline(), Some(Mono::ZERO));
-        assert!(let_go(g.poll_transmit(ms(300), 1, ME, true)));
+        assert!(let_go(g.poll_transmit(ms(300), 1, ME, Aim::On)));
         // Not held: nothing to let go.
         let mut g = Gimbal::default();
         g.let_go();
-        assert!(g.poll_transmit(ms(300), 1, ME, false).is_none());
+        assert!(g.poll_transmit(ms(300), 1, ME, Aim::Off).is_none());
     }
 }

@@ -528,6 +528,19 @@ impl Core {
         &self.telemetry
     }
 
+    /// Whether mavloc points the gimbal now: not without `gimbal.aim = "border"` or an
+    /// autopilot, and not while the vehicle lands (the camera is levelled for the
+    /// touchdown, as PX4's RTL and land modes do, and let go).
+    fn gimbal_aim(&self) -> gimbal::Aim {
+        if self.settings.gimbal.aim != GimbalAim::Border || !self.autopilot.present() {
+            gimbal::Aim::Off
+        } else if self.autopilot.landed_state() == Some(MavLandedState::MAV_LANDED_STATE_LANDING) {
+            gimbal::Aim::Landing
+        } else {
+            gimbal::Aim::On
+        }
+    }
+
     /// The daemon stops: let go of the gimbal if mavloc holds it (sent by the next
     /// `poll_transmit`), so the ground station can point it without taking it first.
     pub fn shutting_down(&mut self) {
@@ -682,6 +695,18 @@ impl Core {
                 unknown_command,
             });
         }
+        // Letting go of the gimbal first: at shutdown there is one flush to send it in.
+        let me = (self.system_id, self.component_id);
+        if self.gimbal.letting_go() {
+            if let Some(message) = self.gimbal.poll_transmit(now, target, me, self.gimbal_aim()) {
+                return Some(Outgoing {
+                    system_id: me.0,
+                    component_id: me.1,
+                    message,
+                    unknown_command: None,
+                });
+            }
+        }
         let message = self
             .poll_heartbeat()
             .or_else(|| {
@@ -705,12 +730,8 @@ impl Core {
             .or_else(|| self.timesync.poll_transmit(now, target))
             .or_else(|| self.landing.poll_transmit(now, target))
             .or_else(|| {
-                // Not while landing: the autopilot levels the camera for the touchdown (PX4's
-                // RTL and land modes), so mavloc lets go of it and does not take it.
-                let landing = self.autopilot.landed_state() == Some(MavLandedState::MAV_LANDED_STATE_LANDING);
-                let aiming =
-                    self.settings.gimbal.aim == GimbalAim::Border && self.autopilot.present() && !landing;
-                self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id), aiming)
+                let aim = self.gimbal_aim();
+                self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id), aim)
             })
             .or_else(|| self.ftp.poll(now).map(|(to, payload)| ftp_message(to, payload)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;

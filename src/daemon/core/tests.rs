@@ -387,6 +387,11 @@ fn border_aiming_lets_go_of_the_gimbal_while_landing() {
     sim.ap.landing = true;
     aim_for(&mut sim, 2); // the landed state comes once a second
     assert_eq!(sim.ap.gimbal_primary, (0, 0));
+    // Levelled first (as PX4's navigator does for the touchdown), then let go.
+    let last: Vec<(f32, f32)> =
+        sim.ap.gimbal_commands.iter().rev().take(2).map(|c| (c.1.param1, c.1.param5)).collect();
+    assert_eq!(last[0], (-3.0, 0.0), "let go last");
+    assert!(last[1].0.is_nan() && last[1].1 == 2.0, "GIMBAL_MANAGER_FLAGS_NEUTRAL before it: {last:?}");
     let since = sim.now;
     aim_for(&mut sim, 10);
     assert!(sim.ap.gimbal_commands.iter().all(|c| c.0 < since), "nothing sent while landing");
