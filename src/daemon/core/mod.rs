@@ -851,8 +851,7 @@ impl Core {
             return;
         }
         if self.is_autopilot_system(&f) {
-            let fc = self.is_autopilot(&f);
-            if self.telemetry.on_message(rx, &f.message, fc).is_some() {
+            if self.telemetry.on_message(rx, &f.message, f.header.component_id).is_some() {
                 self.on_reboot(rx);
             }
             if let Some(axis) = self.telemetry.take_gimbal_report() {

@@ -42,6 +42,8 @@ pub fn align_params(s: &Settings) -> (AlignParams, FixedMount, GimbalOffsets) {
 /// reports, come from a clock that stands still (some gimbals fill in no time at all).
 const FROZEN_S: f64 = 0.5;
 const FROZEN_REPEATS: u32 = 3;
+/// Another gimbal's reports are taken once the one followed is silent this long.
+const GIMBAL_SOURCE_HOLD: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// A MAVLink gimbal device's boot clock mapped onto the autopilot's, the way the
 /// autopilot's is mapped onto mavloc's ([`ClockSync`]: the lower envelope of arrivals
@@ -100,6 +102,10 @@ pub struct Telemetry {
     /// A MAVLink gimbal device's clock against the autopilot's (device stamp as the
     /// "autopilot" side, autopilot time at arrival as the "local" side).
     gimbal_clock: DeviceClock,
+    /// The gimbal followed, (component, gimbal_device_id), and when it last reported.
+    gimbal_source: Option<((u8, u8), Mono)>,
+    /// Reports of other gimbals left out while it reports.
+    pub other_gimbal_reports: u64,
     /// The downward rangefinder (DISTANCE_SENSOR, PITCH_270) and when: metres, 0 when
     /// it reads below its minimum (PX4 reports 0 standing on the ground).
     pub range_down: Option<(Mono, f64)>,
@@ -142,6 +148,8 @@ impl Telemetry {
             gimbal_pointing: None,
             gimbal_report: None,
             gimbal_clock: DeviceClock::default(),
+            gimbal_source: None,
+            other_gimbal_reports: 0,
             range_down: None,
         }
     }
@@ -218,15 +226,16 @@ impl Telemetry {
         None
     }
 
-    /// A message from the autopilot's system; `component` says whether it came from the
-    /// flight controller itself (component 1).
     /// The optical axis of the gimbal report the last message brought, if it was one
     /// and was taken in (see `gimbal_report`).
     pub fn take_gimbal_report(&mut self) -> Option<Vec3> {
         self.gimbal_report.take()
     }
 
-    pub fn on_message(&mut self, rx: Mono, m: &MavMessage, flight_controller: bool) -> Option<Rebooted> {
+    /// A message from the autopilot's system, from `component` (1: the flight controller
+    /// itself).
+    pub fn on_message(&mut self, rx: Mono, m: &MavMessage, component: u8) -> Option<Rebooted> {
+        let flight_controller = component == 1;
         let stamp_ms = match m {
             MavMessage::ATTITUDE(a) => Some(a.time_boot_ms),
             MavMessage::LOCAL_POSITION_NED(p) => Some(p.time_boot_ms),
@@ -302,6 +311,23 @@ impl Telemetry {
                 None
             }
             MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(g) => {
+                // One gimbal: the first to report, until it falls silent. Two on one
+                // vehicle (each on its own clock) would be mixed into one history.
+                let source = (component, g.gimbal_device_id);
+                match self.gimbal_source {
+                    Some((s, last)) if s != source && rx.saturating_sub(last) < GIMBAL_SOURCE_HOLD => {
+                        if self.other_gimbal_reports == 0 {
+                            tracing::warn!(
+                                "gimbal reports of component {} (device {}) left out: mavloc follows the gimbal of component {} (device {}) while it reports",
+                                source.0, source.1, s.0, s.1
+                            );
+                        }
+                        self.other_gimbal_reports += 1;
+                        return None;
+                    }
+                    Some((s, _)) if s != source => self.gimbal_clock = DeviceClock::default(),
+                    _ => {}
+                }
                 let s = GimbalSample::from_status(g.q, g.flags.bits())?;
                 let now = rx.secs();
                 let stamp = if flight_controller {
@@ -330,6 +356,7 @@ impl Telemetry {
                         }
                     }
                 };
+                self.gimbal_source = Some((source, rx));
                 self.aligner.push_gimbal(stamp, s, now);
                 self.gimbal_pointing = self.earth_direction(&s).map(|d| (rx, d));
                 self.gimbal_report = self.gimbal_pointing.map(|(_, d)| d);
@@ -374,6 +401,35 @@ mod tests {
         assert!(worst_error(&mut c, 20.0, 25.0, behind) < 0.009, "the mapping survives the forged stamp");
         let rebooted = |t: f64| t - 24.9;
         assert!(worst_error(&mut c, 25.0, 30.0, rebooted) < 0.009);
+    }
+
+    /// Two gimbals on one vehicle are not mixed: the first to report is followed while
+    /// it reports; the other's reports are left out, and taken once the first has been
+    /// silent for 2 s.
+    #[test]
+    fn one_gimbal_is_followed_while_it_reports() {
+        let mut t = Telemetry::new(&Settings::default());
+        let report = |device: u8, ms: u32| {
+            MavMessage::GIMBAL_DEVICE_ATTITUDE_STATUS(GIMBAL_DEVICE_ATTITUDE_STATUS_DATA {
+                time_boot_ms: ms,
+                q: [1.0, 0.0, 0.0, 0.0],
+                flags: GimbalDeviceFlags::GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+                gimbal_device_id: device,
+                ..Default::default()
+            })
+        };
+        let taken = |t: &mut Telemetry, device: u8, ms: u32| {
+            t.on_message(Mono::from_millis(ms as u64), &report(device, ms), 1);
+            t.take_gimbal_report().is_some()
+        };
+        for ms in (1000..3000).step_by(20) {
+            assert!(taken(&mut t, 1, ms));
+            assert!(!taken(&mut t, 2, ms + 10), "the second gimbal is left out");
+        }
+        assert_eq!(t.other_gimbal_reports, 100);
+        assert!(!taken(&mut t, 2, 4900), "1.9 s after the first's last report");
+        assert!(taken(&mut t, 2, 5100), "2.1 s after: the first is gone");
+        assert!(!taken(&mut t, 1, 5200), "now the second is followed");
     }
 
     /// Some gimbals fill in no time at all: reports with one stamp are placed at their
