@@ -1020,22 +1020,24 @@ mod tests {
         assert!(v.gimbal_attitude(8.0).angle_to(&down) > 0.01, "released after the hold");
     }
 
+    /// A command to the autopilot (1/1) with its first five parameters.
+    fn cmd(command: MavCmd, p: [f32; 5]) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command,
+            param1: p[0],
+            param2: p[1],
+            param3: p[2],
+            param4: p[3],
+            param5: p[4],
+            target_system: 1,
+            target_component: 1,
+            ..Default::default()
+        })
+    }
+
     #[test]
     fn the_gimbal_manager_takes_one_controller_and_its_pitch_yaw() {
         let mut v = vehicle("coastline");
-        let cmd = |command, p: [f32; 5]| {
-            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                command,
-                param1: p[0],
-                param2: p[1],
-                param3: p[2],
-                param4: p[3],
-                param5: p[4],
-                target_system: 1,
-                target_component: 1,
-                ..Default::default()
-            })
-        };
         let mavloc = (1, 191);
         v.handle(
             mavloc,
@@ -1093,19 +1095,6 @@ mod tests {
         let mut v = vehicle("coastline");
         v.state.attitude[1] = 5f64.to_radians();
         let mavloc = (1, 191);
-        let cmd = |command, p: [f32; 5]| {
-            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                command,
-                param1: p[0],
-                param2: p[1],
-                param3: p[2],
-                param4: p[3],
-                param5: p[4],
-                target_system: 1,
-                target_component: 1,
-                ..Default::default()
-            })
-        };
         let configure =
             |p1: f32, p2: f32| cmd(MavCmd::MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, [p1, p2, -1.0, -1.0, 0.0]);
         let primary = |v: &Vehicle| {

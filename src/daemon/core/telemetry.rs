@@ -93,8 +93,6 @@ pub struct Telemetry {
     /// The simulator's ground truth and when it arrived (PX4 SITL leaves its `time_usec`
     /// at 0, so arrival is the only time it has).
     pub truth: Option<(Mono, HIL_STATE_QUATERNION_DATA)>,
-    /// Where the gimbal reports the camera looks (unit vector, NED) and when.
-    pub gimbal_pointing: Option<(Mono, Vec3)>,
     /// The optical axis of the gimbal report just taken in (NED, unit), for the pointing
     /// statistics: none for a report that was refused (a bad quaternion, a stamp from
     /// the future), which must not count again the last good one.
@@ -145,7 +143,6 @@ impl Telemetry {
             home: None,
             global: None,
             truth: None,
-            gimbal_pointing: None,
             gimbal_report: None,
             gimbal_clock: DeviceClock::default(),
             gimbal_source: None,
@@ -358,8 +355,7 @@ impl Telemetry {
                 };
                 self.gimbal_source = Some((source, rx));
                 self.aligner.push_gimbal(stamp, s, now);
-                self.gimbal_pointing = self.earth_direction(&s).map(|d| (rx, d));
-                self.gimbal_report = self.gimbal_pointing.map(|(_, d)| d);
+                self.gimbal_report = self.earth_direction(&s);
                 None
             }
             _ => None,
