@@ -5,9 +5,12 @@ would and decodes a copy of every one with pymavlink (an independent MAVLink
 implementation) to see what each side says.
 
 Usage: closed_loop.py MAVLOC_BINARY MODE SECONDS STATE_DIR [--set KEY=VALUE ...]
-       [--vehicle ARG ...]
+       [--vehicle ARG ...] [--gcs-takes-gimbal FROM TO]
 MODE is "area" (coastline) or "indoor" (indoor-floor). Prints one JSON object with what was
-seen; exit status 0 unless a process failed to start. Every wait is bounded."""
+seen; exit status 0 unless a process failed to start. Every wait is bounded.
+With --gcs-takes-gimbal, the script also acts as a ground station (system 255, component
+190, as QGroundControl): FROM seconds in it takes the vehicle's gimbal manager with
+DO_GIMBAL_MANAGER_CONFIGURE, TO seconds in it lets go (-3)."""
 
 import ctypes
 import json
@@ -26,6 +29,7 @@ from pymavlink.dialects.v20 import common as mav2  # noqa: E402
 BIN, MODE, SECONDS, STATE = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
 rest = sys.argv[5:]
 daemon_sets, vehicle_args = [], []
+gcs_take = None
 i = 0
 while i < len(rest):
     if rest[i] == "--set":
@@ -34,6 +38,9 @@ while i < len(rest):
     elif rest[i] == "--vehicle":
         vehicle_args.append(rest[i + 1])
         i += 2
+    elif rest[i] == "--gcs-takes-gimbal":
+        gcs_take = [float(rest[i + 1]), float(rest[i + 2])]
+        i += 3
     else:
         sys.exit(f"unexpected argument {rest[i]}")
 
@@ -73,6 +80,8 @@ vehicle = subprocess.Popen(
      "--truth-log", os.path.join(STATE, "truth.csv")] + vehicle_args,
     stdout=vlog, stderr=subprocess.STDOUT, preexec_fn=die_with_parent)
 
+# The ground station's own sender: its packets go to the vehicle as the relay's do.
+gcs = mav2.MAVLink(None, srcSystem=255, srcComponent=190)
 parse_v = mav2.MAVLink(None)
 parse_d = mav2.MAVLink(None)
 parse_v.robust_parsing = parse_d.robust_parsing = True
@@ -81,6 +90,7 @@ seen = {
     "daemon_messages": {}, "vehicle_messages": {}, "statustext": [], "lmk": 0,
     "vpe": [], "lpn": [], "velocity": [], "land_commands": 0, "land_acks": [], "on_ground": False,
     "named": {}, "daemon_heartbeat_states": [], "commands": {}, "acks": {},
+    "pitchyaw_t": [], "gimbal_configure": [], "statustext_t": [], "gcs": [], "gcs_acks": [],
 }
 start = time.time()
 last_lpn = None
@@ -89,6 +99,13 @@ last_yaw = 0.0
 while time.time() - start < SECONDS:
     if vehicle.poll() is not None and MODE == "indoor" and seen["on_ground"]:
         break
+    if gcs_take and vehicle_addr and len(seen["gcs"]) < 2 and time.time() - start >= gcs_take[len(seen["gcs"])]:
+        # First take the gimbal (primary control: this system and component), then let go.
+        who = [255, 190] if not seen["gcs"] else [-3, -3]
+        msg = gcs.command_long_encode(
+            1, 1, mav2.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE, 0, who[0], who[1], -1, -1, 0, 0, 0)
+        from_vehicle.sendto(msg.pack(gcs), vehicle_addr)
+        seen["gcs"].append([time.time() - start, who[0]])
     r, _, _ = select.select([from_vehicle, to_daemon], [], [], 0.1)
     for s in r:
         data, addr = s.recvfrom(4096)
@@ -107,6 +124,8 @@ while time.time() - start < SECONDS:
                 elif t == "COMMAND_ACK":
                     key = f"{m.command}:{m.result}"
                     seen["acks"][key] = seen["acks"].get(key, 0) + 1
+                    if m.target_system == 255:
+                        seen["gcs_acks"].append([now, m.command, m.result])
                     # Either landing: plain, or precise (23, PX4's NAV_PRECLAND).
                     if m.command in (mav2.MAV_CMD_NAV_LAND, mav2.MAV_CMD_NAV_LAND_LOCAL):
                         seen["land_acks"].append(m.result)
@@ -120,6 +139,7 @@ while time.time() - start < SECONDS:
                 seen["daemon_messages"][t] = seen["daemon_messages"].get(t, 0) + 1
                 if t == "STATUSTEXT":
                     seen["statustext"].append(m.text)
+                    seen["statustext_t"].append([now, m.text])
                 elif t == "DEBUG_VECT" and m.name == "LMK":
                     seen["lmk"] += 1
                 elif t == "LANDING_TARGET":
@@ -137,6 +157,9 @@ while time.time() - start < SECONDS:
                     seen["commands"][str(m.command)] = seen["commands"].get(str(m.command), 0) + 1
                     if m.command == mav2.MAV_CMD_DO_GIMBAL_MANAGER_CONFIGURE:
                         seen.setdefault("gimbal_configure_param1", []).append(m.param1)
+                        seen["gimbal_configure"].append([now, m.param1])
+                    elif m.command == mav2.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW:
+                        seen["pitchyaw_t"].append(now)
                     if m.command in (mav2.MAV_CMD_NAV_LAND, mav2.MAV_CMD_NAV_LAND_LOCAL):
                         seen["land_commands"] += 1
                 elif t == "HEARTBEAT":

@@ -70,6 +70,9 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
             "--duration",
             "--vehicle",
             "40",
+            "--gcs-takes-gimbal",
+            "27",
+            "32",
         ],
     );
     let text = log(&state);
@@ -81,16 +84,50 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
     assert!(seen["named"]["FR_DONE"].as_f64().unwrap() > 120.0, "about 6 Hz for 40 s: {seen}");
     let states = seen["daemon_heartbeat_states"].as_array().unwrap();
     assert!(states.iter().any(|s| s == 4), "MAV_STATE_ACTIVE while flying: {states:?}");
-    // Gimbal-manager control taken once, pitch/yaw setpoints accepted by the vehicle; let
-    // go (-3) when the vehicle lands at the end of its flight, if that came in time.
-    let configures: Vec<f64> =
-        seen["gimbal_configure_param1"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
-    assert!(configures[0] >= 0.0, "control taken first: {configures:?}");
-    assert_eq!(configures.iter().filter(|p| **p >= 0.0).count(), 1, "taken once: {configures:?}");
-    assert!(configures.iter().skip(1).all(|p| *p == -3.0), "then only let go: {configures:?}");
-    assert!(seen["commands"]["1000"].as_u64().unwrap() > 20, "DO_GIMBAL_MANAGER_PITCHYAW stream: {seen}");
+    // Gimbal-manager control taken at the start, pitch/yaw setpoints accepted by the
+    // vehicle. A ground station (QGroundControl's 255/190) takes the gimbal 27 s in and
+    // lets go at 32 s: mavloc stops pointing it once the manager's status names the
+    // station (2 Hz), says so, and takes control again only when the station lets go. At
+    // the end of the flight it lets go (-3) when the vehicle lands, if that came in time.
+    let gcs = seen["gcs"].as_array().unwrap();
+    assert_eq!(gcs.len(), 2, "the ground station took and let go: {seen}");
+    let (took, let_go) = (gcs[0][0].as_f64().unwrap(), gcs[1][0].as_f64().unwrap());
+    let ack = |a: &serde_json::Value| a[1] == 1001 && a[2] == 0;
+    assert_eq!(seen["gcs_acks"].as_array().unwrap().iter().filter(|a| ack(a)).count(), 2, "{seen}");
+    let configures: Vec<(f64, f64)> = seen["gimbal_configure"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| (v[0].as_f64().unwrap(), v[1].as_f64().unwrap()))
+        .collect();
+    let takes: Vec<f64> = configures.iter().filter(|(_, p)| *p >= 0.0).map(|(t, _)| *t).collect();
+    assert!(configures[0].1 >= 0.0, "control taken first: {configures:?}");
+    assert_eq!(takes.len(), 2, "taken at the start and after the station let go, no more: {configures:?}");
+    assert!(
+        takes[0] < took && takes[1] > let_go,
+        "not taken back from the station: {configures:?} ({took}, {let_go})"
+    );
+    assert!(configures.iter().all(|(_, p)| *p >= 0.0 || *p == -3.0), "else only let go: {configures:?}");
+    let pitchyaw: Vec<f64> =
+        seen["pitchyaw_t"].as_array().unwrap().iter().map(|t| t.as_f64().unwrap()).collect();
+    // The status comes at 2 Hz: a setpoint or two may cross the station's command.
+    let while_held = pitchyaw.iter().filter(|t| **t > took + 1.0 && **t < let_go).count();
+    assert_eq!(
+        while_held, 0,
+        "no setpoints while the station held the gimbal ({took}..{let_go}): {pitchyaw:?}"
+    );
+    assert!(pitchyaw.iter().filter(|t| **t < took).count() > 20, "DO_GIMBAL_MANAGER_PITCHYAW stream: {seen}");
+    assert!(
+        pitchyaw.iter().any(|t| *t > let_go + 0.5),
+        "pointed again after the station let go: {pitchyaw:?}"
+    );
     assert!(seen["acks"]["1000:0"].as_u64().unwrap() > 20, "accepted: {seen}");
     let texts = seen["statustext"].to_string();
+    assert!(
+        texts.contains("gimbal held by a ground station (255/190)")
+            && texts.contains("gimbal let go by a ground station"),
+        "{texts}"
+    );
     assert!(texts.contains("landmarks converged") && texts.contains("camera up"), "{texts}");
 
     // The result files, complete. How accurate the landmarks are depends here on how many
