@@ -39,7 +39,7 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
                 },
             };
             let layers = settings::Layers::from_process(Some(file.clone()), global.overrides);
-            let loaded = match settings::check(&layers, &crate::indoor::model::Model::check_file) {
+            let loaded = match settings::check(&layers, &crate::commands::FILE_CHECKS) {
                 Ok(l) => l,
                 Err(e) => {
                     use std::io::Write;

@@ -20,6 +20,22 @@ use std::path::{Path, PathBuf};
 
 use crate::settings::{self, Layers, Loaded};
 
+/// How `config check` and `run` look inside what the settings name: the floor model, the
+/// signing key and the state directory, each as the module that uses it would.
+pub const FILE_CHECKS: settings::FileChecks<'static> = settings::FileChecks {
+    model: &crate::indoor::model::Model::check_file,
+    signing_key: &signing_key_usable,
+    state_dir: &crate::daemon::state_dir,
+};
+
+fn signing_key_usable(p: &Path) -> Result<(), String> {
+    // The link's messages name the key file, which the problem names already.
+    let named = format!("signing key {}: ", p.display());
+    crate::link::signing::load_key(p)
+        .map(|_| ())
+        .map_err(|e| e.strip_prefix(&named).unwrap_or(&e).to_string())
+}
+
 /// The options every subcommand accepts: `--config FILE` and `--set KEY=VALUE`.
 #[derive(Clone, Debug, Default)]
 pub struct Global {
@@ -252,6 +268,57 @@ impl Progress {
 #[cfg(test)]
 mod tests {
     use super::progress_line;
+
+    /// `config check` refuses what `run` would refuse about the signing key and the state
+    /// directory (it used to pass a key that was not hexadecimal, a key others could read
+    /// and a state directory under a file, and `run` then exited 78 on each), with
+    /// mavloc's own checks, naming the key.
+    #[test]
+    fn check_refuses_the_signing_key_and_state_directory_that_run_refuses() {
+        use crate::settings::{self, Layers, SettingsError};
+        use std::os::unix::fs::PermissionsExt;
+        use std::path::Path;
+        let dir = tempfile::tempdir().unwrap();
+        let key = |name: &str, text: &str, mode: u32| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, text).unwrap();
+            std::fs::set_permissions(&p, std::fs::Permissions::from_mode(mode)).unwrap();
+            p
+        };
+        let hex = "0123456789abcdef".repeat(4);
+        let good = key("good.key", &hex, 0o600);
+        let not_hex = key("nothex.key", "nothex\n", 0o600);
+        let readable = key("readable.key", &hex, 0o644);
+        std::fs::write(dir.path().join("a-file"), "").unwrap();
+        let state = dir.path().join("state/made/by/run");
+        let check_with = |key: &Path, state: &Path| -> Vec<(String, String)> {
+            let layers = Layers {
+                overrides: vec![
+                    format!("mavlink.signing_key={}", key.display()),
+                    format!("daemon.state_dir={}", state.display()),
+                ],
+                ..Layers::default()
+            };
+            match settings::check(&layers, &super::FILE_CHECKS) {
+                Ok(_) => Vec::new(),
+                Err(SettingsError::Invalid(p)) => p.into_iter().map(|p| (p.key, p.expected)).collect(),
+                Err(e) => panic!("{e}"),
+            }
+        };
+        assert_eq!(check_with(&good, &state), vec![], "a good key and a state directory run can make");
+        assert!(!dir.path().join("state").exists(), "the check makes nothing");
+        let p = check_with(&not_hex, &state);
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert_eq!(p[0].0, "mavlink.signing_key");
+        assert!(p[0].1.contains("expected 64 hexadecimal characters"), "{}", p[0].1);
+        let p = check_with(&readable, &state);
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert!(p[0].1.contains("lets other users read it") && p[0].1.contains("chmod 600"), "{}", p[0].1);
+        let p = check_with(&good, &dir.path().join("a-file/state"));
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert_eq!(p[0].0, "daemon.state_dir");
+        assert!(p[0].1.contains("a-file is not a directory"), "{}", p[0].1);
+    }
 
     /// A photo survey reports its first frame only after aligning the photos (20 s on
     /// Seneca): counted from the command's start, the line said "about 561 s left" for a

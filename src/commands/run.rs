@@ -16,7 +16,7 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
     }
     // Every problem at once, files the settings name included, as `config check` reports.
     let layers = crate::settings::Layers::from_process(global.config_file(), global.overrides.clone());
-    let loaded = match crate::settings::check(&layers, &crate::indoor::model::Model::check_file) {
+    let loaded = match crate::settings::check(&layers, &crate::commands::FILE_CHECKS) {
         Ok(l) => l,
         Err(e) => {
             let _ = writeln!(crate::logging::stderr(), "mavloc: {e:#}");

@@ -283,15 +283,14 @@ pub fn load(layers: &Layers) -> Result<Loaded, SettingsError> {
 /// keys, wrong types, values out of range) and the files the values name, together.
 /// `config check` and `run` both call it.
 ///
-/// `model` reads a floor model as the indoor pipeline would (`indoor::model::check_file`;
-/// given by the caller, since the settings cannot depend on the modules they configure).
-pub fn check(layers: &Layers, model: &dyn Fn(&Path) -> Result<(), String>) -> Result<Loaded, SettingsError> {
+/// `files` looks inside the files the settings name as the modules that use them would.
+pub fn check(layers: &Layers, files: &FileChecks) -> Result<Loaded, SettingsError> {
     let (loaded, mut problems) = load_lenient(layers)?;
     // The files are checked on what is valid, so a missing model is named beside a
     // misspelt key rather than after it is fixed.
     let bad: std::collections::BTreeSet<&str> = problems.iter().map(|p| p.key.as_str()).collect();
     let more: Vec<Problem> =
-        preflight(&loaded, model).into_iter().filter(|p| !bad.contains(p.key.as_str())).collect();
+        preflight(&loaded, files).into_iter().filter(|p| !bad.contains(p.key.as_str())).collect();
     problems.extend(more);
     if !problems.is_empty() {
         return Err(SettingsError::Invalid(problems));
@@ -533,11 +532,26 @@ fn merge_error(e: ::config::ConfigError, origins: &BTreeMap<String, String>) -> 
     }
 }
 
-/// What `mavloc run` needs beyond valid values: the files the settings name, readable.
-/// `config check` and `run` both call it, so `run` refuses to start on what `check`
-/// refuses (before, `check` passed a missing model and `run` then ran without a pipeline).
-/// The signing key's contents and permissions are checked by the link when it loads it.
-pub fn preflight(loaded: &Loaded, model: &dyn Fn(&Path) -> Result<(), String>) -> Vec<Problem> {
+/// How [`preflight`] looks inside what the settings name, as the modules that use it would.
+/// Given by the caller, since the settings cannot depend on the modules they configure
+/// (`commands::FILE_CHECKS` is mavloc's).
+pub struct FileChecks<'a> {
+    /// Reads a floor model as the indoor pipeline would (`indoor::model::Model::check_file`).
+    pub model: &'a dyn Fn(&Path) -> Result<(), String>,
+    /// Loads a signing key file as the link would, contents, owner and mode
+    /// (`link::signing::load_key`).
+    pub signing_key: &'a dyn Fn(&Path) -> Result<(), String>,
+    /// The state directory `run` would use for these settings (`daemon::state_dir`:
+    /// systemd's `$STATE_DIRECTORY` wins over `daemon.state_dir`).
+    pub state_dir: &'a dyn Fn(&Settings) -> PathBuf,
+}
+
+/// What `mavloc run` needs beyond valid values: the files the settings name, readable and
+/// usable, and a state directory it can make and write. `config check` and `run` both
+/// call it, so `check` passes only what `run` starts on (before, `check` passed a missing
+/// model, a signing key others could read and a state directory under a file, and `run`
+/// then refused them or ran without a pipeline).
+pub fn preflight(loaded: &Loaded, files: &FileChecks) -> Vec<Problem> {
     let s = &loaded.settings;
     let origin =
         |key: &str| loaded.origins.get(key).cloned().unwrap_or_else(|| "the built-in default".into());
@@ -568,7 +582,7 @@ pub fn preflight(loaded: &Loaded, model: &dyn Fn(&Path) -> Result<(), String>) -
             "indoor.model",
             &s.indoor.model,
             "a floor model (mavloc indoor train) for daemon.pipeline = \"indoor\"",
-            model,
+            files.model,
         );
     }
     match s.camera.source {
@@ -609,7 +623,21 @@ pub fn preflight(loaded: &Loaded, model: &dyn Fn(&Path) -> Result<(), String>) -
     }
     let key = &s.mavlink.signing_key;
     if !key.is_empty() && !key.starts_with("credential:") {
-        need_file("mavlink.signing_key", key, "the signing key file", &|_| Ok(()));
+        need_file("mavlink.signing_key", key, "the signing key file", files.signing_key);
+    }
+    let dir = (files.state_dir)(s);
+    if let Some(why) = unmakeable_dir(&dir) {
+        let from_systemd = std::env::var_os("STATE_DIRECTORY").is_some_and(|v| !v.is_empty());
+        problems.push(Problem {
+            key: "daemon.state_dir".into(),
+            value: Some(quote(&dir.to_string_lossy())),
+            expected: format!("a state directory mavloc can make and write: {why}"),
+            origin: if from_systemd {
+                "the environment (STATE_DIRECTORY, set by systemd's StateDirectory=)".into()
+            } else {
+                origin("daemon.state_dir")
+            },
+        });
     }
     // A live camera gives frames only: with `masks` or `learned` (which trains on a
     // dataset's masks, `mavloc area` only) the area pipeline would skip every frame.
@@ -629,6 +657,43 @@ pub fn preflight(loaded: &Loaded, model: &dyn Fn(&Path) -> Result<(), String>) -
         });
     }
     problems
+}
+
+/// Why `run` could not make `dir` (with its missing parents) and write in it, without
+/// making anything: the nearest part of the path that exists must be a directory this
+/// process may write in (`access(2)`, which also says so for a read-only file system).
+fn unmakeable_dir(dir: &Path) -> Option<String> {
+    let mut p = dir;
+    loop {
+        match std::fs::metadata(p) {
+            Ok(m) if m.is_dir() => {
+                use std::os::unix::ffi::OsStrExt;
+                let c = std::ffi::CString::new(p.as_os_str().as_bytes()).ok()?;
+                // SAFETY: `c` is a NUL-terminated path that outlives the call.
+                if unsafe { libc::access(c.as_ptr(), libc::W_OK | libc::X_OK) } != 0 {
+                    let e = std::io::Error::last_os_error();
+                    // Who may write depends on who runs: the check is for this user.
+                    // SAFETY: getuid has no preconditions and cannot fail.
+                    let uid = unsafe { libc::getuid() };
+                    return Some(format!("{} is not writable by uid {uid} ({e})", p.display()));
+                }
+                return None;
+            }
+            Ok(_) => return Some(format!("{} is not a directory", p.display())),
+            Err(e)
+                if matches!(e.kind(), std::io::ErrorKind::NotFound | std::io::ErrorKind::NotADirectory) =>
+            {
+                // Made by `run`, with the parents that are missing; a relative path's
+                // first part is made in the working folder.
+                p = match p.parent() {
+                    Some(q) if q.as_os_str().is_empty() => Path::new("."),
+                    Some(q) => q,
+                    None => return None,
+                };
+            }
+            Err(e) => return Some(format!("cannot read {}: {e}", p.display())),
+        }
+    }
 }
 
 /// Range and consistency checks on merged settings.

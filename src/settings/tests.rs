@@ -15,6 +15,11 @@ fn load_file(path: &Path) -> Result<Loaded, SettingsError> {
     load(&Layers { file: Some(path.to_path_buf()), ..Layers::default() })
 }
 
+/// File checks that pass every file and put the state directory in the temporary folder,
+/// for tests of everything else.
+const ANY_FILE: FileChecks<'static> =
+    FileChecks { model: &|_| Ok(()), signing_key: &|_| Ok(()), state_dir: &|_| std::env::temp_dir() };
+
 fn problems(r: Result<Loaded, SettingsError>) -> Vec<Problem> {
     match r {
         Err(SettingsError::Invalid(p)) => p,
@@ -321,7 +326,7 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
             ],
             ..Layers::default()
         };
-        let p = problems(check(&layers, &|_| Ok(())));
+        let p = problems(check(&layers, &ANY_FILE));
         assert_eq!(p.len(), 1, "{p:?}");
         assert_eq!(p[0].key, "area.segmenter");
         assert!(
@@ -335,7 +340,7 @@ fn a_live_camera_with_a_segmenter_that_needs_masks_is_refused() {
         [["area.segmenter=water", "camera.source=v4l2"], ["area.segmenter=masks", "camera.source=sim"]]
     {
         let layers = Layers { overrides: sets.map(String::from).to_vec(), ..Layers::default() };
-        assert!(check(&layers, &|_| Ok(())).is_ok(), "{sets:?}");
+        assert!(check(&layers, &ANY_FILE).is_ok(), "{sets:?}");
     }
 }
 
@@ -388,7 +393,7 @@ fn a_file_camera_on_what_gives_no_frames_is_refused_before_run() {
             ],
             ..Layers::default()
         };
-        check(&layers, &|_| Ok(())).err().map(|e| e.to_string())
+        check(&layers, &ANY_FILE).err().map(|e| e.to_string())
     };
     std::fs::create_dir(dir.path().join("empty")).unwrap();
     let said = check(&dir.path().join("empty")).expect("an empty folder is refused");
