@@ -185,7 +185,16 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
             format!("{name}: not a JPEG (no frame header)")
         }
     })?;
-    let exif = exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes));
+    // What can be read of a damaged EXIF is kept (the GPS directory of a file whose maker
+    // block or next-directory pointer is broken): the values are range-checked below.
+    let mut reader = exif::Reader::new();
+    reader.continue_on_error(true);
+    let exif = reader.read_from_container(&mut std::io::Cursor::new(&bytes)).or_else(|e| {
+        e.distill_partial_result(|errors| {
+            let first = errors.first().map(|e| e.to_string()).unwrap_or_default();
+            tracing::warn!("{name}: EXIF partly unreadable ({first}); using what could be read");
+        })
+    });
     let dji = xmp_values(&bytes, "drone-dji:");
     let sensefly = xmp_values(&bytes, "sensefly:");
     let parrot = xmp_values(&bytes, "drone-parrot:");
@@ -215,6 +224,9 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     };
     let field = |t| exif.as_ref().and_then(|e| e.get_field(t, exif::In::PRIMARY));
     let mut missing: Vec<&str> = Vec::new();
+    // Tags that are there but hold no usable number (`abc`, NaN, inf): named as such, not
+    // as missing.
+    let mut bad: Vec<String> = Vec::new();
     let dms = |t, r| -> Option<f64> {
         let v = field(t).and_then(|f| {
             let (d, m, s) = (rational_f64(f, 0)?, rational_f64(f, 1)?, rational_f64(f, 2)?);
@@ -253,9 +265,18 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
         _ => None,
     };
     let mut num = |xmp: &BTreeMap<String, String>, key: &'static str| -> f64 {
-        match xmp.get(key).and_then(|v| v.trim_start_matches('+').parse::<f64>().ok()) {
-            Some(v) if v.is_finite() => v,
-            _ => {
+        match xmp.get(key) {
+            Some(text) => match text.trim_start_matches('+').parse::<f64>() {
+                Ok(v) if v.is_finite() => v,
+                _ => {
+                    bad.push(format!(
+                        "{key} `{}` is not a number",
+                        text.chars().take(40).collect::<String>()
+                    ));
+                    f64::NAN
+                }
+            },
+            None => {
                 missing.push(key);
                 f64::NAN
             }
@@ -267,6 +288,16 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let exif_position = |missing: &mut Vec<&'static str>, fallback_alt: Option<f64>| {
         let lat = dms(exif::Tag::GPSLatitude, exif::Tag::GPSLatitudeRef);
         let lon = dms(exif::Tag::GPSLongitude, exif::Tag::GPSLongitudeRef);
+        // Without its reference a coordinate's hemisphere is a guess (EXIF requires both):
+        // a west longitude read as east put a photo 3000 km away.
+        for (v, r, tag) in [
+            (lat, exif::Tag::GPSLatitudeRef, "GPSLatitudeRef"),
+            (lon, exif::Tag::GPSLongitudeRef, "GPSLongitudeRef"),
+        ] {
+            if v.is_some() && field(r).is_none() {
+                missing.push(tag);
+            }
+        }
         let gps_alt = gps_alt.or(fallback_alt);
         for (v, tag) in [(lat, "GPSLatitude"), (lon, "GPSLongitude"), (gps_alt, "GPSAltitude")] {
             if v.is_none() {
@@ -385,14 +416,88 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     if tags.time.is_empty() {
         missing.push("DateTimeOriginal");
     }
-    if !missing.is_empty() {
-        return Err(format!("{name}: missing {}", missing.join(", ")));
+    if !missing.is_empty() || !bad.is_empty() {
+        let missing = (!missing.is_empty()).then(|| format!("missing {}", missing.join(", ")));
+        let all: Vec<String> = missing.into_iter().chain(bad).collect();
+        return Err(format!("{name}: {}", all.join("; ")));
     }
+    check_values(&tags).map_err(|e| format!("{name}: {e}"))?;
     // Tags come first in the file, so a cut photo still has them: check the image too.
     if crate::imaging::jpeg_truncated(&bytes) {
         return Err(format!("{name}: truncated JPEG (the image data ends early)"));
     }
     Ok(tags)
+}
+
+/// How far from one another a survey's photos may be: a photo farther than this from the
+/// photo with the most others within it is skipped. A long corridor flown in one go fits
+/// (50 km is an hour of a fixed-wing survey); a tag from the wrong continent does not.
+const SURVEY_RADIUS_M: f64 = 50_000.0;
+
+/// For each position (latitude, longitude in degrees), its distance in km from the
+/// survey's centre photo when over [`SURVEY_RADIUS_M`], else `None`. The centre is the
+/// photo with the most others within the radius (the first of equals), not the median,
+/// which two sites in one folder would put between them.
+fn far_from_the_survey(positions: &[(f64, f64)]) -> Vec<Option<f64>> {
+    // Distances on the sphere (haversine): kilometres of accuracy are plenty here.
+    let dist = |a: (f64, f64), b: (f64, f64)| {
+        let (la, lb) = (a.0.to_radians(), b.0.to_radians());
+        let h = ((lb - la) / 2.0).sin().powi(2)
+            + la.cos() * lb.cos() * ((b.1 - a.1).to_radians() / 2.0).sin().powi(2);
+        2.0 * 6_371_000.0 * h.sqrt().min(1.0).asin()
+    };
+    // Quadratic in the photos: a few thousand is milliseconds.
+    let Some(centre) = positions
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| (i, positions.iter().filter(|&&q| dist(p, q) <= SURVEY_RADIUS_M).count()))
+        .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
+        .map(|(i, _)| positions[i])
+    else {
+        return Vec::new();
+    };
+    positions
+        .iter()
+        .map(|&p| {
+            let d = dist(centre, p);
+            (d > SURVEY_RADIUS_M).then_some(d / 1000.0)
+        })
+        .collect()
+}
+
+/// The value most items have; of equals, the one that comes first (the earliest photo's).
+fn most_common<T: PartialEq + Clone>(items: impl Iterator<Item = T>) -> T {
+    let items: Vec<T> = items.collect();
+    let count = |x: &T| items.iter().filter(|y| *y == x).count();
+    let mut best = items[0].clone();
+    for x in &items {
+        if count(x) > count(&best) {
+            best = x.clone();
+        }
+    }
+    best
+}
+
+/// The tags' numbers within what a photo from a drone can hold: a position on the globe
+/// (an EXIF rational of 46/0 read as an infinite latitude, and 91 deg, were imported), a
+/// finite height, angles of at most two turns. Each photo on its own: only the first was
+/// checked, and a later one 3000 km off or 1e308 m high was imported without a word.
+fn check_values(t: &PhotoTags) -> Result<(), String> {
+    Geodetic::new(t.lat_deg, t.lon_deg, t.absolute_alt_m).validate()?;
+    // The height above take-off is NaN until --ground-alt-m gives it (Parrot, plain EXIF).
+    if t.relative_alt_m.abs() > 20_000.0 {
+        let h = crate::geometry::readable(t.relative_alt_m);
+        return Err(format!("height above take-off {h} m is outside [-20000, 20000]"));
+    }
+    let angles = [("gimbal", t.gimbal_deg), ("aircraft", t.flight_deg)];
+    for (what, deg) in angles {
+        // The aircraft's yaw of a plain-EXIF photo comes from its track later (NaN here).
+        if let Some(a) = deg.iter().find(|a| a.abs() > 720.0) {
+            let a = crate::geometry::readable(*a);
+            return Err(format!("{what} angle {a} deg is not an angle (at most two turns either way)"));
+        }
+    }
+    Ok(())
 }
 
 /// Width and height from a JPEG's start-of-frame marker (SOF0..SOF15 but DHT, JPG, DAC).
@@ -430,8 +535,19 @@ fn exif_seconds(t: &str) -> Option<f64> {
     if p.len() < 6 {
         return None;
     }
-    // Days from a civil date (proleptic Gregorian), enough for differences.
+    // Days from a civil date (proleptic Gregorian), enough for differences. A camera
+    // whose clock was never set writes zeros ("0000:00:00 00:00:00"): no date.
     let (y, m, d) = (p[0] as i64, p[1] as i64, p[2] as i64);
+    let clock = (p[3], p[4], p[5]);
+    if y < 1970
+        || !(1..=12).contains(&m)
+        || !(1..=31).contains(&d)
+        || !(0.0..24.0).contains(&clock.0)
+        || !(0.0..60.0).contains(&clock.1)
+        || !(0.0..61.0).contains(&clock.2)
+    {
+        return None;
+    }
     let (y, m) = if m <= 2 { (y - 1, m + 12) } else { (y, m) };
     let days = 365 * y + y / 4 - y / 100 + y / 400 + (153 * (m - 3) + 2) / 5 + d;
     Some(days as f64 * 86400.0 + p[3] * 3600.0 + p[4] * 60.0 + p[5])
@@ -719,7 +835,9 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             Ok(t) => match exif_seconds(&t.time) {
                 Some(s) => photos.push((s, p.clone(), t)),
                 None => {
-                    report.skipped.push((t.name.clone(), format!("unreadable capture time `{}`", t.time)))
+                    let why = format!("capture time `{}` is not a date (a camera clock never set?)", t.time);
+                    tracing::warn!("skipped {}: {why}", t.name);
+                    report.skipped.push((t.name.clone(), why))
                 }
             },
             Err(e) => {
@@ -788,12 +906,49 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         }
         photos = keep;
     }
-    if let Some((_, _, t)) = photos.iter().find(|(_, _, t)| t.vendor != photos[0].2.vendor) {
-        return Err(format!(
-            "{} has {} tags but {} has {}: one camera per dataset",
-            t.name, t.vendor, photos[0].2.name, photos[0].2.vendor
-        ));
-    }
+    // One camera per dataset: photos of another kind of tags, or (below) of another size,
+    // are the fewer ones, skipped and named, not the end of the import.
+    photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let vendor = most_common(photos.iter().map(|(_, _, t)| t.vendor.clone()));
+    photos.retain(|(_, _, t)| {
+        let keep = t.vendor == vendor;
+        if !keep {
+            let why = format!("{} tags among {vendor} photos: one camera per dataset", t.vendor);
+            tracing::warn!("skipped {}: {why}", t.name);
+            report.skipped.push((t.name.clone(), why));
+        }
+        keep
+    });
+    let size = most_common(photos.iter().map(|(_, _, t)| (t.width, t.height)));
+    photos.retain(|(_, _, t)| {
+        let keep = (t.width, t.height) == size;
+        if !keep {
+            let why = format!(
+                "{}x{} among {}x{} photos: one camera per dataset",
+                t.width, t.height, size.0, size.1
+            );
+            tracing::warn!("skipped {}: {why}", t.name);
+            report.skipped.push((t.name.clone(), why));
+        }
+        keep
+    });
+    // A photo far from the survey (a GPS fix from elsewhere, a corrupted tag) is skipped:
+    // the survey is where most photos are within `SURVEY_RADIUS_M` of one of them.
+    let far = far_from_the_survey(&photos.iter().map(|(_, _, t)| (t.lat_deg, t.lon_deg)).collect::<Vec<_>>());
+    let mut i = 0;
+    photos.retain(|(_, _, t)| {
+        let d = far[i];
+        i += 1;
+        if let Some(km) = d {
+            let why = format!(
+                "{km:.0} km from the survey (the most photos within {} km of one another): a wrong GPS tag?",
+                SURVEY_RADIUS_M / 1000.0
+            );
+            tracing::warn!("skipped {}: {why}", t.name);
+            report.skipped.push((t.name.clone(), why));
+        }
+        d.is_none()
+    });
     let body_mounted = photos[0].2.vendor == "sensefly" || photos[0].2.vendor == "exif";
     let needs_ground = matches!(photos[0].2.vendor.as_str(), "exif" | "parrot");
     if needs_ground {
@@ -839,12 +994,6 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     let first = &photos[0].2;
     let (w, h) = (first.width, first.height);
-    if let Some((_, _, t)) = photos.iter().find(|(_, _, t)| (t.width, t.height) != (w, h)) {
-        return Err(format!(
-            "{} is {}x{}, but {} is {w}x{h}: one camera per dataset",
-            t.name, t.width, t.height, first.name
-        ));
-    }
     let origin = Geodetic::new(first.lat_deg, first.lon_deg, first.absolute_alt_m - first.relative_alt_m);
     origin.validate().map_err(|e| format!("{}: {e}", first.name))?;
     let mut undistort = None;
@@ -899,7 +1048,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         origin,
     };
     camera.intrinsics().validate().map_err(|e| format!("intrinsics: {e}"))?;
-    let staged = mavloc_data::staged::StagedDir::begin(out, replace)?;
+    let staged = mavloc_data::staged::begin_dataset(out, replace)?;
     let (final_dir, out) = (out, staged.path());
     dataset::prepare(out)?;
     let frame = LocalFrame::new(origin);
@@ -977,6 +1126,66 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The survey is where the most photos are: a photo from another continent and a
+    /// smaller group 200 km off are far from it, whatever their order; photos across a
+    /// 40 km corridor are not.
+    #[test]
+    fn photos_far_from_the_survey_are_found_whatever_their_order() {
+        let site = |lat: f64, lon: f64, n: usize| (0..n).map(move |i| (lat + i as f64 * 1e-4, lon));
+        let mut p: Vec<(f64, f64)> = site(46.84, -91.99, 3).collect();
+        p.extend(site(45.0, -91.99, 2)); // 205 km south
+        p.extend(site(46.84, -91.99, 7));
+        p.push((46.84, 91.99)); // a west longitude read as east
+        let far = far_from_the_survey(&p);
+        let flagged: Vec<usize> =
+            far.iter().enumerate().filter(|(_, d)| d.is_some()).map(|(i, _)| i).collect();
+        assert_eq!(flagged, [3, 4, 12], "{far:?}");
+        assert!((far[3].unwrap() - 205.0).abs() < 2.0 && far[12].unwrap() > 5000.0, "{far:?}");
+        let corridor: Vec<(f64, f64)> = (0..41).map(|i| (46.84 + i as f64 * 0.009, -91.99)).collect();
+        assert!(far_from_the_survey(&corridor).iter().all(Option::is_none), "40 km of one line");
+    }
+
+    #[test]
+    fn the_most_common_value_wins_and_the_first_of_equals() {
+        assert_eq!(most_common([(2000, 1125), (4000, 2250), (4000, 2250)].into_iter()), (4000, 2250));
+        assert_eq!(most_common(["sensefly", "dji"].into_iter()), "sensefly");
+    }
+
+    /// Each photo's numbers are checked, each problem named: before, only the first
+    /// photo's position was, and 1e308 m or an infinite latitude went into the dataset.
+    #[test]
+    fn impossible_tag_values_are_named() {
+        let good = PhotoTags {
+            lat_deg: 46.8,
+            lon_deg: -92.0,
+            absolute_alt_m: 198.6,
+            relative_alt_m: 40.1,
+            gimbal_deg: [44.2, -89.9, 0.0],
+            flight_deg: [2.9, 1.3, f64::NAN],
+            ..PhotoTags::default()
+        };
+        assert_eq!(check_values(&good), Ok(()));
+        let bad = |f: &dyn Fn(&mut PhotoTags)| {
+            let mut t = good.clone();
+            f(&mut t);
+            check_values(&t).unwrap_err()
+        };
+        assert!(bad(&|t| t.lat_deg = f64::INFINITY).starts_with("latitude inf deg"));
+        assert!(bad(&|t| t.lat_deg = 91.0).starts_with("latitude 91 deg"));
+        assert!(bad(&|t| t.lon_deg = 500.0).starts_with("longitude 500 deg"));
+        assert!(bad(&|t| t.absolute_alt_m = 1e308).starts_with("altitude 1e308 m"));
+        assert!(bad(&|t| t.relative_alt_m = f64::INFINITY).starts_with("height above take-off inf m"));
+        assert!(bad(&|t| t.gimbal_deg[1] = 1e308).starts_with("gimbal angle 1e308 deg"));
+        assert!(bad(&|t| t.flight_deg[0] = -1000.0).starts_with("aircraft angle -1000 deg"));
+    }
+
+    #[test]
+    fn a_clock_never_set_gives_no_time() {
+        assert_eq!(exif_seconds("0000:00:00 00:00:00"), None);
+        assert_eq!(exif_seconds("2016:13:01 10:00:00"), None);
+        assert!(exif_seconds("2016:06:23 16:33:27").is_some());
+    }
 
     /// A survey of three lines flown back and forth, photos 12.5 m apart along a line, 30 m
     /// between lines: each photo heads along its own line, the first and last of a line

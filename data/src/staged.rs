@@ -195,6 +195,26 @@ pub fn begin_results(out: &Path) -> Result<StagedDir, String> {
     StagedDir::begin(out, true)
 }
 
+/// Stages a dataset (`mavloc import photos`, `mavloc sim render`) to replace `out`: with
+/// `replace` (`--force`) only a dataset is replaced, or an empty folder. `--force` on a
+/// folder of other files (the message's own advice on any folder that was not empty)
+/// deleted them.
+pub fn begin_dataset(out: &Path, replace: bool) -> Result<StagedDir, String> {
+    let other_files = out.is_dir()
+        && !out.join(crate::dataset::CAMERA_FILE).is_file()
+        && !out.join(crate::dataset::TELEMETRY_FILE).is_file()
+        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
+    if other_files {
+        return Err(format!(
+            "{} holds files that are not a mavloc dataset (no {} or {}): give a new or empty folder as --out (--force replaces only a dataset)",
+            out.display(),
+            crate::dataset::CAMERA_FILE,
+            crate::dataset::TELEMETRY_FILE
+        ));
+    }
+    StagedDir::begin(out, replace)
+}
+
 /// Whether process `pid` exists (`kill(pid, 0)`; EPERM: it exists under another user).
 fn alive(pid: i32) -> bool {
     // SAFETY: signal 0 only checks that the process exists.

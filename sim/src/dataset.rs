@@ -181,7 +181,7 @@ pub fn render_dataset_until(
     scenario.validate()?;
     // Written beside `out` and put in place whole at the end: a failed render leaves no
     // half-written folder, and --force replaces the old dataset instead of writing over it.
-    let staged = mavloc_data::staged::StagedDir::begin(out, opts.force)?;
+    let staged = mavloc_data::staged::begin_dataset(out, opts.force)?;
     let final_dir = out;
     let out = staged.path();
     dataset::prepare(out)?;

@@ -18,6 +18,16 @@ pub struct Geodetic {
     pub alt_m: f64,
 }
 
+/// A number for a message: in exponent form when huge or tiny (`{}` writes 1e308 with
+/// all its 309 digits).
+pub fn readable(x: f64) -> String {
+    if x != 0.0 && x.is_finite() && !(1e-3..1e6).contains(&x.abs()) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
 impl Geodetic {
     pub fn new(lat_deg: f64, lon_deg: f64, alt_m: f64) -> Self {
         Geodetic { lat_deg, lon_deg, alt_m }
@@ -26,13 +36,13 @@ impl Geodetic {
     /// Checks the coordinates are on the globe; the message names the bad one.
     pub fn validate(&self) -> Result<(), String> {
         if !(self.lat_deg.is_finite() && (-90.0..=90.0).contains(&self.lat_deg)) {
-            return Err(format!("latitude {} deg is outside [-90, 90]", self.lat_deg));
+            return Err(format!("latitude {} deg is outside [-90, 90]", readable(self.lat_deg)));
         }
         if !(self.lon_deg.is_finite() && (-180.0..=180.0).contains(&self.lon_deg)) {
-            return Err(format!("longitude {} deg is outside [-180, 180]", self.lon_deg));
+            return Err(format!("longitude {} deg is outside [-180, 180]", readable(self.lon_deg)));
         }
         if !(self.alt_m.is_finite() && (-12_000.0..=100_000.0).contains(&self.alt_m)) {
-            return Err(format!("altitude {} m is outside [-12000, 100000]", self.alt_m));
+            return Err(format!("altitude {} m is outside [-12000, 100000]", readable(self.alt_m)));
         }
         Ok(())
     }

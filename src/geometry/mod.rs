@@ -42,7 +42,7 @@ mod rotation;
 
 pub use bearing::{angle_diff, bearing_between, wrap_angle, Bearing};
 pub use camera::{CameraPose, Intrinsics, Mount, Pixel};
-pub use geodetic::{Geodetic, LocalFrame};
+pub use geodetic::{readable, Geodetic, LocalFrame};
 pub use ground::ground_plane_point;
 pub use polyline::nearest_on_polylines;
 pub use rotation::{body_rotation, gimbal_from_camera, GimbalAngles, GimbalChain};

@@ -763,3 +763,102 @@ fn walk(d: &Path) -> Vec<PathBuf> {
     }
     out
 }
+
+/// A copy of a photo with every occurrence of `old` replaced by `new` (same length).
+fn with_every(from: &Path, to: &Path, old: &str, new: &str) {
+    assert_eq!(old.len(), new.len());
+    let mut bytes = std::fs::read(from).unwrap();
+    let mut n = 0;
+    while let Some(at) = bytes.windows(old.len()).position(|w| w == old.as_bytes()) {
+        bytes[at..at + new.len()].copy_from_slice(new.as_bytes());
+        n += 1;
+    }
+    assert!(n > 0, "{old} not in {}", from.display());
+    std::fs::write(to, bytes).unwrap();
+}
+
+/// Photos whose tags hold what no drone photo can (a gimbal pitch of 1e308 deg, an
+/// altitude of 1e308 m, a yaw that is not a number, a capture time of zeros from a clock
+/// never set) are each skipped with the reason, and the rest import. They used to be
+/// imported without a word (or named as missing tags): positions 1e302 m off, a dataset
+/// `mavloc area` could not read. `--force` replaces a dataset, never a folder of other
+/// files, which it used to delete.
+#[test]
+fn photos_with_impossible_values_are_named_and_skipped_and_force_replaces_only_a_dataset() {
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    std::fs::copy(sample().join("DJI_0030.JPG"), photos.join("a.jpg")).unwrap();
+    with_value(
+        &sample().join("DJI_0031.JPG"),
+        &photos.join("b.jpg"),
+        "Degree=\"-89.90\"",
+        "Degree=\"1e+308\"",
+    );
+    std::fs::copy(sample().join("DJI_0032.JPG"), photos.join("c.jpg")).unwrap();
+    with_value(&sample().join("DJI_0031.JPG"), &photos.join("d.jpg"), "\"+198.71\"", "\"+1e+308\"");
+    with_value(&sample().join("DJI_0030.JPG"), &photos.join("e.jpg"), "\"+44.20\"", "\"+ab.cd\"");
+    with_every(
+        &sample().join("DJI_0032.JPG"),
+        &photos.join("f.jpg"),
+        "2016:06:23 16:33:41",
+        "0000:00:00 00:00:00",
+    );
+    let out = dir.path().join("ds");
+    let r = import_photos(&photos, &out, &ImportOptions::default()).unwrap();
+    assert_eq!(r.imported, ["a.jpg", "c.jpg"]);
+    let skipped: Vec<String> = r.skipped.iter().map(|(n, why)| format!("{n}: {why}")).collect();
+    assert_eq!(skipped.len(), 4, "{skipped:?}");
+    let said = |name: &str, what: &str| skipped.iter().any(|s| s.starts_with(name) && s.contains(what));
+    assert!(said("b.jpg", "gimbal angle 1e308 deg is not an angle"), "{skipped:?}");
+    assert!(said("d.jpg", "altitude 1e308 m is outside"), "{skipped:?}");
+    assert!(said("e.jpg", "GimbalYawDegree `+ab.cd` is not a number"), "{skipped:?}");
+    assert!(said("f.jpg", "capture time `0000:00:00 00:00:00` is not a date"), "{skipped:?}");
+    let ds = mavloc_data::Dataset::open(&out).unwrap();
+    assert!(ds.records.iter().all(|r| r.measured.position.iter().all(|x| x.abs() < 1000.0)));
+
+    // A folder of the user's files is not replaced, even with --force; a dataset is.
+    let mine = dir.path().join("mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("thesis.txt"), "years of work").unwrap();
+    let force = ImportOptions { replace: true, ..Default::default() };
+    let e = import_photos(&photos, &mine, &force).unwrap_err();
+    assert!(e.contains("not a mavloc dataset") && e.contains("--force replaces only a dataset"), "{e}");
+    assert_eq!(std::fs::read_to_string(mine.join("thesis.txt")).unwrap(), "years of work");
+    let e = import_photos(&photos, &mine, &ImportOptions::default()).unwrap_err();
+    assert!(!e.contains("pass --force"), "no advice to delete the user's files: {e}");
+    import_photos(&photos, &out, &force).unwrap();
+}
+
+/// A photo whose EXIF breaks the format after the GPS (its EXIF directory's link to a
+/// next directory pointing outside the block, as piexif writes it) keeps what could be
+/// read: it used to be skipped whole ("no readable EXIF (Unexpected next IFD)").
+#[test]
+fn a_photo_with_partly_broken_exif_imports_from_what_could_be_read() {
+    let mut bytes = std::fs::read(sample().join("DJI_0031.JPG")).unwrap();
+    let base = bytes.windows(6).position(|w| w == b"Exif\0\0").expect("an EXIF block") + 6;
+    let le = &bytes[base..base + 2] == b"II";
+    let u16_at = |b: &[u8], at: usize| {
+        let v = [b[at], b[at + 1]];
+        (if le { u16::from_le_bytes(v) } else { u16::from_be_bytes(v) }) as usize
+    };
+    let u32_at = |b: &[u8], at: usize| {
+        let v = [b[at], b[at + 1], b[at + 2], b[at + 3]];
+        (if le { u32::from_le_bytes(v) } else { u32::from_be_bytes(v) }) as usize
+    };
+    let ifd0 = base + u32_at(&bytes, base + 4);
+    let exif_ifd = (0..u16_at(&bytes, ifd0))
+        .map(|i| ifd0 + 2 + 12 * i)
+        .find(|&e| u16_at(&bytes, e) == 0x8769)
+        .map(|e| base + u32_at(&bytes, e + 8))
+        .expect("an EXIF directory");
+    let next = exif_ifd + 2 + 12 * u16_at(&bytes, exif_ifd);
+    bytes[next..next + 4].copy_from_slice(&[0x00, 0xFF, 0xFF, 0x00]);
+    let dir = tempfile::tempdir().unwrap();
+    let photo = dir.path().join("DJI_0031.JPG");
+    std::fs::write(&photo, &bytes).unwrap();
+    assert!(exif::Reader::new().read_from_container(&mut std::io::Cursor::new(&bytes)).is_err(), "broken");
+    let t = read_tags(&photo).unwrap();
+    let whole = read_tags(&sample().join("DJI_0031.JPG")).unwrap();
+    assert_eq!((t.lat_deg, t.lon_deg, t.time.clone()), (whole.lat_deg, whole.lon_deg, whole.time.clone()));
+}
