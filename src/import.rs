@@ -175,6 +175,9 @@ fn rational_f64(f: &exif::Field, i: usize) -> Option<f64> {
 pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
     let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let bytes = std::fs::read(path).map_err(|e| format!("{name}: {e}"))?;
+    if bytes.is_empty() {
+        return Err(format!("{name}: empty file (0 bytes)"));
+    }
     let file_id = (crc32fast::hash(&bytes), bytes.len() as u64);
     let (width, height) = jpeg_size(&bytes).ok_or_else(|| {
         // A JPEG's start with no frame header after it is a file cut short (inside its

@@ -779,7 +779,7 @@ fn with_every(from: &Path, to: &Path, old: &str, new: &str) {
 
 /// Photos whose tags hold what no drone photo can (a gimbal pitch of 1e308 deg, an
 /// altitude of 1e308 m, a yaw that is not a number, a capture time of zeros from a clock
-/// never set) are each skipped with the reason, and the rest import. They used to be
+/// never set), and an empty file, are each skipped with the reason, and the rest import. They used to be
 /// imported without a word (or named as missing tags): positions 1e302 m off, a dataset
 /// `mavloc area` could not read. `--force` replaces a dataset, never a folder of other
 /// files, which it used to delete.
@@ -804,16 +804,18 @@ fn photos_with_impossible_values_are_named_and_skipped_and_force_replaces_only_a
         "2016:06:23 16:33:41",
         "0000:00:00 00:00:00",
     );
+    std::fs::write(photos.join("g.jpg"), b"").unwrap();
     let out = dir.path().join("ds");
     let r = import_photos(&photos, &out, &ImportOptions::default()).unwrap();
     assert_eq!(r.imported, ["a.jpg", "c.jpg"]);
     let skipped: Vec<String> = r.skipped.iter().map(|(n, why)| format!("{n}: {why}")).collect();
-    assert_eq!(skipped.len(), 4, "{skipped:?}");
+    assert_eq!(skipped.len(), 5, "{skipped:?}");
     let said = |name: &str, what: &str| skipped.iter().any(|s| s.starts_with(name) && s.contains(what));
     assert!(said("b.jpg", "gimbal angle 1e308 deg is not an angle"), "{skipped:?}");
     assert!(said("d.jpg", "altitude 1e308 m is outside"), "{skipped:?}");
     assert!(said("e.jpg", "GimbalYawDegree `+ab.cd` is not a number"), "{skipped:?}");
     assert!(said("f.jpg", "capture time `0000:00:00 00:00:00` is not a date"), "{skipped:?}");
+    assert!(said("g.jpg", "empty file (0 bytes)"), "{skipped:?}");
     let ds = mavloc_data::Dataset::open(&out).unwrap();
     assert!(ds.records.iter().all(|r| r.measured.position.iter().all(|x| x.abs() < 1000.0)));
 
