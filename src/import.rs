@@ -814,8 +814,35 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         .cloned()
         .collect();
     paths.sort();
+    // Anything else in the folder is said once (a PNG, a link that leads nowhere), so a
+    // photo left out is not left out unnoticed.
+    let others: Vec<String> = entries
+        .iter()
+        .filter(|p| !paths.contains(p) && !p.is_dir())
+        .map(|p| {
+            let name = p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+            if p.is_symlink() && !p.exists() {
+                format!("{name} (a link that leads nowhere)")
+            } else {
+                name
+            }
+        })
+        .collect();
+    if !others.is_empty() {
+        let shown: Vec<&str> = others.iter().take(5).map(String::as_str).collect();
+        let more = if others.len() > 5 { format!(" and {} more", others.len() - 5) } else { String::new() };
+        tracing::warn!("not photos (only .jpg and .jpeg files are read): {}{more}", shown.join(", "));
+    }
     // One folder, not a tree: said, so photos in a subfolder are not missed unnoticed.
-    let subfolders = entries.iter().filter(|p| p.is_dir()).count();
+    // (A link to the folder itself or above it is not a subfolder.)
+    let subfolders = entries
+        .iter()
+        .filter(|p| {
+            p.is_dir()
+                && !std::fs::canonicalize(p)
+                    .is_ok_and(|c| dir.canonicalize().is_ok_and(|d| d.starts_with(&c)))
+        })
+        .count();
     if subfolders > 0 {
         tracing::warn!(
             "{} subfolder{} of {} not searched: import each folder of photos on its own",

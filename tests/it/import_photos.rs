@@ -864,3 +864,31 @@ fn a_photo_with_partly_broken_exif_imports_from_what_could_be_read() {
     let whole = read_tags(&sample().join("DJI_0031.JPG")).unwrap();
     assert_eq!((t.lat_deg, t.lon_deg, t.time.clone()), (whole.lat_deg, whole.lon_deg, whole.time.clone()));
 }
+
+/// What is in the folder and not imported is said, once: a PNG and a link that leads
+/// nowhere used to be passed over without a word, and a link to the folder itself was
+/// counted as a subfolder not searched.
+#[test]
+fn files_that_are_not_photos_are_named_and_a_link_to_the_folder_is_no_subfolder() {
+    let dir = tempfile::tempdir().unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    for n in ["DJI_0030.JPG", "DJI_0031.JPG"] {
+        std::fs::copy(sample().join(n), photos.join(n)).unwrap();
+    }
+    std::fs::write(photos.join("map.png"), b"\x89PNG").unwrap();
+    std::os::unix::fs::symlink(photos.join("gone.JPG"), photos.join("DJI_0099.JPG")).unwrap();
+    std::os::unix::fs::symlink(".", photos.join("self")).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .args(["import", "photos"])
+        .arg(&photos)
+        .arg("--out")
+        .arg(dir.path().join("ds"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("not photos") && err.contains("map.png"), "{err}");
+    assert!(err.contains("DJI_0099.JPG (a link that leads nowhere)"), "{err}");
+    assert!(!err.contains("subfolder"), "{err}");
+}
