@@ -442,43 +442,24 @@ const SURVEY_RADIUS_M: f64 = 50_000.0;
 /// photo with the most others within the radius (the first of equals), not the median,
 /// which two sites in one folder would put between them.
 fn far_from_the_survey(positions: &[(f64, f64)]) -> Vec<Option<f64>> {
-    // Distances on the sphere (haversine): kilometres of accuracy are plenty here.
-    let dist = |a: (f64, f64), b: (f64, f64)| {
-        let (la, lb) = (a.0.to_radians(), b.0.to_radians());
-        let h = ((lb - la) / 2.0).sin().powi(2)
-            + la.cos() * lb.cos() * ((b.1 - a.1).to_radians() / 2.0).sin().powi(2);
-        2.0 * 6_371_000.0 * h.sqrt().min(1.0).asin()
-    };
-    // Quadratic in the photos: a few thousand is milliseconds.
-    let Some(centre) = positions
-        .iter()
-        .enumerate()
-        .map(|(i, &p)| (i, positions.iter().filter(|&&q| dist(p, q) <= SURVEY_RADIUS_M).count()))
-        .max_by(|a, b| a.1.cmp(&b.1).then(b.0.cmp(&a.0)))
-        .map(|(i, _)| positions[i])
-    else {
+    let Some(&(lat, lon)) = positions.first() else {
         return Vec::new();
     };
-    positions
-        .iter()
-        .map(|&p| {
-            let d = dist(centre, p);
+    // On the ellipsoid, in one local frame: the straight line between two points is the
+    // difference of their local coordinates, however far apart they are.
+    let frame = LocalFrame::new(Geodetic::new(lat, lon, 0.0));
+    let at: Vec<crate::geometry::Vec3> =
+        positions.iter().map(|&(lat, lon)| frame.to_ned(&Geodetic::new(lat, lon, 0.0))).collect();
+    // Quadratic in the photos: a few thousand is milliseconds.
+    let within = |p: &crate::geometry::Vec3| at.iter().filter(|q| (*q - p).norm() <= SURVEY_RADIUS_M).count();
+    let centre =
+        at.iter().reduce(|best, p| if within(p) > within(best) { p } else { best }).expect("one photo");
+    at.iter()
+        .map(|p| {
+            let d = (p - centre).norm();
             (d > SURVEY_RADIUS_M).then_some(d / 1000.0)
         })
         .collect()
-}
-
-/// The value most items have; of equals, the one that comes first (the earliest photo's).
-fn most_common<T: PartialEq + Clone>(items: impl Iterator<Item = T>) -> T {
-    let items: Vec<T> = items.collect();
-    let count = |x: &T| items.iter().filter(|y| *y == x).count();
-    let mut best = items[0].clone();
-    for x in &items {
-        if count(x) > count(&best) {
-            best = x.clone();
-        }
-    }
-    best
 }
 
 /// The tags' numbers within what a photo from a drone can hold: a position on the globe
@@ -662,12 +643,47 @@ pub struct ImportReport {
     pub turned: Vec<String>,
 }
 
+impl ImportReport {
+    /// Skips a photo: said in the log as it happens, and named with the reason in the report.
+    fn skip(&mut self, name: &str, why: String) {
+        tracing::warn!("skipped {name}: {why}");
+        self.skipped.push((name.to_string(), why));
+    }
+}
+
+/// A photo as the import holds it: capture time (s), path, tags.
+type Photo = (f64, PathBuf, PhotoTags);
+
+/// Keeps the photos whose `key` most of them share (of equals, the earliest photo's, the
+/// photos being in capture order) and skips the others, each named with `why(its, kept)`.
+fn keep_the_most_common<K: PartialEq>(
+    photos: &mut Vec<Photo>,
+    report: &mut ImportReport,
+    key: impl Fn(&PhotoTags) -> K,
+    why: impl Fn(&K, &K) -> String,
+) {
+    let keys: Vec<K> = photos.iter().map(|(_, _, t)| key(t)).collect();
+    let count = |k: &K| keys.iter().filter(|x| *x == k).count();
+    let Some(kept) = keys.iter().reduce(|best, k| if count(k) > count(best) { k } else { best }) else {
+        return;
+    };
+    let mut keys_in_order = keys.iter();
+    photos.retain(|(_, _, t)| {
+        let k = keys_in_order.next().expect("one key a photo");
+        let keep = k == kept;
+        if !keep {
+            report.skip(&t.name, why(k, kept));
+        }
+        keep
+    });
+}
+
 /// Each photo's heading (degrees, clockwise from north) along the track, photos in capture
 /// order: the courses to and from its neighbours, averaged where they agree; where they do
 /// not (the first and last photo of a survey line, beside the turn to the next line) the
 /// one that continues its own line (agrees with the course one photo further out). A photo
 /// with no course (taken where its neighbours were) gets the nearest one's.
-fn track_headings(photos: &mut [(f64, PathBuf, PhotoTags)]) {
+fn track_headings(photos: &mut [Photo]) {
     let n = photos.len();
     let course = |a: usize, b: usize| -> Option<f64> {
         if a >= n || b >= n || a == b {
@@ -805,20 +821,17 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         .map_err(|e| format!("{}: {e}", dir.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .collect();
-    let mut paths: Vec<PathBuf> = entries
-        .iter()
-        .filter(|p| {
-            let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
-            p.is_file() && (ext == "jpg" || ext == "jpeg")
-        })
-        .cloned()
-        .collect();
+    let is_photo = |p: &PathBuf| {
+        let ext = p.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+        p.is_file() && (ext == "jpg" || ext == "jpeg")
+    };
+    let mut paths: Vec<PathBuf> = entries.iter().filter(|p| is_photo(p)).cloned().collect();
     paths.sort();
     // Anything else in the folder is said once (a PNG, a link that leads nowhere), so a
     // photo left out is not left out unnoticed.
     let others: Vec<String> = entries
         .iter()
-        .filter(|p| !paths.contains(p) && !p.is_dir())
+        .filter(|p| !is_photo(p) && !p.is_dir())
         .map(|p| {
             let name = p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
             if p.is_symlink() && !p.exists() {
@@ -835,12 +848,11 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     }
     // One folder, not a tree: said, so photos in a subfolder are not missed unnoticed.
     // (A link to the folder itself or above it is not a subfolder.)
+    let here = dir.canonicalize().ok();
     let subfolders = entries
         .iter()
         .filter(|p| {
-            p.is_dir()
-                && !std::fs::canonicalize(p)
-                    .is_ok_and(|c| dir.canonicalize().is_ok_and(|d| d.starts_with(&c)))
+            p.is_dir() && !p.canonicalize().is_ok_and(|c| here.as_ref().is_some_and(|d| d.starts_with(&c)))
         })
         .count();
     if subfolders > 0 {
@@ -864,18 +876,16 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         match read_tags(p) {
             Ok(t) => match exif_seconds(&t.time) {
                 Some(s) => photos.push((s, p.clone(), t)),
-                None => {
-                    let why = format!("capture time `{}` is not a date (a camera clock never set?)", t.time);
-                    tracing::warn!("skipped {}: {why}", t.name);
-                    report.skipped.push((t.name.clone(), why))
-                }
+                None => report.skip(
+                    &t.name,
+                    format!("capture time `{}` is not a date (a camera clock never set?)", t.time),
+                ),
             },
             Err(e) => {
                 let name = p.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
-                tracing::warn!("skipped {e}");
                 // The reason without the name `read_tags` puts first (the report names it).
                 let why = e.strip_prefix(&format!("{name}: ")).unwrap_or(&e).to_string();
-                report.skipped.push((name, why));
+                report.skip(&name, why);
             }
         }
     }
@@ -886,9 +896,7 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     let mut seen: std::collections::BTreeMap<(u32, u64), String> = std::collections::BTreeMap::new();
     photos.retain(|(_, _, t)| match seen.get(&t.file_id) {
         Some(first) => {
-            let why = format!("the same file as {first}");
-            tracing::warn!("skipped {}: {why}", t.name);
-            report.skipped.push((t.name.clone(), why));
+            report.skip(&t.name, format!("the same file as {first}"));
             false
         }
         None => {
@@ -911,9 +919,10 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
                 })
                 .unwrap_or(false);
         if !decoded {
-            let why = format!("not an image OpenCV can decode (its header says {}x{})", t.width, t.height);
-            tracing::warn!("skipped {}: {why}", t.name);
-            report.skipped.push((t.name.clone(), why));
+            report.skip(
+                &t.name,
+                format!("not an image OpenCV can decode (its header says {}x{})", t.width, t.height),
+            );
         }
         decoded
     });
@@ -930,54 +939,39 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
     if photos.iter().any(|(_, _, t)| t.vendor != "exif") {
         let (keep, plain): (Vec<_>, Vec<_>) = photos.into_iter().partition(|(_, _, t)| t.vendor != "exif");
         for (_, _, t) in plain {
-            let why = "EXIF GPS but no attitude tags, among photos that have them".to_string();
-            tracing::warn!("skipped {}: {why}", t.name);
-            report.skipped.push((t.name, why));
+            report.skip(&t.name, "EXIF GPS but no attitude tags, among photos that have them".into());
         }
         photos = keep;
     }
-    // One camera per dataset: photos of another kind of tags, or (below) of another size,
-    // are the fewer ones, skipped and named, not the end of the import.
+    // One camera per dataset: photos of another kind of tags or of another size are the
+    // fewer ones, skipped and named, not the end of the import.
     photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    let vendor = most_common(photos.iter().map(|(_, _, t)| t.vendor.clone()));
-    photos.retain(|(_, _, t)| {
-        let keep = t.vendor == vendor;
-        if !keep {
-            let why = format!("{} tags among {vendor} photos: one camera per dataset", t.vendor);
-            tracing::warn!("skipped {}: {why}", t.name);
-            report.skipped.push((t.name.clone(), why));
-        }
-        keep
-    });
-    let size = most_common(photos.iter().map(|(_, _, t)| (t.width, t.height)));
-    photos.retain(|(_, _, t)| {
-        let keep = (t.width, t.height) == size;
-        if !keep {
-            let why = format!(
-                "{}x{} among {}x{} photos: one camera per dataset",
-                t.width, t.height, size.0, size.1
-            );
-            tracing::warn!("skipped {}: {why}", t.name);
-            report.skipped.push((t.name.clone(), why));
-        }
-        keep
-    });
+    keep_the_most_common(
+        &mut photos,
+        &mut report,
+        |t| t.vendor.clone(),
+        |its, kept| format!("{its} tags among {kept} photos: one camera per dataset"),
+    );
+    keep_the_most_common(
+        &mut photos,
+        &mut report,
+        |t| (t.width, t.height),
+        |its, kept| format!("{}x{} among {}x{} photos: one camera per dataset", its.0, its.1, kept.0, kept.1),
+    );
     // A photo far from the survey (a GPS fix from elsewhere, a corrupted tag) is skipped:
     // the survey is where most photos are within `SURVEY_RADIUS_M` of one of them.
     let far = far_from_the_survey(&photos.iter().map(|(_, _, t)| (t.lat_deg, t.lon_deg)).collect::<Vec<_>>());
-    let mut i = 0;
-    photos.retain(|(_, _, t)| {
-        let d = far[i];
-        i += 1;
-        if let Some(km) = d {
-            let why = format!(
-                "{km:.0} km from the survey (the most photos within {} km of one another): a wrong GPS tag?",
-                SURVEY_RADIUS_M / 1000.0
+    let mut far = far.into_iter();
+    photos.retain(|(_, _, t)| match far.next().flatten() {
+        Some(km) => {
+            let within = SURVEY_RADIUS_M / 1000.0;
+            report.skip(
+                &t.name,
+                format!("{km:.0} km from the survey (the most photos within {within} km of one another): a wrong GPS tag?"),
             );
-            tracing::warn!("skipped {}: {why}", t.name);
-            report.skipped.push((t.name.clone(), why));
+            false
         }
-        d.is_none()
+        None => true,
     });
     let body_mounted = photos[0].2.vendor == "sensefly" || photos[0].2.vendor == "exif";
     let needs_ground = matches!(photos[0].2.vendor.as_str(), "exif" | "parrot");
@@ -1176,10 +1170,29 @@ mod tests {
         assert!(far_from_the_survey(&corridor).iter().all(Option::is_none), "40 km of one line");
     }
 
+    /// The size most photos have is kept, whichever comes first; of equal groups, the
+    /// earliest photo's.
     #[test]
-    fn the_most_common_value_wins_and_the_first_of_equals() {
-        assert_eq!(most_common([(2000, 1125), (4000, 2250), (4000, 2250)].into_iter()), (4000, 2250));
-        assert_eq!(most_common(["sensefly", "dji"].into_iter()), "sensefly");
+    fn the_most_common_camera_is_kept_and_of_equals_the_earliests() {
+        let photo = |name: &str, width: u32| {
+            (0.0, PathBuf::from(name), PhotoTags { name: name.into(), width, ..PhotoTags::default() })
+        };
+        let names = |p: &[Photo]| p.iter().map(|(_, _, t)| t.name.clone()).collect::<Vec<_>>();
+        let keep = |mut photos: Vec<Photo>| {
+            let mut report = ImportReport::default();
+            keep_the_most_common(
+                &mut photos,
+                &mut report,
+                |t| t.width,
+                |its, kept| format!("{its} among {kept}"),
+            );
+            (names(&photos), report.skipped)
+        };
+        let (kept, skipped) = keep(vec![photo("a", 2000), photo("b", 4000), photo("c", 4000)]);
+        assert_eq!(kept, ["b", "c"]);
+        assert_eq!(skipped, [("a".to_string(), "2000 among 4000".to_string())]);
+        let (kept, _) = keep(vec![photo("a", 2000), photo("b", 4000)]);
+        assert_eq!(kept, ["a"]);
     }
 
     /// Each photo's numbers are checked, each problem named: before, only the first

@@ -182,11 +182,7 @@ impl Drop for StagedDir {
 /// `summary.json`), which are replaced whole, so no file of the earlier run stays beside the
 /// new ones. A folder of other files, given as `--out` by mistake, is refused, not replaced.
 pub fn begin_results(out: &Path) -> Result<StagedDir, String> {
-    // Through a link as well: these calls follow it.
-    let other_files = out.is_dir()
-        && !out.join("summary.json").is_file()
-        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
-    if other_files {
+    if holds_other_files(out, &["summary.json"]) {
         return Err(format!(
             "{} holds files that are not mavloc results (no summary.json): give a new or empty folder as --out",
             out.display()
@@ -200,11 +196,7 @@ pub fn begin_results(out: &Path) -> Result<StagedDir, String> {
 /// folder of other files (the message's own advice on any folder that was not empty)
 /// deleted them.
 pub fn begin_dataset(out: &Path, replace: bool) -> Result<StagedDir, String> {
-    let other_files = out.is_dir()
-        && !out.join(crate::dataset::CAMERA_FILE).is_file()
-        && !out.join(crate::dataset::TELEMETRY_FILE).is_file()
-        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false);
-    if other_files {
+    if holds_other_files(out, &[crate::dataset::CAMERA_FILE, crate::dataset::TELEMETRY_FILE]) {
         return Err(format!(
             "{} holds files that are not a mavloc dataset (no {} or {}): give a new or empty folder as --out (--force replaces only a dataset)",
             out.display(),
@@ -213,6 +205,14 @@ pub fn begin_dataset(out: &Path, replace: bool) -> Result<StagedDir, String> {
         ));
     }
     StagedDir::begin(out, replace)
+}
+
+/// Whether `out` is a folder with something in it and none of the files that mark what
+/// mavloc writes there (`marks`). Through a link as well: these calls follow it.
+fn holds_other_files(out: &Path, marks: &[&str]) -> bool {
+    out.is_dir()
+        && !marks.iter().any(|m| out.join(m).is_file())
+        && fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(false)
 }
 
 /// Whether process `pid` exists (`kill(pid, 0)`; EPERM: it exists under another user).

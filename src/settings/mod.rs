@@ -627,7 +627,8 @@ pub fn preflight(loaded: &Loaded, files: &FileChecks) -> Vec<Problem> {
     }
     let dir = (files.state_dir)(s);
     if let Some(why) = unmakeable_dir(&dir) {
-        let from_systemd = std::env::var_os("STATE_DIRECTORY").is_some_and(|v| !v.is_empty());
+        // Another directory than the setting's is systemd's ($STATE_DIRECTORY wins).
+        let from_systemd = dir != Path::new(&s.daemon.state_dir);
         problems.push(Problem {
             key: "daemon.state_dir".into(),
             value: Some(quote(&dir.to_string_lossy())),

@@ -411,10 +411,20 @@ fn a_reimport_replaces_the_dataset_whole_and_keeps_the_edited_settings() {
 
 /// A copy of a photo with one XMP value replaced by another of the same length.
 fn with_value(from: &Path, to: &Path, old: &str, new: &str) {
+    replaced(from, to, old, new, 1);
+}
+
+/// A copy of a photo with its first `at_most` occurrences of `old` replaced by `new`, of
+/// the same length (so the JPEG stays valid); there must be one.
+fn replaced(from: &Path, to: &Path, old: &str, new: &str, at_most: usize) {
     assert_eq!(old.len(), new.len());
     let mut bytes = std::fs::read(from).unwrap();
-    let at = bytes.windows(old.len()).position(|w| w == old.as_bytes()).expect("value present");
-    bytes[at..at + new.len()].copy_from_slice(new.as_bytes());
+    let mut n = 0;
+    while let Some(at) = bytes.windows(old.len()).position(|w| w == old.as_bytes()).filter(|_| n < at_most) {
+        bytes[at..at + new.len()].copy_from_slice(new.as_bytes());
+        n += 1;
+    }
+    assert!(n > 0, "{old} not in {}", from.display());
     std::fs::write(to, bytes).unwrap();
 }
 
@@ -764,24 +774,11 @@ fn walk(d: &Path) -> Vec<PathBuf> {
     out
 }
 
-/// A copy of a photo with every occurrence of `old` replaced by `new` (same length).
-fn with_every(from: &Path, to: &Path, old: &str, new: &str) {
-    assert_eq!(old.len(), new.len());
-    let mut bytes = std::fs::read(from).unwrap();
-    let mut n = 0;
-    while let Some(at) = bytes.windows(old.len()).position(|w| w == old.as_bytes()) {
-        bytes[at..at + new.len()].copy_from_slice(new.as_bytes());
-        n += 1;
-    }
-    assert!(n > 0, "{old} not in {}", from.display());
-    std::fs::write(to, bytes).unwrap();
-}
-
 /// Photos whose tags hold what no drone photo can (a gimbal pitch of 1e308 deg, an
 /// altitude of 1e308 m, a yaw that is not a number, a capture time of zeros from a clock
-/// never set), and an empty file, are each skipped with the reason, and the rest import. They used to be
-/// imported without a word (or named as missing tags): positions 1e302 m off, a dataset
-/// `mavloc area` could not read. `--force` replaces a dataset, never a folder of other
+/// never set), and an empty file, are each skipped with the reason, and the rest import.
+/// They used to be imported without a word (or named as missing tags): positions 1e302 m
+/// off, a dataset `mavloc area` could not read. `--force` replaces a dataset, never a folder of other
 /// files, which it used to delete.
 #[test]
 fn photos_with_impossible_values_are_named_and_skipped_and_force_replaces_only_a_dataset() {
@@ -798,11 +795,13 @@ fn photos_with_impossible_values_are_named_and_skipped_and_force_replaces_only_a
     std::fs::copy(sample().join("DJI_0032.JPG"), photos.join("c.jpg")).unwrap();
     with_value(&sample().join("DJI_0031.JPG"), &photos.join("d.jpg"), "\"+198.71\"", "\"+1e+308\"");
     with_value(&sample().join("DJI_0030.JPG"), &photos.join("e.jpg"), "\"+44.20\"", "\"+ab.cd\"");
-    with_every(
+    // Every copy of the time (EXIF writes it more than once).
+    replaced(
         &sample().join("DJI_0032.JPG"),
         &photos.join("f.jpg"),
         "2016:06:23 16:33:41",
         "0000:00:00 00:00:00",
+        usize::MAX,
     );
     std::fs::write(photos.join("g.jpg"), b"").unwrap();
     let out = dir.path().join("ds");
