@@ -187,6 +187,15 @@ impl World {
         }
     }
 
+    /// Makes now what rendering makes on its first frame (the procedural floor: seconds
+    /// of Perlin noise), for a caller that renders soon and would rather wait before it
+    /// starts (a simulated camera before the vehicle takes off).
+    pub fn prepare_to_render(&self) {
+        if self.floor.is_some() {
+            self.ground();
+        }
+    }
+
     fn ground(&self) -> &Texture {
         self.ground.get_or_init(|| {
             let (seed, size) = self.floor.expect("a world without a texture file has a procedural floor");

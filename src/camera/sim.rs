@@ -56,7 +56,15 @@ impl SimCamera {
     pub fn open(s: &Settings, ctx: SourceContext) -> Result<SimCamera, SourceError> {
         let scenario = Scenario::load(&s.camera.scenario)
             .map_err(|e| SourceError::Fatal(format!("camera.scenario: {e}")))?;
+        let built = std::time::Instant::now();
         let world = World::build(&scenario).map_err(SourceError::Fatal)?;
+        world.prepare_to_render();
+        // Seconds on a loaded machine: said, so that a slow start has its reason.
+        tracing::info!(
+            "sim camera: world of {} built in {:.1} s; frames follow the vehicle's poses",
+            s.camera.scenario,
+            built.elapsed().as_secs_f64()
+        );
         // The world lives as long as the daemon: the sim camera is opened once (it cannot
         // fail after opening), and the renderer borrows the world.
         let world: &'static World = Box::leak(Box::new(world));

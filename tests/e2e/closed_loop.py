@@ -74,6 +74,18 @@ daemon = subprocess.Popen(
      "--set", f"daemon.state_dir={STATE}", "--set", f"daemon.pipeline={MODE}",
      "--set", "camera.source=sim", "--set", f"camera.scenario={scenario}"] + daemon_sets,
     stdout=log, stderr=subprocess.STDOUT, env=env, preexec_fn=die_with_parent)
+# The vehicle takes off once the daemon's simulated camera has built its world (its log
+# says so), as a drone waits on the ground for its companion computer: the build takes 1 s
+# on an idle machine and 15 s on a loaded one, and a mission already under way would fly
+# past what the test waits for (the landing zone) before the first frame. Bounded: a
+# daemon that never says so is judged by what the relay sees.
+ready_by = time.time() + 60
+while time.time() < ready_by and daemon.poll() is None:
+    with open(os.path.join(STATE, "mavloc.log")) as f:
+        if "sim camera: world of" in f.read():
+            break
+    time.sleep(0.1)
+seen_ready_s = 60 - (ready_by - time.time())
 vehicle = subprocess.Popen(
     [BIN, "sim", "vehicle", "--scenario", scenario,
      "--mavlink", f"udpout:127.0.0.1:{from_vehicle.getsockname()[1]}",
@@ -174,5 +186,6 @@ for p in (daemon, vehicle):
     except subprocess.TimeoutExpired:
         p.kill()
 seen["daemon_exit"] = daemon.returncode
+seen["daemon_ready_s"] = seen_ready_s
 seen["elapsed_s"] = time.time() - start
 print(json.dumps(seen))
