@@ -138,7 +138,21 @@ pub enum ImportCommand {
         /// track.
         #[arg(long, value_parser = number, allow_hyphen_values = true, value_name = "METRES")]
         ground_alt_m: Option<f64>,
+        /// What the photos' absolute altitudes are heights above: `ellipsoid` (WGS84; the
+        /// default for DJI, whose AbsoluteAltitude is geodetic height) or `sea-level` (the
+        /// default for the others, as EXIF defines GPSAltitude). The dataset's are above sea
+        /// level (EGM96).
+        #[arg(long, value_parser = altitude_datum, value_name = "ellipsoid|sea-level")]
+        altitude_datum: Option<crate::import::AltitudeDatum>,
     },
+}
+
+fn altitude_datum(s: &str) -> Result<crate::import::AltitudeDatum, String> {
+    match s {
+        "ellipsoid" => Ok(crate::import::AltitudeDatum::Ellipsoid),
+        "sea-level" => Ok(crate::import::AltitudeDatum::SeaLevel),
+        _ => Err(format!("`{s}`: ellipsoid or sea-level")),
+    }
 }
 
 #[derive(Debug, Args)]

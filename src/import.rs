@@ -621,9 +621,38 @@ pub struct ImportOptions {
     /// photos' GPS altitude datum (m), where new landmarks start (the photos do not say how
     /// high above the ground they were taken).
     pub ground_alt_m: Option<f64>,
+    /// What the photos' absolute altitudes are heights above; default by vendor
+    /// ([`AltitudeDatum::of_vendor`]).
+    pub altitude_datum: Option<AltitudeDatum>,
     /// Set (by Ctrl-C) to stop after the photo in hand: the import then fails, its staging
     /// folder is removed and `out` stays as it was.
     pub stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
+}
+
+/// What a photo's absolute altitude is a height above. A dataset's altitudes are above
+/// mean sea level (the EGM96 geoid), as KML shows them; one above the WGS84 ellipsoid is
+/// taken down to it by the geoid's undulation there (tens of metres in places: -28.7 m at
+/// the DJI sample's lake shore).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum AltitudeDatum {
+    /// The WGS84 ellipsoid: DJI's AbsoluteAltitude, which DJI documents as geodetic height
+    /// (the Zenmuse P1's XMP field list) and which on the sample (Phantom 3, FC300S) puts
+    /// the lake shore 28 m below the lake's 183 m above sea level, the geoid's undulation
+    /// there to 0.5 m, until taken down to the geoid.
+    Ellipsoid,
+    /// Mean sea level: EXIF's GPSAltitude as the EXIF standard defines it.
+    SeaLevel,
+}
+
+impl AltitudeDatum {
+    /// DJI's tags above the ellipsoid, every other vendor's above sea level.
+    pub fn of_vendor(vendor: &str) -> AltitudeDatum {
+        if vendor == "dji" {
+            AltitudeDatum::Ellipsoid
+        } else {
+            AltitudeDatum::SeaLevel
+        }
+    }
 }
 
 /// What an import did.
@@ -635,6 +664,9 @@ pub struct ImportReport {
     pub fx_px: f64,
     pub intrinsics_from: String,
     pub origin: Option<Geodetic>,
+    /// How the photos' altitudes were read (their datum and, for the ellipsoid, the geoid's
+    /// undulation at the origin).
+    pub altitudes: String,
     /// Set when the user's edited settings file was kept (and why).
     pub kept_settings: Option<String>,
     /// Median ground disagreement of consecutive overlapping photos, after any turn, m.
@@ -1013,6 +1045,26 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             "--ground-alt-m is for photos without a height above take-off; these have it, so it is not used"
         );
     }
+    // Heights above the ellipsoid to heights above sea level, each at its own place (after
+    // the ground's altitude above, which is in the photos' own datum).
+    let datum = opts.altitude_datum.unwrap_or_else(|| AltitudeDatum::of_vendor(&photos[0].2.vendor));
+    let n_m = mavloc_data::geoid::undulation_m(photos[0].2.lat_deg, photos[0].2.lon_deg);
+    report.altitudes = match datum {
+        AltitudeDatum::Ellipsoid => {
+            for (_, _, t) in photos.iter_mut() {
+                t.absolute_alt_m -= mavloc_data::geoid::undulation_m(t.lat_deg, t.lon_deg);
+            }
+            format!(
+                "the photos' altitudes are above the WGS84 ellipsoid (--altitude-datum ellipsoid{}): taken to above sea level by the EGM96 geoid's undulation there ({n_m:+.1} m)",
+                if opts.altitude_datum.is_none() { ", DJI's" } else { "" }
+            )
+        }
+        AltitudeDatum::SeaLevel => format!(
+            "the photos' altitudes are above sea level (--altitude-datum sea-level{}; the ellipsoid is {:.1} m below it here)",
+            if opts.altitude_datum.is_none() { ", EXIF's" } else { "" },
+            -n_m
+        ),
+    };
     let mount_deg = opts.mount_deg.unwrap_or([0.0, -90.0, 0.0]);
     // By capture time; the name breaks ties (DJI writes whole seconds).
     photos.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));

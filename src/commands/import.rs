@@ -6,7 +6,7 @@ use crate::cli::ImportCommand;
 
 pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
     match command {
-        ImportCommand::Photos { dir, out, calibration, force, mount_deg, ground_alt_m } => {
+        ImportCommand::Photos { dir, out, calibration, force, mount_deg, ground_alt_m, altitude_datum } => {
             // Skipped photos and the image-up check speak through the log.
             crate::logging::init("info");
             let stop = super::stop_on_ctrl_c()?;
@@ -15,6 +15,7 @@ pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
                 replace: force,
                 mount_deg,
                 ground_alt_m,
+                altitude_datum,
                 stop: Some(stop.clone()),
             };
             let r = match crate::import::import_photos(&dir, &out, &opts) {
@@ -30,6 +31,9 @@ pub fn run(command: ImportCommand) -> anyhow::Result<ExitCode> {
                 r.fx_px,
                 r.intrinsics_from
             );
+            if let Some(o) = &r.origin {
+                println!("take-off at {:.2} m above sea level: {}", o.alt_m, r.altitudes);
+            }
             for (name, why) in &r.skipped {
                 println!("  skipped {name}: {why}");
             }

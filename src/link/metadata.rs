@@ -196,10 +196,21 @@ pub fn general_json(component_id: u8, parameters: &[u8]) -> String {
         "metadataTypes": [{
             "type": 1,
             "uri": format!("mftp://[;comp={component_id}]{PARAMETERS_PATH}"),
-            "fileCrc": crc32fast::hash(parameters),
+            "fileCrc": crc32(parameters),
         }],
     }))
     .expect("serialises")
+}
+
+/// MAVLink's CRC32 of `bytes`, as FTP's CalcFileCRC32 and COMPONENT_METADATA's `file_crc`
+/// carry it (mavlink.io/en/guide/crc.html): the CRC-32 polynomial of zlib and Ethernet,
+/// but started at 0 with no final inversion (NuttX's `crc32part`, which PX4 uses), so
+/// zlib's value is not it. crc32fast computes the standard one: its state is the
+/// inverted register, hence the two inversions.
+pub fn crc32(bytes: &[u8]) -> u32 {
+    let mut h = crc32fast::Hasher::new_with_initial(!0);
+    h.update(bytes);
+    !h.finalize()
 }
 
 /// The files served over MAVLink FTP: path -> bytes.
@@ -254,7 +265,7 @@ mod tests {
         let t = &general["metadataTypes"][0];
         assert_eq!(t["type"], 1);
         assert_eq!(t["uri"], "mftp://[;comp=191]/mavloc/parameters.json");
-        assert_eq!(t["fileCrc"], crc32fast::hash(&files[PARAMETERS_PATH]));
+        assert_eq!(t["fileCrc"], crc32(&files[PARAMETERS_PATH]));
         let p: serde_json::Value = serde_json::from_slice(&files[PARAMETERS_PATH]).unwrap();
         let list = p["parameters"].as_array().unwrap();
         assert_eq!(list.len(), PARAMS.len());
@@ -265,6 +276,15 @@ mod tests {
         }
         let pipe = list.iter().find(|i| i["name"] == "LOC_PIPELINE").unwrap();
         assert_eq!(pipe["values"][2]["description"], "indoor");
+    }
+
+    #[test]
+    fn crc32_is_mavlinks_not_zlibs() {
+        // "123456789" through NuttX's table-driven crc32part from 0 (worked out apart from
+        // crc32fast); zlib's CRC-32 of it is the check value 0xCBF43926.
+        assert_eq!(crc32(b"123456789"), 0x2DFD_2D88);
+        assert_eq!(crc32fast::hash(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
     }
 
     #[test]

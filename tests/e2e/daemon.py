@@ -570,6 +570,41 @@ def ftp_get(c, path, local):
         return f.read()
 
 
+def mavlink_crc32(data):
+    """MAVLink's CRC32 (mavlink.io/en/guide/crc.html): the CRC-32 polynomial, reflected,
+    started at 0 and not inverted at the end; zlib's crc32 is not it."""
+    crc = 0
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xEDB88320 if crc & 1 else crc >> 1
+    return crc
+
+
+def ftp_crc(c, path):
+    """CalcFileCRC32 for `path` through pymavlink's FTP client, which only logs the value."""
+    import logging
+    found = []
+
+    class Catch(logging.Handler):
+        def emit(self, record):
+            if str(record.msg).startswith("crc: "):
+                found.append(record.args[1])
+
+    catch = Catch()
+    root = logging.getLogger()
+    old_level = root.level
+    root.addHandler(catch)
+    root.setLevel(logging.INFO)
+    try:
+        ret = ftp_client(c).cmd_crc([path])
+    finally:
+        root.removeHandler(catch)
+        root.setLevel(old_level)
+    assert ret.error_code == 0 and found, f"FTP crc {path}: error {ret.error_code}"
+    return found[0]
+
+
 def component_metadata(c, timeout=5.0):
     """COMPONENT_METADATA (397), decoded by hand: pymavlink 2.4.50's dialects predate it,
     so it arrives as UNKNOWN_397 holding the whole MAVLink 2 frame."""
@@ -593,8 +628,7 @@ def component_metadata(c, timeout=5.0):
 def test_component_metadata_over_mavlink_ftp():
     """COMPONENT_METADATA names general.json; both files come over MAVLink FTP with the
     CRCs announced, and parameters.json describes every parameter PARAM_VALUE lists; the
-    area pipeline's result set is served beside them."""
-    import zlib
+    area pipeline's result set is served beside them. The CRCs are MAVLink's CRC32."""
     d = Daemon()
     try:
         c = d.connect()
@@ -604,11 +638,12 @@ def test_component_metadata_over_mavlink_ftp():
         assert time_boot_ms > 0
         assert uri.startswith(f"mftp://[;comp={MAVLOC_COMP}]/"), uri
         general_bytes = ftp_get(c, uri.split("]", 1)[1], os.path.join(d.dir, "general.json"))
-        assert zlib.crc32(general_bytes) == file_crc, "general.json's CRC is the one announced"
+        assert mavlink_crc32(general_bytes) == file_crc, "general.json's CRC is the one announced"
+        assert ftp_crc(c, uri.split("]", 1)[1]) == file_crc, "CalcFileCRC32 gives the same"
         general = json.loads(general_bytes)
         (entry,) = [t for t in general["metadataTypes"] if t["type"] == 1]
         params_bytes = ftp_get(c, entry["uri"].split("]", 1)[1], os.path.join(d.dir, "parameters.json"))
-        assert zlib.crc32(params_bytes) == entry["fileCrc"]
+        assert mavlink_crc32(params_bytes) == entry["fileCrc"]
         described = {p["name"]: p for p in json.loads(params_bytes)["parameters"]}
         listed = {v.param_id for v in param_list(c).values()}
         assert set(described) == listed, set(described) ^ listed

@@ -285,6 +285,60 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
     assert!(worst < 1.0, "a landmark {worst:.2} m off the median height {median:.2} m");
     let kml = std::fs::read_to_string(result.join("area.kml")).unwrap();
     assert_eq!(kml.matches("<Point>").count() as u64, n, "every landmark in the KML");
+    // At the lake's height above sea level: Lake Superior's surface is about 183.4 m (its
+    // chart datum 183.2 m, IGLD 1985), and the shore's rocks a little above it. DJI's
+    // altitudes taken as above sea level put them at 155 m (outside audit, session 39): 28 m
+    // under the water in Google Earth, the geoid's undulation there.
+    let mut heights: Vec<f64> = geo["features"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|f| f["properties"]["kind"] == "landmark")
+        .map(|f| f["properties"]["height_amsl_m"].as_f64().unwrap())
+        .collect();
+    heights.sort_by(f64::total_cmp);
+    let above_sea = heights[heights.len() / 2];
+    assert!((above_sea - 183.4).abs() < 1.5, "the shore {above_sea:.2} m above sea level, the lake 183.4 m");
+}
+
+/// DJI's AbsoluteAltitude is a height above the WGS84 ellipsoid: the import takes it down
+/// to sea level by the geoid's undulation (EGM96: -28.7 m at the sample's shore), and says
+/// so; `--altitude-datum sea-level` takes the tags as they are. Only the origin's height
+/// changes: the photos keep their places relative to it.
+#[test]
+fn dji_altitudes_are_taken_from_the_ellipsoid_to_sea_level() {
+    use mavloc::import::AltitudeDatum;
+    let dir = tempfile::tempdir().unwrap();
+    let ellipsoid = import_photos(&sample(), &dir.path().join("e"), &ImportOptions::default()).unwrap();
+    let sea = ImportOptions { altitude_datum: Some(AltitudeDatum::SeaLevel), ..Default::default() };
+    let sea = import_photos(&sample(), &dir.path().join("s"), &sea).unwrap();
+    let (e, s) = (ellipsoid.origin.unwrap(), sea.origin.unwrap());
+    // Take-off 40.10 m below the first photo's 198.61 m, as tagged.
+    assert!((s.alt_m - 158.51).abs() < 1e-6, "{s:?}");
+    let n = mavloc_data::geoid::undulation_m(e.lat_deg, e.lon_deg);
+    assert!((-29.0..-28.4).contains(&n), "EGM96 at Duluth's shore: {n}");
+    assert!((e.alt_m - (158.51 - n)).abs() < 1e-6, "{e:?}");
+    assert!(
+        ellipsoid.altitudes.contains("ellipsoid") && ellipsoid.altitudes.contains("-28.7"),
+        "{}",
+        ellipsoid.altitudes
+    );
+    assert!(sea.altitudes.contains("sea-level"), "{}", sea.altitudes);
+    let (de, ds) = (
+        mavloc_data::Dataset::open(&dir.path().join("e")).unwrap(),
+        mavloc_data::Dataset::open(&dir.path().join("s")).unwrap(),
+    );
+    assert_eq!(de.camera.origin.alt_m, e.alt_m, "the dataset's origin");
+    for (a, b) in de.records.iter().zip(&ds.records) {
+        for k in 0..3 {
+            assert!(
+                (a.measured.position[k] - b.measured.position[k]).abs() < 1e-3,
+                "{:?} {:?}",
+                a.measured,
+                b.measured
+            );
+        }
+    }
 }
 
 /// A photo the alignment cannot reach (here a blank frame: no tie point) keeps its tag's

@@ -258,7 +258,7 @@ impl FtpServer {
                 return None;
             }
             CALC_FILE_CRC32 => match self.files.get(&path()) {
-                Some(f) => ack(&crc32fast::hash(f).to_le_bytes(), h.session, 0),
+                Some(f) => ack(&crate::link::metadata::crc32(f).to_le_bytes(), h.session, 0),
                 None => nak(FILE_NOT_FOUND),
             },
             LIST_DIRECTORY => {
@@ -469,7 +469,7 @@ mod tests {
         let (_, d) = parse(&r);
         assert_eq!(
             u32::from_le_bytes(d.try_into().unwrap()),
-            crc32fast::hash(s.files["/mavloc/big.bin"].as_slice())
+            crate::link::metadata::crc32(s.files["/mavloc/big.bin"].as_slice())
         );
     }
 

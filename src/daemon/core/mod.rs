@@ -1267,7 +1267,7 @@ impl Core {
                     format!("mftp://[;comp={}]{}", self.component_id, crate::link::metadata::GENERAL_PATH);
                 let m = MavMessage::COMPONENT_METADATA(COMPONENT_METADATA_DATA {
                     time_boot_ms: (rx.secs() * 1000.0) as u32,
-                    file_crc: crc32fast::hash(general),
+                    file_crc: crate::link::metadata::crc32(general),
                     uri: uri.as_str().into(),
                 });
                 self.reply(m);
