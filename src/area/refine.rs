@@ -30,6 +30,9 @@ use rustc_hash::FxHashMap;
 use crate::geometry::{CameraPose, Intrinsics, Pixel, Rot3, Vec3};
 use mavloc_data::results::LandmarkRecord;
 
+/// The relative decrease of the cost below which a solve has converged.
+const FUNCTION_TOLERANCE: f64 = 1e-6;
+
 /// Settings of a refinement.
 #[derive(Clone, Debug)]
 pub struct RefineParams {
@@ -1013,7 +1016,11 @@ impl Problem<'_> {
                     .collect();
                 let (new_cost, _) = cost_and_errors(&new_xs, &new_theta);
                 if new_cost < cost {
-                    improved = (cost - new_cost) > 1e-9 * cost;
+                    // Converged once a round gains less than a millionth of the cost
+                    // (Ceres' default function tolerance): the tail below it moves
+                    // nothing that matters, and on a 240-frame video it was a third of the
+                    // rounds at 0.1-0.4 s of factorisation each (1e-9 before session 39).
+                    improved = (cost - new_cost) > FUNCTION_TOLERANCE * cost;
                     cost = new_cost;
                     xs = new_xs;
                     theta = new_theta;
