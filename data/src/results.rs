@@ -305,12 +305,21 @@ pub fn area_kml(
     landmarks: &[LandmarkRecord],
     borders: &[Vec<Vec3>],
 ) -> String {
-    let esc = |s: &str| s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
+    // XML 1.0 has no place for control characters other than tab and line ends (a folder
+    // name can hold them; lxml and GDAL then refuse the whole file): each becomes U+FFFD.
+    let esc = |s: &str| {
+        let allowed = |c: char| c >= ' ' || matches!(c, '\t' | '\n' | '\r');
+        let s: String = s
+            .chars()
+            .map(|c| if allowed(c) && !matches!(c, '\u{FFFE}' | '\u{FFFF}') { c } else { '\u{FFFD}' })
+            .collect();
+        s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+    };
     let mut s = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<kml xmlns=\"http://www.opengis.net/kml/2.2\">\n<Document>\n");
     let _ = writeln!(s, "<name>{}</name>", esc(name));
     s.push_str(
         "<Style id=\"border\"><LineStyle><color>ff0000ff</color><width>3</width></LineStyle></Style>\n\
-         <Style id=\"landmark\"><IconStyle><scale>0.4</scale></IconStyle></Style>\n",
+         <Style id=\"landmark\"><IconStyle><scale>0.4</scale></IconStyle><LabelStyle><scale>0</scale></LabelStyle></Style>\n",
     );
     for (i, line) in borders.iter().enumerate() {
         let _ = write!(
@@ -328,9 +337,16 @@ pub fn area_kml(
         let g = frame.to_geodetic(&l.position);
         let _ = writeln!(
             s,
-            "<Placemark><name>{}</name><description>sigma {:.2} m, {} observations, {:.2} m above mean sea level</description><styleUrl>#landmark</styleUrl>\
+            "<Placemark><name>{}</name><description>sigma {}, {} observations, {:.2} m above mean sea level</description><styleUrl>#landmark</styleUrl>\
              <Point><altitudeMode>absolute</altitudeMode><coordinates>{:.8},{:.8},{:.3}</coordinates></Point></Placemark>",
-            l.id, l.sigma_max_m, l.observations, g.alt_m, g.lon_deg, g.lat_deg, g.alt_m
+            l.id,
+            // The ground-plane baseline has no uncertainty to give.
+            if l.sigma_max_m.is_finite() { format!("{:.2} m", l.sigma_max_m) } else { "unknown".into() },
+            l.observations,
+            g.alt_m,
+            g.lon_deg,
+            g.lat_deg,
+            g.alt_m
         );
     }
     s.push_str("</Folder>\n</Document>\n</kml>\n");
@@ -457,8 +473,16 @@ mod tests {
         let amsl = point["properties"]["height_amsl_m"].as_f64().unwrap();
         assert!((point["geometry"]["coordinates"][2].as_f64().unwrap() - amsl - n).abs() < 0.01);
         // KML: absolute altitudes above mean sea level, as mavloc's own.
-        let kml = area_kml(&frame, "a <test>", &sample(), &border);
-        assert!(kml.contains("<name>a &lt;test&gt;</name>"));
+        let kml = area_kml(&frame, "a <test>\u{1}", &sample(), &border);
+        assert!(kml.contains("<name>a &lt;test&gt;\u{FFFD}</name>"), "no control character in XML");
+        assert!(
+            kml.contains("<LabelStyle><scale>0</scale></LabelStyle>"),
+            "no label on each of 1000 landmarks"
+        );
+        let mut baseline = sample();
+        baseline[0].sigma_max_m = f64::NAN;
+        let plain = area_kml(&frame, "b", &baseline, &border);
+        assert!(!plain.contains("NaN") && plain.contains("sigma unknown,"), "{plain}");
         assert!(kml.contains("<coordinates>10.00000000,57.00000000,20.000 "));
         assert!(kml.contains("<altitudeMode>absolute</altitudeMode>") && !kml.contains("clampToGround"));
         assert!(!kml.contains("ellipsoid"));
