@@ -245,9 +245,16 @@ pub fn landmarks_ply(frame: &LocalFrame, landmarks: &[LandmarkRecord]) -> String
 
 /// Longitude, latitude and height above the WGS84 ellipsoid (RFC 7946's third
 /// coordinate), and the height above mean sea level, of a local point.
+/// Rounded to 1e-8 deg (1.1 mm) and 1 mm: RFC 7946 (sec. 11.2) asks for no more precision
+/// than the data has, and full doubles (15 decimals) made the file a quarter larger for
+/// MAVLink FTP over a telemetry radio.
 pub(crate) fn wgs84(frame: &LocalFrame, p: &Vec3) -> ([f64; 3], f64) {
     let g = frame.to_geodetic(p);
-    ([g.lon_deg, g.lat_deg, crate::geoid::ellipsoid_height_m(g.lat_deg, g.lon_deg, g.alt_m)], g.alt_m)
+    // Divided by the power of ten, not multiplied by its inverse: the nearest double to
+    // the decimal, which serde_json then writes with no trailing digits.
+    let round = |v: f64, per_unit: f64| (v * per_unit).round() / per_unit;
+    let h = crate::geoid::ellipsoid_height_m(g.lat_deg, g.lon_deg, g.alt_m);
+    ([round(g.lon_deg, 1e8), round(g.lat_deg, 1e8), round(h, 1e3)], g.alt_m)
 }
 
 /// `area.geojson`: landmarks as points and border lines as line strings, in WGS84 with
@@ -261,7 +268,7 @@ pub fn area_geojson(frame: &LocalFrame, landmarks: &[LandmarkRecord], borders: &
         let mut props = JsonObject::new();
         props.insert("kind".into(), "landmark".into());
         props.insert("id".into(), l.id.into());
-        props.insert("sigma_max_m".into(), l.sigma_max_m.into());
+        props.insert("sigma_max_m".into(), ((l.sigma_max_m * 1000.0).round() / 1000.0).into());
         props.insert("observations".into(), l.observations.into());
         props.insert("height_amsl_m".into(), ((amsl * 1000.0).round() / 1000.0).into());
         features.push(Feature {
@@ -467,8 +474,15 @@ mod tests {
         // GeoJSON: ellipsoid heights (EGM96 N is about +41.7 m at 57 N 10 E), AMSL stated.
         let h = line[0][2].as_f64().unwrap();
         let n = crate::geoid::undulation_m(57.0, 10.0);
-        assert!((h - (20.0 + n)).abs() < 1e-6 && n > 35.0 && n < 45.0, "h {h}, N {n}");
+        assert!((h - (20.0 + n)).abs() < 0.6e-3 && n > 35.0 && n < 45.0, "h {h}, N {n}");
         assert!(g["heights"].as_str().unwrap().contains("ellipsoid"));
+        // No more digits than the data has (RFC 7946 sec. 11.2): 8 decimals of a degree.
+        for f in g["features"].as_array().unwrap() {
+            let text = f["geometry"]["coordinates"].to_string();
+            let decimals =
+                text.split(['[', ',', ']']).filter_map(|n| n.split_once('.')).map(|(_, d)| d.len());
+            assert!(decimals.max().unwrap() <= 8, "{text}");
+        }
         let point = &g["features"][0];
         let amsl = point["properties"]["height_amsl_m"].as_f64().unwrap();
         assert!((point["geometry"]["coordinates"][2].as_f64().unwrap() - amsl - n).abs() < 0.01);
