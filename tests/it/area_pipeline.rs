@@ -46,14 +46,13 @@ fn run_and_eval(dataset: &std::path::Path, out: &std::path::Path, method: AreaMe
 }
 
 /// On the flat coastline the ground-plane assumption holds exactly at the shore, so the
-/// baseline is good there too (it is printed, not asserted against).
+/// baseline is good there too: it is not run here (the cliff's test compares them).
 #[test]
 fn coastline_short_flight_is_accurate() {
     let dir = tempfile::tempdir().unwrap();
     let ds = render("coastline", 240);
     let ukf = run_and_eval(&ds, &dir.path().join("ukf"), AreaMethod::Ukf);
-    let plane = run_and_eval(&ds, &dir.path().join("plane"), AreaMethod::GroundPlane);
-    println!("coastline ukf:\n{ukf}\ncoastline ground plane:\n{plane}");
+    println!("coastline ukf:\n{ukf}");
     assert!(ukf.landmarks >= 60, "{ukf}");
     assert_eq!(ukf.gt20, 0, "{ukf}");
     assert!(ukf.mean_m <= 2.0, "{ukf}");
