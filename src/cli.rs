@@ -132,10 +132,11 @@ pub enum ImportCommand {
         /// to the body in degrees (default 0,-90,0: straight down, image top to the nose).
         #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
         mount_deg: Option<[f64; 3]>,
-        /// Photos with no height above take-off (plain EXIF GPS, Parrot XMP): the
-        /// ground's altitude in the photos' GPS altitude (m). Photos with no attitude tags
-        /// at all are taken as from a camera fixed to a level airframe heading along its
-        /// track.
+        /// The ground's altitude in the photos' altitude datum (m). Needed by photos with
+        /// no height above take-off (plain EXIF GPS, Parrot XMP); for those with one (DJI,
+        /// senseFly) it is the take-off's altitude, replacing the tags' absolute altitude
+        /// (barometric on some DJI models). Photos with no attitude tags at all are taken
+        /// as from a camera fixed to a level airframe heading along its track.
         #[arg(long, value_parser = number, allow_hyphen_values = true, value_name = "METRES")]
         ground_alt_m: Option<f64>,
         /// What the photos' absolute altitudes are heights above: `ellipsoid` (WGS84; the

@@ -617,9 +617,10 @@ pub struct ImportOptions {
     /// body, degrees; default `[0, -90, 0]`, looking straight down with the image's top
     /// towards the nose.
     pub mount_deg: Option<[f64; 3]>,
-    /// For photos with plain EXIF GPS and no attitude tags: the ground's altitude in the
-    /// photos' GPS altitude datum (m), where new landmarks start (the photos do not say how
-    /// high above the ground they were taken).
+    /// The ground's altitude in the photos' altitude datum (m). For photos with no height
+    /// above take-off (plain EXIF GPS, Parrot): where new landmarks start. For photos with
+    /// one (DJI, senseFly): the take-off's altitude, instead of the tags' absolute altitude
+    /// less that height.
     pub ground_alt_m: Option<f64>,
     /// What the photos' absolute altitudes are heights above; default by vendor
     /// ([`AltitudeDatum::of_vendor`]).
@@ -1040,10 +1041,18 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
                 ));
             }
         }
-    } else if opts.ground_alt_m.is_some() {
-        tracing::warn!(
-            "--ground-alt-m is for photos without a height above take-off; these have it, so it is not used"
+    } else if let Some(ground) = opts.ground_alt_m {
+        // Photos with a height above take-off: the ground's altitude stands for the
+        // absolute altitude's take-off (consumer DJI models write a barometric one that
+        // drifts with the weather by tens of metres).
+        let first = &photos[0].2;
+        tracing::info!(
+            "--ground-alt-m {ground} m is the take-off's altitude, where the tags put it at {:.2} m",
+            first.absolute_alt_m - first.relative_alt_m
         );
+        for (_, _, t) in photos.iter_mut() {
+            t.absolute_alt_m = ground + t.relative_alt_m;
+        }
     }
     // Heights above the ellipsoid to heights above sea level, each at its own place (after
     // the ground's altitude above, which is in the photos' own datum).

@@ -303,8 +303,9 @@ fn the_area_pipeline_runs_on_the_imported_photos_with_the_water_segmenter() {
 
 /// DJI's AbsoluteAltitude is a height above the WGS84 ellipsoid: the import takes it down
 /// to sea level by the geoid's undulation (EGM96: -28.7 m at the sample's shore), and says
-/// so; `--altitude-datum sea-level` takes the tags as they are. Only the origin's height
-/// changes: the photos keep their places relative to it.
+/// so; `--altitude-datum sea-level` takes the tags as they are, and `--ground-alt-m` puts
+/// the take-off at a known altitude. Only the origin's height changes: the photos keep
+/// their places relative to it.
 #[test]
 fn dji_altitudes_are_taken_from_the_ellipsoid_to_sea_level() {
     use mavloc::import::AltitudeDatum;
@@ -329,8 +330,24 @@ fn dji_altitudes_are_taken_from_the_ellipsoid_to_sea_level() {
         mavloc_data::Dataset::open(&dir.path().join("s")).unwrap(),
     );
     assert_eq!(de.camera.origin.alt_m, e.alt_m, "the dataset's origin");
-    for (a, b) in de.records.iter().zip(&ds.records) {
+    // A known take-off altitude stands for the tags' (a barometric DJI's drifts with the
+    // weather): the origin moves there, the photos keep their places.
+    let known = ImportOptions {
+        ground_alt_m: Some(187.0),
+        altitude_datum: Some(AltitudeDatum::SeaLevel),
+        ..Default::default()
+    };
+    let known = import_photos(&sample(), &dir.path().join("k"), &known).unwrap().origin.unwrap();
+    assert!((known.alt_m - 187.0).abs() < 1e-6, "{known:?}");
+    let dk = mavloc_data::Dataset::open(&dir.path().join("k")).unwrap();
+    for ((a, b), c) in de.records.iter().zip(&ds.records).zip(&dk.records) {
         for k in 0..3 {
+            assert!(
+                (a.measured.position[k] - c.measured.position[k]).abs() < 1e-3,
+                "{:?} {:?}",
+                a.measured,
+                c.measured
+            );
             assert!(
                 (a.measured.position[k] - b.measured.position[k]).abs() < 1e-3,
                 "{:?} {:?}",
