@@ -307,9 +307,6 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
                 missing.push(tag);
             }
         }
-        if focal_35mm.is_none() && focal_px.is_none() {
-            missing.push("FocalLengthIn35mmFilm or FocalLength with FocalPlaneXResolution");
-        }
         let alt = gps_alt.unwrap_or(f64::NAN);
         PhotoTags {
             name: name.clone(),
@@ -361,9 +358,6 @@ pub fn read_tags(path: &Path) -> Result<PhotoTags, String> {
             // UTC "2013-06-04T17:50:37" (the camera's own clock is off by hours and seconds).
             let time =
                 sensefly.get("UTCTime").map(|t| t.replace('-', ":").replace('T', " ")).or(exif_time.clone());
-            if focal_35mm.is_none() && focal_px.is_none() {
-                missing.push("FocalLength with FocalPlaneXResolution");
-            }
             PhotoTags {
                 name: name.clone(),
                 width,
@@ -1099,7 +1093,26 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
         None => {
             let cx = (w as f64 - 1.0) / 2.0;
             let cy = (h as f64 - 1.0) / 2.0;
-            match (first.focal_35mm, first.focal_px) {
+            // One camera per dataset (`keep_the_most_common`): a photo whose EXIF lost its
+            // focal length (damaged, or never written) takes the others'.
+            let has_focal = |t: &PhotoTags| t.focal_35mm.is_some() || t.focal_px.is_some();
+            let Some(lens) = photos.iter().map(|p| &p.2).find(|t| has_focal(t)) else {
+                return Err(format!(
+                    "no photo carries a focal length (FocalLengthIn35mmFilm, or FocalLength with FocalPlaneXResolution): give the camera's intrinsics with --calibration (first photo {})",
+                    first.name
+                ));
+            };
+            let without: Vec<&str> =
+                photos.iter().map(|p| &p.2).filter(|t| !has_focal(t)).map(|t| t.name.as_str()).collect();
+            if !without.is_empty() {
+                tracing::warn!(
+                    "{} photo(s) carry no focal length and take {}'s, the same camera: {}",
+                    without.len(),
+                    lens.name,
+                    without.join(", ")
+                );
+            }
+            match (lens.focal_35mm, lens.focal_px) {
                 (Some(f35), _) => {
                     // The equivalent focal length refers to the whole sensor; a photo wider
                     // than 4:3 is taken as a crop of a 4:3 sensor of the same width (DJI's
@@ -1113,11 +1126,11 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
                     // nothing in the tags says which (README, "Real photos").
                     let from = format!(
                         "focal length {} mm at the focal-plane resolution, scaled to the file's width",
-                        first.focal_mm.unwrap_or(f64::NAN)
+                        lens.focal_mm.unwrap_or(f64::NAN)
                     );
                     (f, f, cx, cy, from)
                 }
-                (None, None) => unreachable!("read_tags requires one focal length"),
+                (None, None) => unreachable!("a photo with a focal length was found"),
             }
         }
     };

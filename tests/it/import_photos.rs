@@ -487,16 +487,50 @@ fn with_value(from: &Path, to: &Path, old: &str, new: &str) {
 
 /// A copy of a photo with its first `at_most` occurrences of `old` replaced by `new`, of
 /// the same length (so the JPEG stays valid); there must be one.
-fn replaced(from: &Path, to: &Path, old: &str, new: &str, at_most: usize) {
+fn replaced(from: &Path, to: &Path, old: impl AsRef<[u8]>, new: impl AsRef<[u8]>, at_most: usize) {
+    let (old, new) = (old.as_ref(), new.as_ref());
     assert_eq!(old.len(), new.len());
     let mut bytes = std::fs::read(from).unwrap();
     let mut n = 0;
-    while let Some(at) = bytes.windows(old.len()).position(|w| w == old.as_bytes()).filter(|_| n < at_most) {
-        bytes[at..at + new.len()].copy_from_slice(new.as_bytes());
+    while let Some(at) = bytes.windows(old.len()).position(|w| w == old).filter(|_| n < at_most) {
+        bytes[at..at + new.len()].copy_from_slice(new);
         n += 1;
     }
-    assert!(n > 0, "{old} not in {}", from.display());
+    assert!(n > 0, "{old:?} not in {}", from.display());
     std::fs::write(to, bytes).unwrap();
+}
+
+/// A photo whose EXIF lost its focal length (FocalLength and FocalLengthIn35mmFilm renamed
+/// to the tags after them, FlashEnergy and SceneCaptureType) takes the others': they are
+/// one camera. Where no photo has one, the import asks for a calibration by name.
+#[test]
+fn a_photo_without_a_focal_length_takes_the_cameras_and_none_at_all_asks_for_a_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let (some, none) = (dir.path().join("some"), dir.path().join("none"));
+    for d in [&some, &none] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    // Little-endian IFD entries (the sample's TIFF header is "II"): 0x920A, 0xA405.
+    let strip = |from: &Path, to: &Path| {
+        replaced(from, to, [0x0A, 0x92, 0x05, 0x00], [0x0B, 0x92, 0x05, 0x00], 1);
+        replaced(to, to, [0x05, 0xA4, 0x03, 0x00], [0x06, 0xA4, 0x03, 0x00], 1);
+    };
+    for n in ["DJI_0030.JPG", "DJI_0031.JPG", "DJI_0032.JPG"] {
+        strip(&sample().join(n), &none.join(n));
+        if n == "DJI_0031.JPG" {
+            std::fs::copy(none.join(n), some.join(n)).unwrap();
+        } else {
+            std::fs::copy(sample().join(n), some.join(n)).unwrap();
+        }
+    }
+    let t = read_tags(&some.join("DJI_0031.JPG")).unwrap();
+    assert_eq!((t.focal_mm, t.focal_35mm, t.focal_px), (None, None, None), "the tags are gone");
+    let whole = import_photos(&sample(), &dir.path().join("whole"), &ImportOptions::default()).unwrap();
+    let r = import_photos(&some, &dir.path().join("a"), &ImportOptions::default()).unwrap();
+    assert_eq!(r.imported.len(), 3, "{:?}", r.skipped);
+    assert_eq!(r.fx_px, whole.fx_px);
+    let e = import_photos(&none, &dir.path().join("b"), &ImportOptions::default()).unwrap_err();
+    assert!(e.contains("no photo carries a focal length") && e.contains("--calibration"), "{e}");
 }
 
 /// A photo whose recorded gimbal yaw is half a turn off (as a reverse line's was on a DJI
