@@ -246,13 +246,13 @@ pub fn write_ground_truth(dir: &Path, frame: &LocalFrame, lines: &[Vec<Vec3>]) -
             });
             // Heights as area.geojson has them (above the ellipsoid, RFC 7946), so the two
             // files lie on each other (they were 38 m apart where the geoid is -38 m).
-            coords.push(crate::results::wgs84(frame, p).0.to_vec());
+            coords.push(crate::results::wgs84(frame, p).0);
         }
         let mut props = geojson::JsonObject::new();
         props.insert("name".into(), format!("ground truth border {li}").into());
         features.push(geojson::Feature {
             bbox: None,
-            geometry: Some(geojson::Geometry::new_line_string(coords)),
+            geometry: Some(crate::results::line_geometry(coords)),
             id: None,
             properties: Some(props),
             foreign_members: None,

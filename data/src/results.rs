@@ -257,6 +257,34 @@ pub(crate) fn wgs84(frame: &LocalFrame, p: &Vec3) -> ([f64; 3], f64) {
     ([round(g.lon_deg, 1e8), round(g.lat_deg, 1e8), round(h, 1e3)], g.alt_m)
 }
 
+/// A line of WGS84 positions (longitude first) as a GeoJSON geometry, cut where it crosses
+/// the antimeridian as RFC 7946 (sec. 3.1.9) asks: a line from 179.9999 to -179.9999 is
+/// otherwise drawn the long way round the globe. Each cut ends one part at 180 (or -180)
+/// and starts the next at the other, at the latitude and height interpolated there.
+/// Written here: the geometry crates do not cut lines at the antimeridian.
+pub(crate) fn line_geometry(line: Vec<[f64; 3]>) -> geojson::Geometry {
+    let mut parts: Vec<Vec<[f64; 3]>> = vec![Vec::new()];
+    for (i, &p) in line.iter().enumerate() {
+        if let Some(q) = i.checked_sub(1).map(|j| line[j]) {
+            let step = p[0] - q[0];
+            if step.abs() > 180.0 {
+                // The short way: east across it when the longitude jumps down.
+                let side = if step < 0.0 { 180.0 } else { -180.0 };
+                let t = (side - q[0]) / (step + 2.0 * side);
+                let at = |k: usize| q[k] + t * (p[k] - q[k]);
+                parts.last_mut().expect("one part").push([side, at(1), at(2)]);
+                parts.push(vec![[-side, at(1), at(2)]]);
+            }
+        }
+        parts.last_mut().expect("one part").push(p);
+    }
+    if parts.len() == 1 {
+        geojson::Geometry::new_line_string(parts.remove(0))
+    } else {
+        geojson::Geometry::new_multi_line_string(parts)
+    }
+}
+
 /// `area.geojson`: landmarks as points and border lines as line strings, in WGS84 with
 /// heights above the ellipsoid (RFC 7946); each landmark also states its height above
 /// mean sea level, and the collection says which height is which.
@@ -286,7 +314,7 @@ pub fn area_geojson(frame: &LocalFrame, landmarks: &[LandmarkRecord], borders: &
         props.insert("index".into(), i.into());
         features.push(Feature {
             bbox: None,
-            geometry: Some(Geometry::new_line_string(coords)),
+            geometry: Some(line_geometry(coords)),
             id: None,
             properties: Some(props),
             foreign_members: None,
@@ -461,6 +489,29 @@ mod tests {
         assert_eq!(read_landings(&p).unwrap(), rows);
         std::fs::write(&p, format!("{LANDINGS_HEADER}\n1,2,3\n")).unwrap();
         assert!(read_landings(&p).unwrap_err().contains("line 2"));
+    }
+
+    /// A line across the antimeridian is cut there (RFC 7946 sec. 3.1.9): two parts meeting
+    /// at 180 and -180 at the latitude between; a line that stays on one side is whole.
+    #[test]
+    fn a_line_across_the_antimeridian_is_cut_there() {
+        let json = |g: geojson::Geometry| serde_json::to_value(&g).unwrap();
+        let g = json(line_geometry(vec![[179.9, 10.0, 5.0], [-179.9, 11.0, 7.0], [-179.8, 12.0, 7.0]]));
+        assert_eq!(g["type"], "MultiLineString");
+        let c = &g["coordinates"];
+        assert_eq!(c[0], serde_json::json!([[179.9, 10.0, 5.0], [180.0, 10.5, 6.0]]));
+        assert_eq!(c[1], serde_json::json!([[-180.0, 10.5, 6.0], [-179.9, 11.0, 7.0], [-179.8, 12.0, 7.0]]));
+        // Westward too.
+        let g = json(line_geometry(vec![[-179.5, 0.0, 0.0], [179.5, 1.0, 0.0]]));
+        assert_eq!(
+            g["coordinates"],
+            serde_json::json!([
+                [[-179.5, 0.0, 0.0], [-180.0, 0.5, 0.0]],
+                [[180.0, 0.5, 0.0], [179.5, 1.0, 0.0]]
+            ])
+        );
+        let whole = json(line_geometry(vec![[10.0, 0.0, 0.0], [10.1, 0.0, 0.0]]));
+        assert_eq!(whole["type"], "LineString");
     }
 
     #[test]
