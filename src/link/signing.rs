@@ -147,7 +147,23 @@ impl Signer {
                     (0, HashMap::new())
                 }
             },
-            _ => (0, HashMap::new()),
+            // Bytes that are not text are as corrupt as text that does not parse.
+            Some((p, Err(e))) if e.kind() == std::io::ErrorKind::InvalidData => {
+                let said = mavloc_data::state::set_aside(p, None, "signing state", "not text");
+                tracing::warn!("{said}; starting with no stream remembered");
+                (0, HashMap::new())
+            }
+            Some((_, Err(e))) if e.kind() == std::io::ErrorKind::NotFound => (0, HashMap::new()),
+            // Unreadable (permissions, a directory in its place): said, since saving will
+            // fail too and replay protection then does not survive a restart.
+            Some((p, Err(e))) => {
+                tracing::warn!(
+                    "signing: cannot read the saved state {} ({e}); starting from this computer's clock with no stream remembered",
+                    p.display()
+                );
+                (0, HashMap::new())
+            }
+            None => (0, HashMap::new()),
         };
         let now = now_units();
         if stored > now + NEW_STREAM_WINDOW {
@@ -336,6 +352,17 @@ mod tests {
             .collect();
         assert_eq!(aside.len(), 1);
         assert!(file.exists(), "a fresh state file is written");
+        // Bytes that are not UTF-8 go aside the same way (they were dropped without a word).
+        std::fs::write(&file, [0xff, 0xfe, 0x00, 0x80]).unwrap();
+        let s = Signer::new([1; 32], 0, Some(file.clone()));
+        assert!(s.timestamp() > 0);
+        let aside = std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| {
+                e.as_ref().unwrap().file_name().to_string_lossy().starts_with("signing-timestamp.corrupt-")
+            })
+            .count();
+        assert_eq!(aside, 2, "the binary file is kept aside for a person to look at");
     }
 
     /// A saved timestamp past half the signature's 48 bits (2059) is no signer's: the
