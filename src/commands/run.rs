@@ -1,5 +1,5 @@
 //! `mavloc run`: the daemon ([`crate::daemon::run`]) on a tokio runtime, until SIGTERM or
-//! SIGINT. Exit codes: 0 after a clean stop; 78 (EX_CONFIG) when the configuration cannot
+//! SIGINT (SIGHUP is ignored). Exit codes: 0 after a clean stop; 78 (EX_CONFIG) when the configuration cannot
 //! run (bad file or key, unusable state directory: a restart would fail the same way, so
 //! the unit lists it in `RestartPreventExitStatus=`); 1 for anything else.
 
@@ -33,10 +33,19 @@ pub fn run(args: RunArgs, global: Global) -> anyhow::Result<ExitCode> {
         use tokio::signal::unix::{signal, SignalKind};
         let mut term = signal(SignalKind::terminate())?;
         let mut int = signal(SignalKind::interrupt())?;
+        // SIGHUP (the SSH session of someone trying mavloc on the drone ends) killed the
+        // daemon uncleanly, the vehicle's position source with it: it is said and ignored,
+        // as there is no configuration to reload in place.
+        let mut hup = signal(SignalKind::hangup())?;
         let shutdown = async move {
-            tokio::select! {
-                _ = term.recv() => tracing::info!("SIGTERM: shutting down"),
-                _ = int.recv() => tracing::info!("SIGINT: shutting down"),
+            loop {
+                tokio::select! {
+                    _ = term.recv() => break tracing::info!("SIGTERM: shutting down"),
+                    _ = int.recv() => break tracing::info!("SIGINT: shutting down"),
+                    _ = hup.recv() => tracing::warn!(
+                        "SIGHUP ignored: mavloc keeps running (a changed configuration takes a restart)"
+                    ),
+                }
             }
         };
         let pinned = crate::link::params::pinned_keys(&loaded.origins);

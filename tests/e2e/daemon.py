@@ -298,10 +298,19 @@ def test_signing():
 
 
 def test_sigterm_leaves_complete_results():
+    """SIGHUP (an SSH session that ends) leaves the daemon running and talking; SIGTERM
+    stops it within 2 s with its state written."""
     d = Daemon()
     c = d.connect()
     hello(c)
+    d.proc.send_signal(signal.SIGHUP)
     time.sleep(1.5)
+    assert d.proc.poll() is None, f"SIGHUP ended mavloc (exit {d.proc.poll()})"
+    # What came before is dropped: the heartbeat must be one sent after the hangup.
+    BACKLOG[id(c)] = []
+    while c.recv_match(blocking=False) is not None:
+        pass
+    recv(c, "HEARTBEAT", timeout=3)
     t0 = time.time()
     d.proc.send_signal(signal.SIGTERM)
     code = d.proc.wait(timeout=5)
