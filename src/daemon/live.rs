@@ -215,6 +215,14 @@ impl AreaLive {
     /// Writes a new result set and makes it current; returns its files (by the link's
     /// path, as users read them) and the border lines fitted. On an error the previous set
     /// stays current.
+    /// Whether a checkpoint or the stop writes a set: not while this run has no landmark
+    /// and has written none, so the last run's map stays current (a restart on the ground
+    /// made an empty set current within seconds: an outside audit). A snapshot asked for
+    /// over MAVLink writes one anyway.
+    fn worth_a_set(&self) -> bool {
+        !self.all_landmarks().is_empty() || self.sets.current().is_some()
+    }
+
     fn write(&self) -> io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
         let landmarks = self.all_landmarks();
         let elapsed = self.started.elapsed().as_secs_f64();
@@ -421,7 +429,7 @@ impl LivePipeline for AreaLive {
             ("LMK_CONV", self.results.len() as f32),
             ("LMK_FEAT", r.features as f32),
         ];
-        if self.frames.is_multiple_of(AREA_CHECKPOINT_FRAMES) {
+        if self.frames.is_multiple_of(AREA_CHECKPOINT_FRAMES) && self.worth_a_set() {
             match self.write() {
                 Ok((_, lines)) => {
                     let length: f64 =
@@ -498,6 +506,10 @@ impl LivePipeline for AreaLive {
             tracing::warn!(
                 "area: stopped while the map was being adjusted; the last set holds the landmarks as they were before"
             );
+        }
+        if !self.worth_a_set() {
+            tracing::info!("area: stopped with no landmark; the results before this run stay current");
+            return Ok(Vec::new());
         }
         self.write_results()
     }
@@ -1155,7 +1167,13 @@ mod tests {
         first.write_results().unwrap();
         assert_eq!(rows(&link.join("landmarks.csv")), 171);
 
-        // The daemon restarts: a new run.
+        // The daemon restarts and stops before any landmark (on the ground): the last run's
+        // map stays current; an empty set made current was what the ground then fetched.
+        let mut idle = area(&link, "r2");
+        assert!(idle.finish().unwrap().is_empty(), "nothing written");
+        assert_eq!(rows(&link.join("landmarks.csv")), 171, "the last run's map stays current");
+
+        // The daemon restarts: a new run. A snapshot asked for writes even an empty set.
         let second = area(&link, "r2");
         assert!(second.all_landmarks().is_empty(), "a new run starts empty");
         second.write_results().unwrap();
