@@ -156,6 +156,38 @@ fn factory(kind: PipelineKind, results: PathBuf, run: String) -> Factory {
     })
 }
 
+/// The state directory's lock (`.lock`, holding the pid of the daemon that has it), or
+/// the error naming the daemon that holds it.
+fn lock_state_dir(dir: &std::path::Path) -> anyhow::Result<std::fs::File> {
+    use std::io::{Read, Seek, Write};
+    let path = dir.join(".lock");
+    let mut file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .map_err(|e| unusable(format!("cannot open {}: {e}", path.display())))?;
+    match file.try_lock() {
+        Ok(()) => {
+            file.set_len(0)?;
+            file.seek(std::io::SeekFrom::Start(0))?;
+            writeln!(file, "{}", std::process::id())?;
+            Ok(file)
+        }
+        Err(std::fs::TryLockError::WouldBlock) => {
+            let mut pid = String::new();
+            let _ = file.read_to_string(&mut pid);
+            Err(anyhow::anyhow!(
+                "state directory {} is in use by another mavloc (pid {}): stop it, or give this one its own daemon.state_dir",
+                dir.display(),
+                pid.trim()
+            ))
+        }
+        Err(std::fs::TryLockError::Error(e)) => Err(unusable(format!("cannot lock {}: {e}", path.display()))),
+    }
+}
+
 /// The state directory: systemd's `$STATE_DIRECTORY` (first entry) wins over the config.
 pub fn state_dir(settings: &Settings) -> PathBuf {
     match std::env::var("STATE_DIRECTORY") {
@@ -504,6 +536,11 @@ pub async fn run(
         ))
     })?;
     let _ = std::fs::remove_file(&probe);
+    // One daemon per state directory: a second (`mavloc run` by hand beside the service)
+    // wrote its own empty sets, status and parameters over the first's (outside audit).
+    // Held until this function returns; the kernel lets go if the process dies. Not exit
+    // 78: the service, if it is the one refused, is restarted until the other is gone.
+    let _lock = lock_state_dir(&dir)?;
 
     // 2. Tuned parameters.
     let (store, notes) = ParamStore::open(&dir.join("params.json"), &mut settings, &pinned);

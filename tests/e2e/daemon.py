@@ -513,6 +513,33 @@ def test_tcpin_serves_a_reader_beside_a_client_that_never_reads():
     assert code == 0
 
 
+def test_a_second_daemon_on_the_same_state_directory_is_refused():
+    """One daemon per state directory: a second one (started by hand beside the service)
+    exits 1 naming the first's pid, where it ran and wrote its own sets and status over the
+    first's; the first goes on."""
+    d = Daemon()
+    try:
+        c = d.connect()
+        hello(c)
+        second = Daemon(same_as=d)
+        try:
+            code = second.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            second.proc.kill()
+            raise AssertionError("a second daemon on the same state directory kept running")
+        assert code == 1, f"exit status {code}"
+        text = d.logtext()
+        assert f"is in use by another mavloc (pid {d.proc.pid})" in text, text[-2000:]
+        assert d.proc.poll() is None, "the first daemon stopped"
+        BACKLOG[id(c)] = []
+        while c.recv_match(blocking=False) is not None:
+            pass
+        recv(c, "HEARTBEAT", timeout=3)
+        c.close()
+    finally:
+        assert d.stop() == 0
+
+
 def test_unusable_state_directory_exits_78_naming_it():
     """/proc/self exists and nobody, root included, can create files in it."""
     d = tempfile.mkdtemp(prefix="mavloc-ro-")

@@ -90,3 +90,8 @@ fn corrupt_state_files_are_moved_aside_and_mavloc_starts() {
 fn component_metadata_is_served_over_mavlink_ftp() {
     run_python(&["test_component_metadata_over_mavlink_ftp"], Duration::from_secs(60));
 }
+
+#[test]
+fn a_second_daemon_on_the_same_state_directory_is_refused() {
+    run_python(&["test_a_second_daemon_on_the_same_state_directory_is_refused"], Duration::from_secs(40));
+}
