@@ -330,6 +330,9 @@ pub struct Counters {
 /// the rest are counted, and the next warning says how many.
 const WRITE_WARNING_PERIOD: Duration = Duration::from_secs(10);
 
+/// How often tuned parameters that could not be saved are saved again.
+const PARAMS_RETRY: Duration = Duration::from_secs(10);
+
 /// The sim camera renders from the simulator's ground truth: ask for it.
 /// The origin mavloc gives an autopilot with no GPS (`indoor.gps_denied`).
 fn gps_origin(s: &Settings) -> Option<Geodetic> {
@@ -355,6 +358,10 @@ enum Job {
 pub struct Core {
     settings: Settings,
     tuned: BTreeMap<String, f64>,
+    /// Tuned parameters whose last save failed (a full disk): failed tries since the last
+    /// good save, and when the next try is due. They are saved again until one succeeds
+    /// (a value set on a full disk was lost at the next start even after space came back).
+    params_unsaved: (u32, Mono),
     system_id: u8,
     component_id: u8,
     signing: bool,
@@ -456,6 +463,7 @@ impl Core {
             write_warned: None,
             writes_failed_unsaid: 0,
             tuned,
+            params_unsaved: (0, Mono::ZERO),
             settings,
         };
         // Start the configured pipeline, as a drone would at boot.
@@ -659,6 +667,14 @@ impl Core {
         self.health.on_timeout(now);
         if self.health.take_report() {
             self.actions.push_back(Action::Report);
+            // With the report's period: a retry of unsaved parameters once due (one at a
+            // time: the next is due only after this one's answer or the period).
+            if self.params_unsaved.0 > 0 && now >= self.params_unsaved.1 {
+                self.params_unsaved.1 = now + PARAMS_RETRY;
+                let json = serde_json::to_string_pretty(&self.tuned).expect("map serialises");
+                let token = self.job(Job::SaveParams { name: "tuned parameters".into() });
+                self.actions.push_back(Action::SaveParams { token, json });
+            }
         }
         if self.health.take_watchdog() {
             self.actions.push_back(Action::Watchdog);
@@ -1406,11 +1422,26 @@ impl Core {
                     }
                 }
             }
-            Job::SaveParams { name } => {
-                if let Err(e) = result {
-                    self.notes.warn(&format!("{name} set but not saved: {e}"));
+            Job::SaveParams { name } => match result {
+                Err(e) => {
+                    if self.params_unsaved.0 == 0 {
+                        self.notes.warn(&format!(
+                            "{name} set but not saved: {e}; saving again every {} s",
+                            PARAMS_RETRY.as_secs()
+                        ));
+                    }
+                    self.params_unsaved = (self.params_unsaved.0 + 1, self.now + PARAMS_RETRY);
                 }
-            }
+                Ok(()) => {
+                    if self.params_unsaved.0 > 0 {
+                        self.notes.info(&format!(
+                            "tuned parameters saved (after {} failed tries)",
+                            self.params_unsaved.0
+                        ));
+                    }
+                    self.params_unsaved.0 = 0;
+                }
+            },
         }
     }
 

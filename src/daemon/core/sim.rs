@@ -360,6 +360,8 @@ pub struct Sim {
     pub actions: Vec<(Mono, Action)>,
     /// How the shell answers start requests.
     pub start_result: Result<(), String>,
+    /// Whether the shell's saves of the tuned parameters fail (a full disk).
+    pub disk_full: bool,
     pub steps: u64,
 }
 
@@ -378,6 +380,7 @@ impl Sim {
             to_gcs: Vec::new(),
             actions: Vec::new(),
             start_result: Ok(()),
+            disk_full: false,
             steps: 0,
         }
     }
@@ -406,6 +409,11 @@ impl Sim {
                     let result = self.start_result.clone();
                     self.core.handle(Input::Done { now: self.now, token, result });
                 }
+                Action::SaveParams { token, .. } if self.disk_full => self.core.handle(Input::Done {
+                    now: self.now,
+                    token,
+                    result: Err("No space left on device (os error 28)".into()),
+                }),
                 Action::Snapshot { token } | Action::SaveParams { token, .. } => {
                     self.core.handle(done(token))
                 }

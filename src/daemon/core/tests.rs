@@ -727,6 +727,40 @@ fn a_foreign_flood_of_parameter_requests_and_sets_costs_counters_not_the_link() 
     assert_ne!(tuned, Some(0.9_f32 as f64), "the foreign set changed nothing");
 }
 
+/// A parameter set while the disk is full is saved once there is room again: tried every
+/// 10 s, said when it fails first and when it succeeds (it used to be tried once, and the
+/// tuned value was lost at the next start: an outside audit on a 1 MB tmpfs).
+#[test]
+fn a_parameter_set_on_a_full_disk_is_saved_once_there_is_room() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(3));
+    sim.disk_full = true;
+    sim.gcs_sends(MavMessage::PARAM_SET(PARAM_SET_DATA {
+        param_value: 300.0,
+        target_system: 1,
+        target_component: 191,
+        param_id: "AREA_L_MAX".into(),
+        param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+    }));
+    sim.run_for(Duration::from_secs(35));
+    let saves =
+        |sim: &Sim| sim.actions.iter().filter(|(_, a)| matches!(a, Action::SaveParams { .. })).count();
+    let tries = saves(&sim);
+    assert!((3..=5).contains(&tries), "the first save and one every 10 s: {tries}");
+    let texts = sim.statustexts();
+    assert_eq!(texts.iter().filter(|t| t.contains("not saved")).count(), 1, "said once: {texts:?}");
+    sim.disk_full = false;
+    sim.run_for(Duration::from_secs(12));
+    let (_, last) = sim.actions.iter().rev().find(|(_, a)| matches!(a, Action::SaveParams { .. })).unwrap();
+    let Action::SaveParams { json, .. } = last else { unreachable!() };
+    assert!(json.contains("\"AREA_L_MAX\": 300"), "{json}");
+    assert!(sim.statustexts().iter().any(|t| t.contains("tuned parameters saved (after")));
+    let after = saves(&sim);
+    sim.run_for(Duration::from_secs(30));
+    assert_eq!(saves(&sim), after, "saved: no more tries");
+}
+
 #[test]
 fn a_stamp_from_the_future_is_no_reboot_and_moves_nothing() {
     let mut sim = Sim::new(settings());
