@@ -52,6 +52,12 @@ pub struct SimCamera {
     minute: (f64, Vec<f64>, u64, u64),
 }
 
+/// Whether `name` (a built-in scenario or a scenario file) loads, as [`SimCamera::open`]
+/// loads it: for `mavloc config check`.
+pub fn check_scenario(name: &str) -> Result<(), String> {
+    Scenario::load(name).map(|_| ())
+}
+
 impl SimCamera {
     pub fn open(s: &Settings, ctx: SourceContext) -> Result<SimCamera, SourceError> {
         let scenario = Scenario::load(&s.camera.scenario)

@@ -26,6 +26,7 @@ pub const FILE_CHECKS: settings::FileChecks<'static> = settings::FileChecks {
     model: &crate::indoor::model::Model::check_file,
     signing_key: &signing_key_usable,
     state_dir: &crate::daemon::state_dir,
+    scenario: &crate::camera::sim::check_scenario,
 };
 
 fn signing_key_usable(p: &Path) -> Result<(), String> {
@@ -273,6 +274,21 @@ mod tests {
     /// directory (it used to pass a key that was not hexadecimal, a key others could read
     /// and a state directory under a file, and `run` then exited 78 on each), with
     /// mavloc's own checks, naming the key.
+    #[test]
+    fn check_refuses_a_simulated_cameras_scenario_that_does_not_load() {
+        // It passed, and `run` then idled with its camera failed (outside audit).
+        let check = |name: &str| {
+            let layers = crate::settings::Layers {
+                overrides: vec!["camera.source=sim".into(), format!("camera.scenario={name}")],
+                ..crate::settings::Layers::default()
+            };
+            crate::settings::check(&layers, &super::FILE_CHECKS).err().map(|e| e.to_string())
+        };
+        let said = check("nowhere").expect("refused");
+        assert!(said.contains("camera.scenario") && said.contains("nowhere"), "{said}");
+        assert_eq!(check("indoor-floor"), None);
+    }
+
     #[test]
     fn check_refuses_the_signing_key_and_state_directory_that_run_refuses() {
         use crate::settings::{self, Layers, SettingsError};

@@ -544,6 +544,8 @@ pub struct FileChecks<'a> {
     /// The state directory `run` would use for these settings (`daemon::state_dir`:
     /// systemd's `$STATE_DIRECTORY` wins over `daemon.state_dir`).
     pub state_dir: &'a dyn Fn(&Settings) -> PathBuf,
+    /// Loads the simulated camera's scenario as it would (`camera::sim::check_scenario`).
+    pub scenario: &'a dyn Fn(&str) -> Result<(), String>,
 }
 
 /// What `mavloc run` needs beyond valid values: the files the settings name, readable and
@@ -624,6 +626,18 @@ pub fn preflight(loaded: &Loaded, files: &FileChecks) -> Vec<Problem> {
     let key = &s.mavlink.signing_key;
     if !key.is_empty() && !key.starts_with("credential:") {
         need_file("mavlink.signing_key", key, "the signing key file", files.signing_key);
+    }
+    // A simulated camera on a scenario that does not load passed, and `run` then idled
+    // with its camera failed (outside audit).
+    if matches!(s.camera.source, CameraSource::Sim) {
+        if let Err(e) = (files.scenario)(&s.camera.scenario) {
+            problems.push(Problem {
+                key: "camera.scenario".into(),
+                value: Some(quote(&s.camera.scenario)),
+                expected: format!("a scenario the simulated camera can render: {e}"),
+                origin: origin("camera.scenario"),
+            });
+        }
     }
     let dir = (files.state_dir)(s);
     if let Some(why) = unmakeable_dir(&dir) {

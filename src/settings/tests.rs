@@ -17,8 +17,12 @@ fn load_file(path: &Path) -> Result<Loaded, SettingsError> {
 
 /// File checks that pass every file and put the state directory in the temporary folder,
 /// for tests of everything else.
-const ANY_FILE: FileChecks<'static> =
-    FileChecks { model: &|_| Ok(()), signing_key: &|_| Ok(()), state_dir: &|_| std::env::temp_dir() };
+const ANY_FILE: FileChecks<'static> = FileChecks {
+    model: &|_| Ok(()),
+    signing_key: &|_| Ok(()),
+    state_dir: &|_| std::env::temp_dir(),
+    scenario: &|_| Ok(()),
+};
 
 fn problems(r: Result<Loaded, SettingsError>) -> Vec<Problem> {
     match r {
