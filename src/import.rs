@@ -1063,9 +1063,8 @@ pub fn import_photos(dir: &Path, out: &Path, opts: &ImportOptions) -> Result<Imp
             )
         }
         AltitudeDatum::SeaLevel => format!(
-            "the photos' altitudes are above sea level (--altitude-datum sea-level{}; the ellipsoid is {:.1} m below it here)",
+            "the photos' altitudes are above sea level (--altitude-datum sea-level{}; the EGM96 geoid's undulation here is {n_m:+.1} m)",
             if opts.altitude_datum.is_none() { ", EXIF's" } else { "" },
-            -n_m
         ),
     };
     let mount_deg = opts.mount_deg.unwrap_or([0.0, -90.0, 0.0]);
