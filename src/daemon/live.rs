@@ -220,7 +220,8 @@ impl AreaLive {
     /// made an empty set current within seconds: an outside audit). A snapshot asked for
     /// over MAVLink writes one anyway.
     fn worth_a_set(&self) -> bool {
-        !self.all_landmarks().is_empty() || self.sets.current().is_some()
+        // The landmarks first (no copy of them, no look at the disk while there are any).
+        !self.results.is_empty() || !self.pipeline.converged_now().is_empty() || self.sets.current().is_some()
     }
 
     fn write(&self) -> io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
