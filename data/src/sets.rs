@@ -20,8 +20,10 @@
 //! restart never mixes what it sees with what an earlier run saw. [`ResultSets::write`]
 //! writes `set-N.partial/`, syncs every file and the folder, renames it to `set-N`, points
 //! the link at it (a `.area.tmp` symlink renamed over `area`, then the parent folder
-//! synced) and removes the run's previous set. On an error the new folder is removed and
-//! the previous set stays current. After a crash, [`ResultSets::open`] tidies up: it
+//! synced). A replaced set stays for [`REPLACED_SET_GRACE`] after the switch, so a slow
+//! reader that resolved the link just before it still reads one whole set; older ones are
+//! removed at the next write. On an error the new folder is removed, the previous set
+//! stays current and the replaced sets still kept are removed to make room. After a crash, [`ResultSets::open`] tidies up: it
 //! removes `*.partial` folders and `.area.tmp`, keeps only the newest complete set of each
 //! run (moving the link to it if it pointed at an older one) and moves a real `area`
 //! folder left by an older mavloc into `area.runs/legacy-<its mtime>/set-0`.
@@ -35,7 +37,7 @@ use std::fs;
 use std::io;
 use std::os::unix::fs::symlink;
 use std::path::{Path, PathBuf};
-use std::time::SystemTime;
+use std::time::{Duration, SystemTime};
 
 use crate::state::{unique_name, utc_stamp};
 
@@ -137,7 +139,11 @@ impl Runs {
         self.adopt_legacy(layout)?;
         if layout == Layout::Sets {
             for run in subdirs(&self.root)? {
-                self.tidy_run(&self.root.join(run));
+                let dir = self.root.join(run);
+                self.tidy_run(&dir);
+                // A run that never wrote a set (a start on the ground, stopped before its
+                // first landmark) leaves nothing to keep: `remove_dir` takes only an empty one.
+                let _ = fs::remove_dir(&dir);
             }
         }
         Ok(())
@@ -209,12 +215,12 @@ pub struct ResultSets {
 }
 
 impl ResultSets {
-    /// Tidies `link`'s runs after a crash or an older mavloc and creates the folder of
-    /// `run`. Opening the run again (a pipeline rebuilt in the same daemon) continues it.
+    /// Tidies `link`'s runs after a crash or an older mavloc. The folder of `run` is made
+    /// by its first set, so a run that writes none leaves none behind. Opening the run
+    /// again (a pipeline rebuilt in the same daemon) continues it.
     pub fn open(link: &Path, run: &str) -> io::Result<ResultSets> {
         let runs = Runs::new(link)?;
         runs.tidy(Layout::Sets)?;
-        fs::create_dir_all(runs.run_dir(run))?;
         Ok(ResultSets { runs, run: run.to_string() })
     }
 
@@ -237,10 +243,20 @@ impl ResultSets {
     }
 
     /// Writes a new set: `fill(folder)` writes the files into a fresh folder, which
-    /// becomes current only once everything is on disk; then this run's previous set is
-    /// removed. Returns the new set's folder. On any error (from `fill` or the disk) the
+    /// becomes current only once everything is on disk; this run's sets replaced more
+    /// than [`REPLACED_SET_GRACE`] ago are then removed. Returns the new set's folder. On any error (from `fill` or the disk) the
     /// new folder is removed, the previous set stays current and the error is returned.
     pub fn write(&self, fill: impl FnOnce(&Path) -> io::Result<()>) -> io::Result<PathBuf> {
+        self.write_at(SystemTime::now(), fill)
+    }
+
+    /// [`ResultSets::write`] at the wall-clock time `now`, which decides which replaced
+    /// sets have outlived [`REPLACED_SET_GRACE`].
+    pub fn write_at(
+        &self,
+        now: SystemTime,
+        fill: impl FnOnce(&Path) -> io::Result<()>,
+    ) -> io::Result<PathBuf> {
         let run_dir = self.run_dir();
         fs::create_dir_all(&run_dir)?;
         let sets = scan(&run_dir)?;
@@ -257,6 +273,11 @@ impl ResultSets {
         })();
         if let Err(e) = written {
             let _ = fs::remove_dir_all(&partial);
+            if let Some(&current) = sets.complete.iter().max() {
+                // Whatever failed (a full disk most likely), the replaced sets kept for
+                // slow readers give their room to the next attempt.
+                self.remove_replaced(&run_dir, &sets.complete, current, now, Duration::ZERO);
+            }
             return Err(e);
         }
         if let Err(e) = self.runs.point_at(&set) {
@@ -265,14 +286,53 @@ impl ResultSets {
             sync_dir(&run_dir);
             return Err(e);
         }
-        // A reader that resolved the link a moment ago keeps its open files; one that
-        // opens a file of the old set by its own path now finds it gone and must retry.
-        for old in sets.complete.iter().filter(|&&o| o != n) {
-            let _ = fs::remove_dir_all(run_dir.join(set_name(*old)));
-        }
+        self.remove_replaced(&run_dir, &sets.complete, n, now, REPLACED_SET_GRACE);
         Ok(set)
     }
+
+    /// Removes the sets of this run that were replaced at least `grace` before `now`;
+    /// `current` is never removed. A set was replaced when the next one was published,
+    /// taken as that one's folder's modification time (its last file was written just
+    /// before the rename that published it). The set replaced just now always stays.
+    fn remove_replaced(
+        &self,
+        run_dir: &Path,
+        complete: &[u64],
+        current: u64,
+        now: SystemTime,
+        grace: Duration,
+    ) {
+        let mut all: Vec<u64> = complete.iter().copied().filter(|&o| o != current).collect();
+        all.push(current);
+        all.sort_unstable();
+        for pair in all.windows(2) {
+            let (old, successor) = (pair[0], pair[1]);
+            if grace.is_zero() {
+                let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
+                continue;
+            }
+            if successor == current {
+                continue;
+            }
+            let replaced_at = fs::metadata(run_dir.join(set_name(successor))).and_then(|m| m.modified());
+            let expired = match replaced_at {
+                Ok(t) => now.duration_since(t).is_ok_and(|age| age >= grace),
+                Err(_) => true, // its successor is gone: nothing says when; not kept forever
+            };
+            if expired {
+                let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
+            }
+        }
+    }
 }
+
+/// How long a replaced set stays on disk after the next one became current. A reader
+/// that resolved `results/area` a moment before the switch (rsync or scp over a slow
+/// link, a script opening one file after another by the resolved path) reads one whole
+/// set, old or new, for this long; the link itself always points at the newest. Sets
+/// are written every few seconds in a live run, so a handful stay beside the current one.
+/// A write that fails (a full disk) removes them all at once, to make room for the next.
+pub const REPLACED_SET_GRACE: Duration = Duration::from_secs(30);
 
 /// Creates `run` under `link`'s runs (tidying as [`ResultSets::open`] does, without sets)
 /// and points the link at it: for results appended line by line. Returns the folder.
@@ -393,9 +453,49 @@ mod tests {
         assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "two");
         assert_eq!(fs::read_to_string(link.join("b.json")).unwrap(), "two");
         assert_eq!(sets.current(), Some(second.clone()));
-        assert!(!first.exists(), "the previous set is removed");
-        assert_eq!(names(&sets.run_dir()), ["set-2"]);
+        assert_eq!(fs::read_to_string(first.join("a.csv")).unwrap(), "one", "kept for a slow reader");
         assert_eq!(names(dir.path()), ["area", "area.runs"], "no temporary left");
+    }
+
+    /// A reader that resolved the link just before a switch (rsync over WiFi) finds the
+    /// whole set it started on for the grace period; older replaced sets go at the next
+    /// write after it.
+    #[test]
+    fn a_replaced_set_stays_for_slow_readers_until_its_grace_is_over() {
+        let dir = tempfile::tempdir().unwrap();
+        let sets = ResultSets::open(&dir.path().join("area"), "r1").unwrap();
+        let now = SystemTime::now();
+        // Each set published at `t`: its folder's time is when it was published.
+        let w = |t: SystemTime, text: &str| {
+            let set = sets.write_at(t, |d| fs::write(d.join("a.csv"), text)).unwrap();
+            fs::File::open(&set).unwrap().set_modified(t).unwrap();
+        };
+        w(now, "one");
+        w(now, "two");
+        w(now + Duration::from_secs(5), "three");
+        assert_eq!(names(&sets.run_dir()), ["set-1", "set-2", "set-3"], "all within the grace");
+        // set-1 was replaced (set-2 published) more than the grace ago; set-2 was replaced
+        // by set-3 less than it ago; set-3 was replaced just now.
+        w(now + REPLACED_SET_GRACE + Duration::from_secs(2), "four");
+        assert_eq!(names(&sets.run_dir()), ["set-2", "set-3", "set-4"]);
+        w(now + REPLACED_SET_GRACE * 3, "five");
+        assert_eq!(names(&sets.run_dir()), ["set-4", "set-5"], "the one replaced just now stays");
+        assert_eq!(fs::read_to_string(sets.runs().link().join("a.csv")).unwrap(), "five");
+    }
+
+    /// On a full disk the sets kept for slow readers give up their room, the current one
+    /// stays.
+    #[test]
+    fn a_failed_write_removes_the_replaced_sets_and_keeps_the_current() {
+        let dir = tempfile::tempdir().unwrap();
+        let sets = ResultSets::open(&dir.path().join("area"), "r1").unwrap();
+        write_set(&sets, "one");
+        write_set(&sets, "two");
+        assert_eq!(names(&sets.run_dir()), ["set-1", "set-2"]);
+        let full = sets.write(|_| Err(io::Error::new(io::ErrorKind::StorageFull, "No space left on device")));
+        assert_eq!(full.unwrap_err().kind(), io::ErrorKind::StorageFull);
+        assert_eq!(names(&sets.run_dir()), ["set-2"]);
+        assert_eq!(fs::read_to_string(sets.runs().link().join("a.csv")).unwrap(), "two");
     }
 
     #[test]
@@ -419,7 +519,7 @@ mod tests {
         // The next write works and takes the next number.
         write_set(&sets, "new");
         assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "new");
-        assert_eq!(names(&sets.run_dir()), ["set-2"]);
+        assert_eq!(names(&sets.run_dir()), ["set-1", "set-2"], "set-1 kept for its grace");
     }
 
     /// A real full disk: a 64 KiB tmpfs (needs root and mount; skipped with a message
@@ -495,6 +595,23 @@ mod tests {
         assert_eq!(again.current(), r2.current());
     }
 
+    /// Starts that wrote no set (stopped on the ground) leave no empty run folders, now or
+    /// from before.
+    #[test]
+    fn a_run_that_writes_no_set_leaves_no_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let r1 = ResultSets::open(&link, "r1").unwrap();
+        write_set(&r1, "first");
+        ResultSets::open(&link, "r2").unwrap();
+        fs::create_dir(dir.path().join("area.runs/r0-empty-from-an-older-mavloc")).unwrap();
+        let r3 = ResultSets::open(&link, "r3").unwrap();
+        assert_eq!(names(r3.runs().root()), ["r1"], "no r2, no older empty run, no r3 yet");
+        assert!(r3.current().is_none());
+        write_set(&r3, "third");
+        assert_eq!(names(r3.runs().root()), ["r1", "r3"]);
+    }
+
     #[test]
     fn start_up_removes_what_a_crash_left_and_keeps_the_newest_set() {
         let dir = tempfile::tempdir().unwrap();
@@ -513,7 +630,7 @@ mod tests {
         assert_eq!(names(&run), ["set-2"]);
         assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "two", "the link moved to the newest");
         assert_eq!(names(dir.path()), ["area", "area.runs"]);
-        assert_eq!(names(sets.runs().root()), ["r1", "r2"]);
+        assert_eq!(names(sets.runs().root()), ["r1"], "r2 is made by its first set");
     }
 
     /// A file where the link goes is someone's: named, kept, and nothing opened (the link
@@ -542,14 +659,15 @@ mod tests {
         assert!(fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
         assert_eq!(fs::read_to_string(link.join("landmarks.csv")).unwrap(), "old format");
         let runs = names(sets.runs().root());
-        assert_eq!(runs.len(), 2, "{runs:?}");
-        assert!(runs[0].starts_with("legacy-") && runs[1] == "r1", "{runs:?}");
+        assert_eq!(runs.len(), 1, "{runs:?}");
+        assert!(runs[0].starts_with("legacy-"), "{runs:?}");
         let legacy = sets.runs().root().join(&runs[0]);
         assert_eq!(names(&legacy), ["set-0"]);
         // Once: opening again adopts nothing more.
         ResultSets::open(&link, "r1").unwrap();
-        assert_eq!(names(sets.runs().root()).len(), 2);
+        assert_eq!(names(sets.runs().root()).len(), 1);
         write_set(&sets, "new");
+        assert_eq!(names(sets.runs().root()).len(), 2, "the legacy run and r1");
         assert_eq!(fs::read_to_string(legacy.join("set-0/landmarks.csv")).unwrap(), "old format");
     }
 

@@ -70,6 +70,12 @@ pub trait FrameSource: Send {
     fn unreadable(&self) -> u64 {
         0
     }
+    /// After a `Gone` error, whether `next` may be called again on this source (it waits
+    /// where it stopped, like a folder of images that vanished) instead of reopening it
+    /// (a device, which starts afresh).
+    fn resumable(&self) -> bool {
+        false
+    }
 }
 
 /// What sources share with the daemon: its clock, the latest pose (for the sim camera),
@@ -262,11 +268,21 @@ pub fn spawn(
                                 c.give();
                             }
                             let fatal = matches!(e, SourceError::Fatal(_));
-                            let _ = tx.blocking_send(CameraEvent::Down { why: e.to_string(), fatal });
-                            last_error = e.to_string();
+                            let why = e.to_string();
+                            if why != last_error || up {
+                                let _ = tx.blocking_send(CameraEvent::Down { why: why.clone(), fatal });
+                            }
+                            last_error = why;
                             up = false;
                             if fatal {
                                 return;
+                            }
+                            if source.resumable() {
+                                if !ctx.sleep_until(ctx.now() + backoff) {
+                                    return;
+                                }
+                                backoff = (backoff * 2.0_f64).min(5.0);
+                                continue;
                             }
                             break;
                         }
@@ -333,5 +349,71 @@ mod tests {
         }
         assert_eq!(frames, 2);
         assert_eq!(told, vec![2], "two unreadable images, told once with their total");
+    }
+
+    /// A folder camera whose folder vanishes says so once, sends nothing while it is gone
+    /// (it used to skip every remaining image in one burst, a warning each, and end for
+    /// good), and goes on at the image it stopped at when the folder is back.
+    #[test]
+    fn a_folder_camera_that_vanishes_says_so_once_and_goes_on_where_it_stopped() {
+        use opencv::{core, imgcodecs, prelude::*};
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("card");
+        std::fs::create_dir(&dir).unwrap();
+        for i in 0..3 {
+            let m =
+                Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(40.0 * i as f64))
+                    .unwrap();
+            imgcodecs::imwrite(dir.join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
+        }
+        let mut s = Settings::default();
+        s.camera.source = CameraSource::File;
+        s.camera.path = dir.to_string_lossy().into();
+        (s.camera.width, s.camera.height, s.camera.realtime) = (32, 24, false);
+        let credits = Arc::new(Credits::new(1));
+        let ctx = SourceContext {
+            started: Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: Some(credits.clone()),
+        };
+        let (tx, mut rx) = tokio::sync::mpsc::channel(16);
+        let thread = spawn(s, ctx.clone(), tx);
+        // The next event within 10 s, or none.
+        let mut next = |wait: Duration| {
+            let until = Instant::now() + wait;
+            loop {
+                match rx.try_recv() {
+                    Ok(e) => return Some(e),
+                    Err(_) if Instant::now() < until => std::thread::sleep(Duration::from_millis(5)),
+                    Err(_) => return None,
+                }
+            }
+        };
+        let long = Duration::from_secs(10);
+        let frame_index = |e: Option<CameraEvent>| match e {
+            Some(CameraEvent::Frame(f)) => f.index,
+            _ => panic!("a frame expected"),
+        };
+        assert!(matches!(next(long), Some(CameraEvent::Up(_))));
+        assert_eq!(frame_index(next(long)), 0);
+        let away = root.path().join("unmounted");
+        std::fs::rename(&dir, &away).unwrap();
+        credits.give();
+        match next(long) {
+            Some(CameraEvent::Down { why, fatal: false }) => assert!(why.contains("card is gone"), "{why}"),
+            _ => panic!("the folder's loss is told, as a loss that is retried"),
+        }
+        // Two retries (after 0.5 and 1 s) pass unsaid: no burst, no end, no repeat.
+        assert!(next(Duration::from_millis(1700)).is_none(), "nothing while the folder is gone");
+        std::fs::rename(&away, &dir).unwrap();
+        assert!(matches!(next(long), Some(CameraEvent::Up(_))));
+        assert_eq!(frame_index(next(long)), 1, "on at the image it stopped at");
+        credits.give();
+        assert_eq!(frame_index(next(long)), 2);
+        credits.give();
+        assert!(matches!(next(long), Some(CameraEvent::Ended(_))));
+        ctx.stop.store(true, Ordering::Relaxed);
+        thread.join().unwrap();
     }
 }

@@ -12,7 +12,13 @@ use crate::settings::Camera;
 
 enum Input {
     Capture(videoio::VideoCapture),
-    Images { files: Vec<PathBuf>, next: usize },
+    /// The folder's images by name; the next to read. `dir` is watched: a folder that
+    /// vanishes (a card unmounted, a network share dropped) is waited for, not read through.
+    Images {
+        dir: PathBuf,
+        files: Vec<PathBuf>,
+        next: usize,
+    },
 }
 
 /// A V4L2 device, a video file or an image folder.
@@ -120,7 +126,11 @@ impl Video {
                 return Err(SourceError::Fatal(format!("{} holds no images", path.display())));
             }
             let n = files.len();
-            (Input::Images { files, next: 0 }, c.fps, format!("{n} images in {}", path.display()))
+            (
+                Input::Images { dir: path.to_path_buf(), files, next: 0 },
+                c.fps,
+                format!("{n} images in {}", path.display()),
+            )
         } else {
             if !path.exists() {
                 return Err(SourceError::Fatal(format!("video file {} does not exist", path.display())));
@@ -176,15 +186,28 @@ impl Video {
             }
             // One bad file (truncated by a full card, garbage) must not end a folder of
             // good ones: it is skipped, named and counted.
-            Input::Images { files, next } => loop {
+            Input::Images { dir, files, next } => loop {
                 let Some(p) = files.get(*next).cloned() else { return Ok(None) };
-                *next += 1;
                 // `read_image`, not `imread`: OpenCV decodes a JPEG cut inside its image
                 // data without an error, grey below the cut.
                 let why = match crate::imaging::read_image(&p, imgcodecs::IMREAD_COLOR) {
-                    Ok(img) => return Ok(Some((img, self.ctx.now()))),
+                    Ok(img) => {
+                        *next += 1;
+                        return Ok(Some((img, self.ctx.now())));
+                    }
                     Err(e) => e,
                 };
+                // The folder itself gone: every file would fail in one burst and the
+                // camera end for good. This image is read again once the folder is back.
+                if !dir.is_dir() {
+                    return Err(SourceError::Gone(format!(
+                        "image folder {} is gone (unmounted?); waiting for it at image {} of {}",
+                        dir.display(),
+                        *next + 1,
+                        files.len()
+                    )));
+                }
+                *next += 1;
                 self.skipped += 1;
                 tracing::warn!("{why}; skipped ({} skipped in all)", self.skipped);
             },
@@ -195,6 +218,9 @@ impl Video {
 impl FrameSource for Video {
     fn next(&mut self) -> Result<Option<Captured>, SourceError> {
         if self.period > 0.0 {
+            // After a pause (a folder waited for) the pace starts again from now instead
+            // of catching up in a burst.
+            self.next_due = self.next_due.max(self.ctx.now() - self.period);
             if !self.ctx.sleep_until(self.next_due) {
                 return Ok(None);
             }
@@ -249,6 +275,10 @@ impl FrameSource for Video {
     fn unreadable(&self) -> u64 {
         self.skipped
     }
+
+    fn resumable(&self) -> bool {
+        matches!(self.input, Input::Images { .. })
+    }
 }
 
 #[cfg(test)]
@@ -297,6 +327,45 @@ mod tests {
         let a = v.next().unwrap().unwrap();
         assert_eq!(*a.image.at_2d::<core::Vec3b>(0, 0).unwrap(), core::Vec3b::from([200, 200, 200]));
         assert_eq!(v.next().unwrap().unwrap().index, 1);
+        assert!(v.next().unwrap().is_none());
+    }
+
+    /// A folder that vanishes (a card unmounted) is waited for: nothing is skipped, and
+    /// the camera goes on at the image it stopped at once the folder is back.
+    #[test]
+    fn a_vanished_folder_is_waited_for_and_resumed_where_it_stopped() {
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("frames");
+        std::fs::create_dir(&dir).unwrap();
+        for i in 0..3 {
+            let m =
+                Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(10.0 * i as f64))
+                    .unwrap();
+            imgcodecs::imwrite(dir.join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
+        }
+        let mut v = folder_camera(&dir);
+        assert!(v.resumable());
+        assert_eq!(v.next().unwrap().unwrap().index, 0);
+        let away = root.path().join("unmounted");
+        std::fs::rename(&dir, &away).unwrap();
+        for _ in 0..2 {
+            let e = v.next().err().expect("no frame while the folder is gone");
+            assert!(matches!(e, SourceError::Gone(_)), "retried, not fatal: {e}");
+            assert!(
+                e.to_string().contains("frames is gone") && e.to_string().contains("image 2 of 3"),
+                "{e}"
+            );
+        }
+        assert_eq!(v.unreadable(), 0, "nothing skipped while it was gone");
+        std::fs::rename(&away, &dir).unwrap();
+        let back = v.next().unwrap().unwrap();
+        assert_eq!(back.index, 1);
+        assert_eq!(
+            *back.image.at_2d::<core::Vec3b>(0, 0).unwrap(),
+            core::Vec3b::from([10, 10, 10]),
+            "image 1"
+        );
+        assert_eq!(v.next().unwrap().unwrap().index, 2);
         assert!(v.next().unwrap().is_none());
     }
 

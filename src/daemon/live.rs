@@ -96,6 +96,9 @@ pub struct AreaLive {
     minute_start: std::time::Instant,
     minute_medians: Vec<f64>,
     no_mask_warned: bool,
+    /// Checkpoint writes that failed since the last that worked (a full disk): the
+    /// first that works again says so, or the warnings would be the last word.
+    writes_failing: u64,
     /// A mask of another size than its frame was said (once).
     bad_mask_warned: bool,
     started: std::time::Instant,
@@ -178,6 +181,7 @@ impl AreaLive {
             minute_start: std::time::Instant::now(),
             minute_medians: Vec::new(),
             no_mask_warned: false,
+            writes_failing: 0,
             bad_mask_warned: false,
             started: std::time::Instant::now(),
             settings: s.area.clone(),
@@ -212,9 +216,29 @@ impl AreaLive {
         l
     }
 
-    /// Writes a new result set and makes it current; returns its files (by the link's
-    /// path, as users read them) and the border lines fitted. On an error the previous set
-    /// stays current.
+    /// Writes a set in flight, saying in `report` how long the border is, or why the
+    /// write failed and, at the first that works after failures, that the results are
+    /// written again.
+    fn checkpoint(&mut self, report: &mut Report) {
+        match self.write() {
+            Ok((_, lines)) => {
+                if self.writes_failing > 0 {
+                    report.events.push(format!(
+                        "area: results written again, after {} failed writes",
+                        std::mem::take(&mut self.writes_failing)
+                    ));
+                }
+                let length: f64 = lines.iter().flat_map(|l| l.windows(2).map(|w| (w[1] - w[0]).norm())).sum();
+                report.counters.push(("BRD_LINES", lines.len() as f32));
+                report.counters.push(("BRD_LEN", length as f32));
+            }
+            Err(e) => {
+                self.writes_failing += 1;
+                report.warnings.push(Warning::WriteFailed(format!("area: cannot write results: {e}")))
+            }
+        }
+    }
+
     /// Whether a checkpoint or the stop writes a set: not while this run has no landmark
     /// and has written none, so the last run's map stays current (a restart on the ground
     /// made an empty set current within seconds: an outside audit). A snapshot asked for
@@ -224,6 +248,9 @@ impl AreaLive {
         !self.results.is_empty() || !self.pipeline.converged_now().is_empty() || self.sets.current().is_some()
     }
 
+    /// Writes a new result set and makes it current; returns its files (by the link's
+    /// path, as users read them) and the border lines fitted. On an error the previous set
+    /// stays current.
     fn write(&self) -> io::Result<(Vec<PathBuf>, Vec<Vec<crate::geometry::Vec3>>)> {
         let landmarks = self.all_landmarks();
         let elapsed = self.started.elapsed().as_secs_f64();
@@ -431,17 +458,7 @@ impl LivePipeline for AreaLive {
             ("LMK_FEAT", r.features as f32),
         ];
         if self.frames.is_multiple_of(AREA_CHECKPOINT_FRAMES) && self.worth_a_set() {
-            match self.write() {
-                Ok((_, lines)) => {
-                    let length: f64 =
-                        lines.iter().flat_map(|l| l.windows(2).map(|w| (w[1] - w[0]).norm())).sum();
-                    report.counters.push(("BRD_LINES", lines.len() as f32));
-                    report.counters.push(("BRD_LEN", length as f32));
-                }
-                Err(e) => {
-                    report.warnings.push(Warning::WriteFailed(format!("area: cannot write results: {e}")))
-                }
-            }
+            self.checkpoint(&mut report);
         }
         report
     }
@@ -726,6 +743,9 @@ pub struct IndoorLive {
     localizer: Localizer,
     trigger: LandingTrigger,
     trajectory: Appender<TrajectoryRow>,
+    /// Trajectory lines that could not be appended since the last that could (see
+    /// [`AreaLive`]'s `writes_failing`).
+    writes_failing: u64,
     /// This run's folder (`results/indoor` points at it).
     dir: PathBuf,
     frames: u64,
@@ -790,6 +810,7 @@ impl IndoorLive {
             pre,
             localizer,
             trajectory,
+            writes_failing: 0,
             dir,
             frames: 0,
             last_hold: None,
@@ -931,9 +952,17 @@ impl LivePipeline for IndoorLive {
             true_y: truth[1],
             fix: e.fix,
         };
-        if let Err(err) = self.trajectory.push(&row) {
-            let line = format!("indoor: cannot append to trajectory.csv: {err}");
-            report.warnings.push(Warning::WriteFailed(line));
+        match self.trajectory.push(&row) {
+            Ok(()) if self.writes_failing > 0 => report.events.push(format!(
+                "indoor: trajectory.csv written again, after {} failed appends",
+                std::mem::take(&mut self.writes_failing)
+            )),
+            Ok(()) => {}
+            Err(err) => {
+                self.writes_failing += 1;
+                let line = format!("indoor: cannot append to trajectory.csv: {err}");
+                report.warnings.push(Warning::WriteFailed(line));
+            }
         }
         // No fix, no estimate for the autopilot: the heaviest spot of particles still spread
         // over the floor is metres off as often as not, and EKF2 would fly on it.
@@ -1189,6 +1218,35 @@ mod tests {
         let again = area(&link, "r2");
         assert_eq!(again.all_landmarks().len(), 1);
         assert_eq!(again.id_offset, 1, "new landmarks do not reuse the resumed ids");
+    }
+
+    /// After failed checkpoint writes (a full disk), the first that works says so: the
+    /// warnings were the last word in the log and on the ground station before.
+    #[test]
+    fn a_checkpoint_that_works_after_failed_ones_says_the_results_are_written_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let mut live = area(&link, "r1");
+        live.results = (0..3).map(landmark).collect();
+        let mut report = Report::default();
+        live.checkpoint(&mut report);
+        assert!(report.warnings.is_empty() && report.events.is_empty(), "{report:?}");
+        // The next set's folder cannot be made (a file in its way fails it as a full disk would).
+        let blocker = live.sets.run_dir().join("set-2.partial");
+        std::fs::write(&blocker, "in the way").unwrap();
+        for _ in 0..2 {
+            live.checkpoint(&mut report);
+        }
+        assert_eq!(report.warnings.len(), 2, "{report:?}");
+        assert!(report.events.is_empty());
+        std::fs::remove_file(&blocker).unwrap();
+        let mut report = Report::default();
+        live.checkpoint(&mut report);
+        assert_eq!(report.events, ["area: results written again, after 2 failed writes"]);
+        assert_eq!(rows(&link.join("landmarks.csv")), 3);
+        let mut report = Report::default();
+        live.checkpoint(&mut report);
+        assert!(report.events.is_empty(), "said once: {report:?}");
     }
 
     #[test]

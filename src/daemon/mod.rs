@@ -644,8 +644,13 @@ pub async fn run(
     let Shell { dir, mut link, mut live, started: _, .. } = shell;
     live.ctx.stop.store(true, Ordering::Relaxed);
     if let Some((k, w)) = live.worker.take() {
-        tokio::task::block_in_place(|| w.stop());
-        tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display());
+        match tokio::task::block_in_place(|| w.stop()) {
+            Ok(()) => tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display()),
+            Err(e) => tracing::warn!(
+                "{k:?} pipeline stopped without its final results ({e}); {} holds the last complete set",
+                live.results.display()
+            ),
+        }
     }
     let recording = live.recorder.take().map(|r| {
         let dir = r.dir.clone();
@@ -892,6 +897,7 @@ fn start_recorder(settings: &Settings, state: &Path, run: &str) -> Result<Option
         chain: settings.gimbal.chain,
         source_origin: camera::origin(settings),
         lossless: lossless(settings),
+        reserve_bytes: (d.record_reserve_mb * 1e6) as u64,
     })))
 }
 
@@ -906,7 +912,8 @@ fn snapshot(live: &Live) -> Result<Vec<PathBuf>, String> {
 
 fn stop_worker(live: &mut Live) {
     if let Some((_, w)) = live.worker.take() {
-        tokio::task::block_in_place(|| w.stop());
+        // A failed write is already a warning from the worker and a WriteFailed event.
+        let _ = tokio::task::block_in_place(|| w.stop());
     }
     // Frames waiting for the old pipeline are void.
     while live.pending.pop_front().is_some() {

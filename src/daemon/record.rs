@@ -17,7 +17,10 @@
 //!   leaves at most images without lines, or a torn last line, which
 //!   [`mavloc_data::Dataset::open`] skips.
 //! - **A full disk stops the recording, not the daemon**: one error naming the file, and
-//!   the pipeline goes on.
+//!   the pipeline goes on. Before that, the recording stops when its disk's free space
+//!   falls below `daemon.record_reserve_mb` (checked before each frame), so the results,
+//!   the parameters and `status.json`, which share the disk in the usual layout, can
+//!   still be written.
 //! - **The pose as the pipeline had it.** The camera attitude is written as earth-frame
 //!   angles in `gimbal.chain` with the gimbal offsets in force taken back out, so a replay
 //!   with the same offsets gives the live attitude back exactly (and a replay with offsets
@@ -78,6 +81,9 @@ pub struct RecordSpec {
     /// The source waits for the pipeline (`camera.realtime = false`): an offer waits for
     /// room rather than pushing out a waiting frame.
     pub lossless: bool,
+    /// Free space the recording leaves on its disk (`daemon.record_reserve_mb`): it stops
+    /// before a frame that would start below it.
+    pub reserve_bytes: u64,
 }
 
 /// How long a lossless offer waits for the disk before it drops the oldest waiting frame
@@ -355,6 +361,28 @@ struct Writer {
     pending_files: Vec<PathBuf>,
     telemetry: std::fs::File,
     telemetry_path: PathBuf,
+    reserve_bytes: u64,
+}
+
+/// Refuses to write on when `dir`'s file system has less than `reserve` bytes free for an
+/// unprivileged writer (root's reserved blocks do not count: the results may be written
+/// by another user).
+fn check_reserve(dir: &Path, reserve: u64) -> Result<(), String> {
+    if reserve == 0 {
+        return Ok(());
+    }
+    let st = rustix::fs::statvfs(dir)
+        .map_err(|e| format!("cannot read the free space of {}: {e}", dir.display()))?;
+    let free = st.f_bavail.saturating_mul(st.f_frsize);
+    if free < reserve {
+        return Err(format!(
+            "{:.1} MB left on the disk of {}, below daemon.record_reserve_mb = {:.1} MB kept for results and state",
+            free as f64 / 1e6,
+            dir.display(),
+            reserve as f64 / 1e6
+        ));
+    }
+    Ok(())
 }
 
 impl Writer {
@@ -363,6 +391,9 @@ impl Writer {
         if dir.join(mavloc_data::dataset::TELEMETRY_FILE).exists() {
             // Run ids are unique per start: an existing recording is never appended to.
             return Err(format!("{} already holds a recording", dir.display()));
+        }
+        if let Some(parent) = dir.parent() {
+            check_reserve(parent, spec.reserve_bytes)?;
         }
         mavloc_data::dataset::prepare(dir)?;
         let camera = CameraFile::new(
@@ -389,6 +420,7 @@ impl Writer {
             pending_files: Vec::new(),
             telemetry,
             telemetry_path,
+            reserve_bytes: spec.reserve_bytes,
         })
     }
 
@@ -399,6 +431,7 @@ impl Writer {
             None => 0,
             Some((index, n)) => n + item.index.saturating_sub(index).max(1),
         };
+        check_reserve(&self.dir, self.reserve_bytes)?;
         let image = self.dir.join("frames").join(format!("{n:06}.{}", extension(self.format)));
         write_image(&image, &item.image, self.format)?;
         self.pending_files.push(image);
@@ -571,6 +604,7 @@ mod tests {
             chain: GimbalChain::YawPitchRoll,
             source_origin: None,
             lossless: false,
+            reserve_bytes: 0,
         }
     }
 
@@ -711,6 +745,61 @@ mod tests {
         assert_eq!(stats.recorded.load(Ordering::Relaxed), 1);
         let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
         assert_eq!(ds.records.len(), 1);
+    }
+
+    /// On a disk shared with the results, the recording stops before the free space falls
+    /// below the reserve: the frames before stay a dataset, and the room is left (a real
+    /// 512 KiB tmpfs; needs root and mount, skipped with a message otherwise).
+    #[test]
+    fn the_recording_stops_at_the_reserve_and_leaves_the_room() {
+        let dir = tempfile::tempdir().unwrap();
+        let mounted = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", "size=512k", "tmpfs"])
+            .arg(dir.path())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if !mounted {
+            eprintln!("skipped: cannot mount a tmpfs here (needs root)");
+            return;
+        }
+        struct Unmount<'a>(&'a Path);
+        impl Drop for Unmount<'_> {
+            fn drop(&mut self) {
+                let _ = std::process::Command::new("umount").arg(self.0).status();
+            }
+        }
+        let _guard = Unmount(dir.path());
+        let rec_dir = dir.path().join("run-1");
+        let reserve = 256 * 1024;
+        let r = Recorder::start(RecordSpec {
+            lossless: true,
+            reserve_bytes: reserve,
+            ..spec(&rec_dir, RecordFormat::Png)
+        });
+        let origin = Some(Geodetic::new(57.0, 10.0, 12.0));
+        // Noise does not compress: about 9 KB a frame.
+        use rand::SeedableRng;
+        for i in 0..60 {
+            let mut f = frame(i, origin);
+            let mut rng = rand::rngs::StdRng::seed_from_u64(i);
+            rand::RngCore::fill_bytes(&mut rng, f.image.data_bytes_mut().unwrap());
+            r.offer(&f, [0.0; 3]);
+        }
+        let stats = r.stop();
+        let e = stats.failed.lock().unwrap().clone().expect("stopped at the reserve");
+        assert!(e.contains("below daemon.record_reserve_mb = 0.3 MB"), "{e}");
+        let free = {
+            let st = rustix::fs::statvfs(dir.path()).unwrap();
+            st.f_bavail * st.f_frsize
+        };
+        // At most one frame past the check (about 9 KB, 12 KiB in tmpfs pages) and the
+        // lines written at the stop.
+        assert!(free + 24 * 1024 >= reserve, "{free} bytes left");
+        let recorded = stats.recorded.load(Ordering::Relaxed);
+        assert!((10..60).contains(&recorded), "{recorded} frames recorded");
+        let ds = mavloc_data::Dataset::open(&rec_dir).unwrap();
+        assert_eq!(ds.records.len() as u64, recorded, "the frames before are a dataset");
     }
 
     /// Frames written before a failed write, within the second their lines wait for the

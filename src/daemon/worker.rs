@@ -105,6 +105,8 @@ pub struct Worker {
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
     thread: Option<std::thread::JoinHandle<()>>,
     pub dropped: Arc<std::sync::atomic::AtomicU64>,
+    /// Why the results could not be written at the stop, once it failed.
+    stop_failed: Arc<Mutex<Option<String>>>,
 }
 
 impl Worker {
@@ -121,11 +123,13 @@ impl Worker {
         let shared = Arc::new((Mutex::new(mailbox), Condvar::new()));
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let s2 = shared.clone();
+        let stop_failed = Arc::new(Mutex::new(None));
+        let f2 = stop_failed.clone();
         let thread = std::thread::Builder::new()
             .name("mavloc-pipeline".into())
-            .spawn(move || run(factory, settings, s2, events))
+            .spawn(move || run(factory, settings, s2, events, f2))
             .expect("spawn pipeline thread");
-        Worker { shared, thread: Some(thread), dropped }
+        Worker { shared, thread: Some(thread), dropped, stop_failed }
     }
 
     /// Offers a frame; at a full mailbox the oldest waiting frame is dropped (and counted).
@@ -146,11 +150,16 @@ impl Worker {
         cv.notify_one();
     }
 
-    /// Stops the worker after its current frame and waits for it to write its results.
-    pub fn stop(mut self) {
+    /// Stops the worker after its current frame and waits for it to write its results;
+    /// an error says why they could not be (the last complete set stays current).
+    pub fn stop(mut self) -> Result<(), String> {
         self.request(Request::Stop);
         if let Some(t) = self.thread.take() {
             let _ = t.join();
+        }
+        match self.stop_failed.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            Some(e) => Err(e),
+            None => Ok(()),
         }
     }
 }
@@ -175,6 +184,7 @@ fn run(
     mut settings: Settings,
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
     events: tokio::sync::mpsc::Sender<Event>,
+    stop_failed: Arc<Mutex<Option<String>>>,
 ) {
     let build = |s: &Settings| match catch_unwind(AssertUnwindSafe(|| factory(s))) {
         Ok(r) => r,
@@ -245,6 +255,7 @@ fn run(
                         // Logged here too: at shutdown nobody reads the event.
                         let line = format!("cannot write the pipeline's results at stop: {e}");
                         tracing::warn!("{line}");
+                        *stop_failed.lock().unwrap_or_else(|p| p.into_inner()) = Some(e.to_string());
                         let _ = events.try_send(Event::Pipeline(PipelineEvent::WriteFailed(line)));
                         Vec::new()
                     });
@@ -343,7 +354,7 @@ mod tests {
             // Wait for this frame's event so none is replaced in the mailbox.
             events.push(rx.blocking_recv().unwrap());
         }
-        w.stop();
+        w.stop().unwrap();
         events.push(rx.blocking_recv().unwrap());
         assert!(
             matches!(&events[3], Event::Pipeline(PipelineEvent::Panicked { frame: Some(3), message }) if message == "bad frame")
@@ -364,7 +375,8 @@ mod tests {
         let factory: Factory =
             Box::new(move |_| Ok(Box::new(Fragile { seen: 0, dir: out.clone() }) as Box<dyn LivePipeline>));
         let w = Worker::start(factory, Settings::default(), 1, tx);
-        w.stop();
+        let e = w.stop().unwrap_err();
+        assert!(e.contains("No such file"), "the stop says why, for its log line: {e}");
         let failed = rx.blocking_recv().unwrap();
         assert!(
             matches!(&failed, Event::Pipeline(PipelineEvent::WriteFailed(e)) if e.contains("cannot write the pipeline's results")),
@@ -421,7 +433,7 @@ mod tests {
             }
             assert_eq!(done, kept, "depth {depth}");
             assert_eq!(w.dropped.load(std::sync::atomic::Ordering::Relaxed), 5 - (kept.len() as u64 - 1));
-            w.stop();
+            w.stop().unwrap();
         }
     }
 
@@ -475,6 +487,6 @@ mod tests {
             }
         }
         assert_eq!(notes, ["landed", "done"]);
-        w.stop();
+        w.stop().unwrap();
     }
 }

@@ -269,6 +269,21 @@ pub fn apply_tuned(
             out.push(Tuned::Pinned { name: name.clone(), key: def.key, value: x });
             continue;
         }
+        // The file holds any JSON number; what goes further must fit the parameter's
+        // wire type, or `as` would make 1e300 infinite (then called "not a finite
+        // number") and 1e12 the largest INT32, a value nobody set.
+        let fits = match def.kind {
+            Float => x.is_finite() && x.abs() <= f32::MAX as f64,
+            _ => x.is_finite() && x >= i32::MIN as f64 && x <= i32::MAX as f64,
+        };
+        if !fits {
+            let ty = if def.kind == Float { "REAL32" } else { "INT32" };
+            out.push(Tuned::Dropped {
+                name: name.clone(),
+                why: format!("{x:e} is beyond the range of {ty}, the parameter's type"),
+            });
+            continue;
+        }
         let w = match def.kind {
             Float => Wire { value: x as f32, ty: MavParamType::MAV_PARAM_TYPE_REAL32 },
             _ => Wire { value: f32::from_bits(x as i32 as u32), ty: MavParamType::MAV_PARAM_TYPE_INT32 },
@@ -438,6 +453,23 @@ mod tests {
         assert_eq!(s4.area.band_px, 80);
         assert!(set(&s, "AREA_BAND_PX", real(80.5)).is_err());
         assert!(set(&s, "IND_LAND_EN", int(2)).is_err());
+    }
+
+    /// A tuned value the wire type cannot hold is dropped as such: 1e300 was called "not
+    /// a finite number", and an integer beyond INT32 became INT32's largest.
+    #[test]
+    fn a_tuned_value_beyond_its_wire_type_is_dropped_as_out_of_range() {
+        let mut s = Settings::default();
+        let tuned: BTreeMap<String, f64> =
+            [("AREA_RATIO".to_string(), 1e300), ("AREA_L_MAX".to_string(), 1e12)].into_iter().collect();
+        let out = apply_tuned(&mut s, &tuned, &BTreeSet::new());
+        let why = |n: &str| match out.iter().find(|t| matches!(t, Tuned::Dropped { name, .. } if name == n)) {
+            Some(Tuned::Dropped { why, .. }) => why.clone(),
+            _ => panic!("{n} not dropped: {out:?}"),
+        };
+        assert_eq!(why("AREA_RATIO"), "1e300 is beyond the range of REAL32, the parameter's type");
+        assert_eq!(why("AREA_L_MAX"), "1e12 is beyond the range of INT32, the parameter's type");
+        assert_eq!(s, Settings::default());
     }
 
     #[test]

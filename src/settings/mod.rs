@@ -727,6 +727,7 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
 
     // [daemon]
     v.range("daemon.max_frame_age_s", s.daemon.max_frame_age_s, 0.01, 60.0);
+    v.range("daemon.record_reserve_mb", s.daemon.record_reserve_mb, 0.0, 1e7);
     v.nonempty("daemon.state_dir", &s.daemon.state_dir);
     if let Err(e) = tracing_subscriber::EnvFilter::try_new(&s.daemon.log) {
         v.problem(

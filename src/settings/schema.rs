@@ -46,6 +46,9 @@ pub struct Daemon {
     /// The flight recorder's folder (`daemon::record`); empty = off.
     pub record: String,
     pub record_format: RecordFormat,
+    /// Room the flight recorder leaves free on its disk (MB): below it, it stops, so the
+    /// results and the state can still be written.
+    pub record_reserve_mb: f64,
 }
 
 /// How the flight recorder stores frames.
@@ -67,6 +70,7 @@ impl Default for Daemon {
             max_frame_age_s: 0.5,
             record: String::new(),
             record_format: RecordFormat::Jpg,
+            record_reserve_mb: 256.0,
         }
     }
 }

@@ -332,6 +332,8 @@ const WRITE_WARNING_PERIOD: Duration = Duration::from_secs(10);
 
 /// How often tuned parameters that could not be saved are saved again.
 const PARAMS_RETRY: Duration = Duration::from_secs(10);
+/// How often a second clock speaking as the autopilot is said (see `warn_of_a_second_clock`).
+const CLASH_WARN_EVERY: Duration = Duration::from_secs(60);
 
 /// The sim camera renders from the simulator's ground truth: ask for it.
 /// The origin mavloc gives an autopilot with no GPS (`indoor.gps_denied`).
@@ -409,6 +411,10 @@ pub struct Core {
     /// When a failed result write was last said, and how many failed since unsaid.
     write_warned: Option<Mono>,
     writes_failed_unsaid: u64,
+    /// When a second clock speaking as the autopilot was last said, and the counts
+    /// (reboot claims disproved, stamps from the future) already said.
+    clash_warned: Option<Mono>,
+    clash_said: (u64, u64),
     /// The downward rangefinder's reading the last time the vehicle stood (m): the
     /// floor, from where "off the floor" counts.
     ground_range: f64,
@@ -462,6 +468,8 @@ impl Core {
             counters: Counters::default(),
             write_warned: None,
             writes_failed_unsaid: 0,
+            clash_warned: None,
+            clash_said: (0, 0),
             tuned,
             params_unsaved: (0, Mono::ZERO),
             settings,
@@ -841,6 +849,34 @@ impl Core {
             && (target_component == self.component_id || (allow_broadcast && target_component == 0))
     }
 
+    /// Says when the autopilot's system id speaks on a second clock: stamps from before
+    /// the autopilot's last one that no reboot followed, or from its future. Two vehicles
+    /// (or a simulator and a vehicle) with the same MAV_SYS_ID on one network look like
+    /// this, and so does a spoofer; either way the telemetry is screened (the stamps are
+    /// dropped) but the user has to hear of it to fix the ids. At most once a minute.
+    fn warn_of_a_second_clock(&mut self, rx: Mono) {
+        let now = (self.telemetry.reboot_claims_rejected, self.telemetry.implausible);
+        let (said_claims, said_future) = self.clash_said;
+        if now.0 <= said_claims && now.1 <= said_future {
+            return;
+        }
+        if self.clash_warned.is_some_and(|t| rx.saturating_sub(t) < CLASH_WARN_EVERY) {
+            return;
+        }
+        self.clash_warned = Some(rx);
+        self.clash_said = now;
+        let sys = self.settings.mavlink.autopilot_system_id;
+        self.notes.warn_short(
+            &format!(
+                "a second clock speaks as the autopilot (system {sys}): {} of its reboot claims disproved, {} stamps from the future dropped; \
+                 two vehicles or a simulator with the same MAV_SYS_ID on this network?",
+                now.0 - said_claims,
+                now.1 - said_future
+            ),
+            &format!("two clocks as system {sys}: same MAV_SYS_ID twice?"),
+        );
+    }
+
     fn on_frame(&mut self, rx: Mono, f: Frame) {
         // Our own messages echoed back by a router or PX4's forwarding.
         if f.header.system_id == self.system_id as u32 && f.header.component_id == self.component_id {
@@ -870,6 +906,7 @@ impl Core {
             if self.telemetry.on_message(rx, &f.message, f.header.component_id).is_some() {
                 self.on_reboot(rx);
             }
+            self.warn_of_a_second_clock(rx);
             if let Some(axis) = self.telemetry.take_gimbal_report() {
                 let airborne = !self.on_ground();
                 self.gimbal.on_report(rx, [axis.x, axis.y, axis.z], airborne);

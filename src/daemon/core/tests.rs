@@ -855,6 +855,45 @@ fn a_spoofed_reboot_is_not_believed_while_the_autopilot_speaks_on_its_old_clock(
     assert_eq!(sim.core.counters().autopilot_reboots, 1);
 }
 
+const CLASH: &str = "same MAV_SYS_ID twice?";
+
+/// Two vehicles with one system id: the second one's telemetry is screened out by its
+/// clock, and the user hears of it, once a minute at most, so the ids can be fixed.
+#[test]
+fn a_second_vehicle_with_the_autopilots_system_id_is_named_once_a_minute() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(30));
+    assert!(sim.core.autopilot_found());
+    assert!(!warnings(&sim).contains(CLASH), "one autopilot alone: {}", warnings(&sim));
+    // The second vehicle booted 20 s ago and streams ATTITUDE at 10 Hz for 2 minutes.
+    let booted = sim.now - Duration::from_secs(20);
+    for _ in 0..1200 {
+        let ms = sim.now.saturating_sub(booted).as_millis() as u32;
+        sim.deliver(frame(
+            1,
+            1,
+            MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: ms, ..Default::default() }),
+        ));
+        sim.run_for(Duration::from_millis(100));
+    }
+    assert_eq!(sim.core.counters().autopilot_reboots, 0);
+    let said = warnings(&sim).matches(CLASH).count();
+    assert!((2..=3).contains(&said), "said {said} times in 2 minutes: {:?}", sim.statustexts());
+}
+
+/// A real reboot is one backwards step and no clash.
+#[test]
+fn an_autopilot_reboot_is_not_taken_for_a_second_vehicle() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(30));
+    sim.ap.reboot(sim.now);
+    sim.run_for(Duration::from_secs(60));
+    assert_eq!(sim.core.counters().autopilot_reboots, 1);
+    assert!(!warnings(&sim).contains(CLASH), "{}", warnings(&sim));
+}
+
 /// The WARNING STATUSTEXTs sent, chunks joined.
 fn warnings(sim: &Sim) -> String {
     sim.sent
