@@ -132,13 +132,15 @@ impl Runs {
 
     /// Start-up tidying (see the module docs). Removals are best effort: what is left is
     /// tried again at the next start and never read as a result.
-    fn tidy(&self, layout: Layout) -> io::Result<()> {
+    /// `own`: the run being opened, left as it is (a pipeline rebuilt in the same daemon
+    /// keeps the sets still in their grace).
+    fn tidy(&self, layout: Layout, own: &str) -> io::Result<()> {
         fs::create_dir_all(&self.root)
             .map_err(|e| io::Error::new(e.kind(), format!("cannot create {}: {e}", self.root.display())))?;
         let _ = remove_file_if_any(&self.tmp_link());
         self.adopt_legacy(layout)?;
         if layout == Layout::Sets {
-            for run in subdirs(&self.root)? {
+            for run in subdirs(&self.root)?.into_iter().filter(|r| r != own) {
                 let dir = self.root.join(run);
                 self.tidy_run(&dir);
                 // A run that never wrote a set (a start on the ground, stopped before its
@@ -220,7 +222,7 @@ impl ResultSets {
     /// again (a pipeline rebuilt in the same daemon) continues it.
     pub fn open(link: &Path, run: &str) -> io::Result<ResultSets> {
         let runs = Runs::new(link)?;
-        runs.tidy(Layout::Sets)?;
+        runs.tidy(Layout::Sets, run)?;
         Ok(ResultSets { runs, run: run.to_string() })
     }
 
@@ -286,14 +288,23 @@ impl ResultSets {
             sync_dir(&run_dir);
             return Err(e);
         }
+        // The folder's time becomes its publishing time (a rename keeps the time its last
+        // file was made, before the sync, which takes seconds on a busy SD card): the
+        // grace of the set it replaced counts from here.
+        if let Ok(f) = fs::File::open(&set) {
+            let _ = f.set_modified(now);
+        }
         self.remove_replaced(&run_dir, &sets.complete, n, now, REPLACED_SET_GRACE);
         Ok(set)
     }
 
     /// Removes the sets of this run that were replaced at least `grace` before `now`;
-    /// `current` is never removed. A set was replaced when the next one was published,
-    /// taken as that one's folder's modification time (its last file was written just
-    /// before the rename that published it). The set replaced just now always stays.
+    /// `current` and whatever the link points at are never removed. A set was replaced
+    /// when the next one was published, which [`ResultSets::write_at`] stamps as that
+    /// one's folder's modification time. The set replaced just now always stays. A time
+    /// further ahead of `now` than the grace (the clock was set back, as a computer with
+    /// no battery clock does when it gets the time) counts as expired, or those sets
+    /// would stay until the clock caught up.
     fn remove_replaced(
         &self,
         run_dir: &Path,
@@ -302,24 +313,32 @@ impl ResultSets {
         now: SystemTime,
         grace: Duration,
     ) {
+        // After a failed switch whose clean-up failed too, the newest complete set may
+        // not be the link's target: that one is never removed, or the link would dangle.
+        let target = self.runs.target();
+        let linked =
+            |n: u64| target.is_some() && target == self.runs.relative(&run_dir.join(set_name(n))).ok();
         let mut all: Vec<u64> = complete.iter().copied().filter(|&o| o != current).collect();
         all.push(current);
         all.sort_unstable();
         for pair in all.windows(2) {
             let (old, successor) = (pair[0], pair[1]);
             if grace.is_zero() {
-                let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
+                if !linked(old) {
+                    let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
+                }
                 continue;
             }
             if successor == current {
                 continue;
             }
             let replaced_at = fs::metadata(run_dir.join(set_name(successor))).and_then(|m| m.modified());
-            let expired = match replaced_at {
-                Ok(t) => now.duration_since(t).is_ok_and(|age| age >= grace),
+            let expired = match replaced_at.map(|t| now.duration_since(t)) {
+                Ok(Ok(age)) => age >= grace,
+                Ok(Err(ahead)) => ahead.duration() > grace,
                 Err(_) => true, // its successor is gone: nothing says when; not kept forever
             };
-            if expired {
+            if expired && !linked(old) {
                 let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
             }
         }
@@ -338,7 +357,7 @@ pub const REPLACED_SET_GRACE: Duration = Duration::from_secs(30);
 /// and points the link at it: for results appended line by line. Returns the folder.
 pub fn open_run_dir(link: &Path, run: &str) -> io::Result<PathBuf> {
     let runs = Runs::new(link)?;
-    runs.tidy(Layout::Plain)?;
+    runs.tidy(Layout::Plain, run)?;
     let dir = runs.run_dir(run);
     fs::create_dir_all(&dir)?;
     if runs.target() != runs.relative(&dir).ok() {
@@ -465,10 +484,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let sets = ResultSets::open(&dir.path().join("area"), "r1").unwrap();
         let now = SystemTime::now();
-        // Each set published at `t`: its folder's time is when it was published.
+        // Each set published at `t` (which `write_at` stamps on its folder).
         let w = |t: SystemTime, text: &str| {
-            let set = sets.write_at(t, |d| fs::write(d.join("a.csv"), text)).unwrap();
-            fs::File::open(&set).unwrap().set_modified(t).unwrap();
+            sets.write_at(t, |d| fs::write(d.join("a.csv"), text)).unwrap();
         };
         w(now, "one");
         w(now, "two");
@@ -481,6 +499,36 @@ mod tests {
         w(now + REPLACED_SET_GRACE * 3, "five");
         assert_eq!(names(&sets.run_dir()), ["set-4", "set-5"], "the one replaced just now stays");
         assert_eq!(fs::read_to_string(sets.runs().link().join("a.csv")).unwrap(), "five");
+        // The pipeline rebuilt in the same daemon opens its run again: the sets in their
+        // grace stay.
+        let again = ResultSets::open(sets.runs().link(), "r1").unwrap();
+        assert_eq!(names(&again.run_dir()), ["set-4", "set-5"]);
+        // The clock set back by an hour (a computer getting the time): set-4, replaced
+        // by a set stamped in the clock's new "future", is not kept until the clock
+        // catches up; set-5, replaced just now by set-6, is.
+        let back = now + REPLACED_SET_GRACE * 3 - Duration::from_secs(3600);
+        again.write_at(back, |d| fs::write(d.join("a.csv"), "six")).unwrap();
+        again.write_at(back, |d| fs::write(d.join("a.csv"), "seven")).unwrap();
+        assert_eq!(names(&again.run_dir()), ["set-5", "set-6", "set-7"]);
+    }
+
+    /// A set the link points at is never removed as replaced, even when a failed switch
+    /// (whose clean-up failed too) left a newer complete set beside it.
+    #[test]
+    fn the_sets_removal_spares_what_the_link_points_at() {
+        let dir = tempfile::tempdir().unwrap();
+        let sets = ResultSets::open(&dir.path().join("area"), "r1").unwrap();
+        write_set(&sets, "one");
+        // set-2 complete but never made current.
+        fs::create_dir(sets.run_dir().join("set-2")).unwrap();
+        fs::write(sets.run_dir().join("set-2/a.csv"), "two").unwrap();
+        let full = sets.write(|_| Err(io::Error::new(io::ErrorKind::StorageFull, "No space left on device")));
+        assert!(full.is_err());
+        assert_eq!(
+            fs::read_to_string(sets.runs().link().join("a.csv")).unwrap(),
+            "one",
+            "the link still resolves"
+        );
     }
 
     /// On a full disk the sets kept for slow readers give up their room, the current one

@@ -197,11 +197,14 @@ impl Video {
                     }
                     Err(e) => e,
                 };
-                // The folder itself gone: every file would fail in one burst and the
-                // camera end for good. This image is read again once the folder is back.
-                if !dir.is_dir() {
+                // The folder itself gone, or emptied (a card's mount point after it was
+                // unmounted): every file would fail in one burst and the camera end for
+                // good. This image is read again once the folder is back. A file missing
+                // from a folder that still holds others is skipped below, like a bad one.
+                let emptied = || std::fs::read_dir(&*dir).map_or(true, |mut d| d.next().is_none());
+                if !dir.is_dir() || (!p.exists() && emptied()) {
                     return Err(SourceError::Gone(format!(
-                        "image folder {} is gone (unmounted?); waiting for it at image {} of {}",
+                        "image folder {} is gone or empty (unmounted?); waiting for it at image {} of {}",
                         dir.display(),
                         *next + 1,
                         files.len()
@@ -365,8 +368,17 @@ mod tests {
             core::Vec3b::from([10, 10, 10]),
             "image 1"
         );
+        // The mount point left empty by an unmount, with the folder still there.
+        let card = root.path().join("card");
+        std::fs::rename(&dir, &card).unwrap();
+        std::fs::create_dir(&dir).unwrap();
+        let e = v.next().err().expect("no frame while the folder is empty");
+        assert!(e.to_string().contains("image 3 of 3"), "{e}");
+        std::fs::remove_dir(&dir).unwrap();
+        std::fs::rename(&card, &dir).unwrap();
         assert_eq!(v.next().unwrap().unwrap().index, 2);
         assert!(v.next().unwrap().is_none());
+        assert_eq!(v.unreadable(), 0);
     }
 
     #[test]

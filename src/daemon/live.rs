@@ -220,21 +220,30 @@ impl AreaLive {
     /// write failed and, at the first that works after failures, that the results are
     /// written again.
     fn checkpoint(&mut self, report: &mut Report) {
-        match self.write() {
+        let written = self.write();
+        report.events.extend(self.count_write(&written));
+        match written {
             Ok((_, lines)) => {
-                if self.writes_failing > 0 {
-                    report.events.push(format!(
-                        "area: results written again, after {} failed writes",
-                        std::mem::take(&mut self.writes_failing)
-                    ));
-                }
                 let length: f64 = lines.iter().flat_map(|l| l.windows(2).map(|w| (w[1] - w[0]).norm())).sum();
                 report.counters.push(("BRD_LINES", lines.len() as f32));
                 report.counters.push(("BRD_LEN", length as f32));
             }
-            Err(e) => {
+            Err(e) => report.warnings.push(Warning::WriteFailed(format!("area: cannot write results: {e}"))),
+        }
+    }
+
+    /// Counts a write in flight (a checkpoint, the map at the touchdown, the adjusted
+    /// map): after failed ones, the first that works returns the line saying so.
+    fn count_write<T>(&mut self, written: &io::Result<T>) -> Option<String> {
+        match written {
+            Ok(_) if self.writes_failing > 0 => Some(format!(
+                "area: results written again, after {} failed writes",
+                std::mem::take(&mut self.writes_failing)
+            )),
+            Ok(_) => None,
+            Err(_) => {
                 self.writes_failing += 1;
-                report.warnings.push(Warning::WriteFailed(format!("area: cannot write results: {e}")))
+                None
             }
         }
     }
@@ -548,7 +557,9 @@ impl LivePipeline for AreaLive {
         }
         // The map at the touchdown, whole, before the adjustment replaces it.
         let mut events = Vec::new();
-        if let Err(e) = self.write() {
+        let written = self.write();
+        events.extend(self.count_write(&written).map(PipelineEvent::Note));
+        if let Err(e) = written {
             events.push(PipelineEvent::WriteFailed(format!("area: cannot write results: {e}")));
         }
         events.push(PipelineEvent::Note(self.start_adjustment(why)));
@@ -605,7 +616,9 @@ impl LivePipeline for AreaLive {
         self.refined.extend(r.landmarks.iter().map(|l| (l.id, l.clone())));
         self.adjusted = Some(adjusted);
         let mut events = vec![PipelineEvent::Note(line)];
-        if let Err(e) = self.write() {
+        let written = self.write();
+        events.extend(self.count_write(&written).map(PipelineEvent::Note));
+        if let Err(e) = written {
             events.push(PipelineEvent::WriteFailed(format!("area: cannot write the adjusted results: {e}")));
         }
         if let Some(why) = self.adjust_again.take() {

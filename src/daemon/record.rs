@@ -362,17 +362,31 @@ struct Writer {
     telemetry: std::fs::File,
     telemetry_path: PathBuf,
     reserve_bytes: u64,
+    /// The free space could not be read, and that was said.
+    reserve_unknown_said: bool,
 }
 
 /// Refuses to write on when `dir`'s file system has less than `reserve` bytes free for an
 /// unprivileged writer (root's reserved blocks do not count: the results may be written
-/// by another user).
-fn check_reserve(dir: &Path, reserve: u64) -> Result<(), String> {
+/// by another user). A file system that does not tell its free space (`statvfs` fails) is
+/// said once, in `unknown_said`, and recorded on: the disk filling up stops the recording
+/// anyway, as it did before the reserve.
+fn check_reserve(dir: &Path, reserve: u64, unknown_said: &mut bool) -> Result<(), String> {
     if reserve == 0 {
         return Ok(());
     }
-    let st = rustix::fs::statvfs(dir)
-        .map_err(|e| format!("cannot read the free space of {}: {e}", dir.display()))?;
+    let st = match rustix::fs::statvfs(dir) {
+        Ok(st) => st,
+        Err(e) => {
+            if !std::mem::replace(unknown_said, true) {
+                tracing::warn!(
+                    "cannot read the free space of {} ({e}): recording without daemon.record_reserve_mb",
+                    dir.display()
+                );
+            }
+            return Ok(());
+        }
+    };
     let free = st.f_bavail.saturating_mul(st.f_frsize);
     if free < reserve {
         return Err(format!(
@@ -392,8 +406,9 @@ impl Writer {
             // Run ids are unique per start: an existing recording is never appended to.
             return Err(format!("{} already holds a recording", dir.display()));
         }
+        let mut reserve_unknown_said = false;
         if let Some(parent) = dir.parent() {
-            check_reserve(parent, spec.reserve_bytes)?;
+            check_reserve(parent, spec.reserve_bytes, &mut reserve_unknown_said)?;
         }
         mavloc_data::dataset::prepare(dir)?;
         let camera = CameraFile::new(
@@ -421,6 +436,7 @@ impl Writer {
             telemetry,
             telemetry_path,
             reserve_bytes: spec.reserve_bytes,
+            reserve_unknown_said,
         })
     }
 
@@ -431,7 +447,7 @@ impl Writer {
             None => 0,
             Some((index, n)) => n + item.index.saturating_sub(index).max(1),
         };
-        check_reserve(&self.dir, self.reserve_bytes)?;
+        check_reserve(&self.dir, self.reserve_bytes, &mut self.reserve_unknown_said)?;
         let image = self.dir.join("frames").join(format!("{n:06}.{}", extension(self.format)));
         write_image(&image, &item.image, self.format)?;
         self.pending_files.push(image);

@@ -105,8 +105,8 @@ pub struct Worker {
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
     thread: Option<std::thread::JoinHandle<()>>,
     pub dropped: Arc<std::sync::atomic::AtomicU64>,
-    /// Why the results could not be written at the stop, once it failed.
-    stop_failed: Arc<Mutex<Option<String>>>,
+    /// How the stop went, once the worker handled it: the final write's outcome.
+    stopped: Arc<Mutex<Option<Result<(), String>>>>,
 }
 
 impl Worker {
@@ -123,13 +123,13 @@ impl Worker {
         let shared = Arc::new((Mutex::new(mailbox), Condvar::new()));
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let s2 = shared.clone();
-        let stop_failed = Arc::new(Mutex::new(None));
-        let f2 = stop_failed.clone();
+        let stopped = Arc::new(Mutex::new(None));
+        let f2 = stopped.clone();
         let thread = std::thread::Builder::new()
             .name("mavloc-pipeline".into())
             .spawn(move || run(factory, settings, s2, events, f2))
             .expect("spawn pipeline thread");
-        Worker { shared, thread: Some(thread), dropped, stop_failed }
+        Worker { shared, thread: Some(thread), dropped, stopped }
     }
 
     /// Offers a frame; at a full mailbox the oldest waiting frame is dropped (and counted).
@@ -155,12 +155,15 @@ impl Worker {
     pub fn stop(mut self) -> Result<(), String> {
         self.request(Request::Stop);
         if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            // `finish` runs outside the per-frame panic guard: a panic there is a failed stop.
+            if let Err(p) = t.join() {
+                return Err(format!("the pipeline panicked at its stop: {}", panic_message(&*p)));
+            }
         }
-        match self.stop_failed.lock().unwrap_or_else(|p| p.into_inner()).take() {
-            Some(e) => Err(e),
-            None => Ok(()),
-        }
+        // No outcome: the worker had ended before (a rebuild that failed), so it wrote no
+        // final set either.
+        let outcome = self.stopped.lock().unwrap_or_else(|p| p.into_inner()).take();
+        outcome.unwrap_or_else(|| Err("the pipeline had ended before it was asked to stop".into()))
     }
 }
 
@@ -184,7 +187,7 @@ fn run(
     mut settings: Settings,
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
     events: tokio::sync::mpsc::Sender<Event>,
-    stop_failed: Arc<Mutex<Option<String>>>,
+    stopped: Arc<Mutex<Option<Result<(), String>>>>,
 ) {
     let build = |s: &Settings| match catch_unwind(AssertUnwindSafe(|| factory(s))) {
         Ok(r) => r,
@@ -251,11 +254,13 @@ fn run(
                     }
                 }
                 Request::Stop => {
-                    let files = pipeline.finish().unwrap_or_else(|e| {
+                    let finished = pipeline.finish();
+                    *stopped.lock().unwrap_or_else(|p| p.into_inner()) =
+                        Some(finished.as_ref().map(|_| ()).map_err(|e| e.to_string()));
+                    let files = finished.unwrap_or_else(|e| {
                         // Logged here too: at shutdown nobody reads the event.
                         let line = format!("cannot write the pipeline's results at stop: {e}");
                         tracing::warn!("{line}");
-                        *stop_failed.lock().unwrap_or_else(|p| p.into_inner()) = Some(e.to_string());
                         let _ = events.try_send(Event::Pipeline(PipelineEvent::WriteFailed(line)));
                         Vec::new()
                     });
@@ -383,6 +388,34 @@ mod tests {
             "{failed:?}"
         );
         assert!(matches!(rx.blocking_recv().unwrap(), Event::Stopped { files } if files.is_empty()));
+    }
+
+    /// Panics when asked for its results.
+    struct PanicsAtStop;
+
+    impl LivePipeline for PanicsAtStop {
+        fn process(&mut self, _: &LiveFrame) -> Report {
+            Report::default()
+        }
+        fn apply(&mut self, _: &Settings) {}
+        fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+            panic!("no results for you")
+        }
+    }
+
+    /// The stop's outcome is what the daemon's last line says: a panic in the final write
+    /// and a worker that had already ended (its pipeline could not be built) are failed
+    /// stops, not "results in …".
+    #[test]
+    fn a_stop_that_panicked_or_found_the_worker_ended_is_a_failed_stop() {
+        let (tx, _rx) = tokio::sync::mpsc::channel(64);
+        let factory: Factory = Box::new(|_| Ok(Box::new(PanicsAtStop) as Box<dyn LivePipeline>));
+        let e = Worker::start(factory, Settings::default(), 1, tx).stop().unwrap_err();
+        assert!(e.contains("panicked at its stop: no results for you"), "{e}");
+        let (tx, _rx) = tokio::sync::mpsc::channel(64);
+        let factory: Factory = Box::new(|_| Err("no camera intrinsics".into()));
+        let e = Worker::start(factory, Settings::default(), 1, tx).stop().unwrap_err();
+        assert!(e.contains("had ended before"), "{e}");
     }
 
     /// Holds each frame until the test lets it go.

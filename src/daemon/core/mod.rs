@@ -334,6 +334,9 @@ const WRITE_WARNING_PERIOD: Duration = Duration::from_secs(10);
 const PARAMS_RETRY: Duration = Duration::from_secs(10);
 /// How often a second clock speaking as the autopilot is said (see `warn_of_a_second_clock`).
 const CLASH_WARN_EVERY: Duration = Duration::from_secs(60);
+/// Disproved reboot claims and stamps from the future that make a second clock worth
+/// saying (see `warn_of_a_second_clock`).
+const CLASH_MIN: u64 = 3;
 
 /// The sim camera renders from the simulator's ground truth: ask for it.
 /// The origin mavloc gives an autopilot with no GPS (`indoor.gps_denied`).
@@ -849,15 +852,17 @@ impl Core {
             && (target_component == self.component_id || (allow_broadcast && target_component == 0))
     }
 
-    /// Says when the autopilot's system id speaks on a second clock: stamps from before
-    /// the autopilot's last one that no reboot followed, or from its future. Two vehicles
-    /// (or a simulator and a vehicle) with the same MAV_SYS_ID on one network look like
-    /// this, and so does a spoofer; either way the telemetry is screened (the stamps are
-    /// dropped) but the user has to hear of it to fix the ids. At most once a minute.
+    /// Says when the autopilot's system id speaks on a second clock: flight-controller
+    /// stamps from before its last one that no reboot followed, or from its future. Two
+    /// vehicles (or a simulator and a vehicle) with the same MAV_SYS_ID on one network
+    /// look like this, and so does a spoofer; either way the telemetry is screened (the
+    /// stamps are dropped) but the user has to hear of it to fix the ids. A gimbal's
+    /// clock does not count, nor one or two stray messages (a duplicate that came late
+    /// by another path): [`CLASH_MIN`] since the last warning, at most once a minute.
     fn warn_of_a_second_clock(&mut self, rx: Mono) {
-        let now = (self.telemetry.reboot_claims_rejected, self.telemetry.implausible);
+        let now = (self.telemetry.reboot_claims_rejected, self.telemetry.autopilot_from_the_future);
         let (said_claims, said_future) = self.clash_said;
-        if now.0 <= said_claims && now.1 <= said_future {
+        if (now.0 - said_claims) + (now.1 - said_future) < CLASH_MIN {
             return;
         }
         if self.clash_warned.is_some_and(|t| rx.saturating_sub(t) < CLASH_WARN_EVERY) {

@@ -83,6 +83,9 @@ pub struct Telemetry {
     pub aligner: Aligner,
     /// Messages dropped for a stamp from the future (see `ClockSync::plausible`).
     pub implausible: u64,
+    /// Of those, the flight controller's own (ATTITUDE, LOCAL_POSITION_NED,
+    /// GLOBAL_POSITION_INT from component 1): a gimbal's clock is not the autopilot's.
+    pub autopilot_from_the_future: u64,
     /// Reboot claims the old timeline disproved (see the module doc).
     pub reboot_claims_rejected: u64,
     /// A backwards step waiting for confirmation.
@@ -137,6 +140,7 @@ impl Telemetry {
         Telemetry {
             aligner: Aligner::new(ap, mount, offsets),
             implausible: 0,
+            autopilot_from_the_future: 0,
             reboot_claims_rejected: 0,
             candidate: None,
             latest_attitude: None,
@@ -243,6 +247,7 @@ impl Telemetry {
             let (stamp, now) = (ms as f64 * 1e-3, rx.secs());
             if !self.aligner.clock.plausible(stamp, now) {
                 self.implausible += 1;
+                self.autopilot_from_the_future += 1;
                 return None;
             }
             if !self.reboot_holds(stamp, now) {

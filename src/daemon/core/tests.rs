@@ -882,6 +882,34 @@ fn a_second_vehicle_with_the_autopilots_system_id_is_named_once_a_minute() {
     assert!((2..=3).contains(&said), "said {said} times in 2 minutes: {:?}", sim.statustexts());
 }
 
+/// One vehicle alone: a gimbal device whose clock jumps ahead (its reports refused for a
+/// minute) and two of the autopilot's messages arriving 10 s late by another path are not
+/// taken for a second vehicle (the gimbal's refusals counted as the autopilot's before).
+#[test]
+fn a_gimbals_clock_or_two_late_messages_are_not_taken_for_a_second_vehicle() {
+    let mut sim = Sim::new(settings());
+    sim.ap = FakeAutopilot::new(Mono::ZERO);
+    sim.run_until(secs(30));
+    let level = [1.0, 0.0, 0.0, 0.0];
+    for i in 0..600 {
+        let ms = (sim.now.0 / 1000) as u32 + if i < 20 { 0 } else { 600_000 };
+        sim.deliver(frame(1, 154, gimbal_report(ms, level)));
+        sim.run_for(Duration::from_millis(100));
+    }
+    assert!(sim.core.telemetry().implausible > 100, "the gimbal's reports were refused");
+    for _ in 0..2 {
+        let ms = (sim.now.0 / 1000) as u32 - 10_000;
+        sim.deliver(frame(
+            1,
+            1,
+            MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: ms, ..Default::default() }),
+        ));
+        sim.run_for(Duration::from_secs(5));
+    }
+    assert!(sim.core.counters().reboot_claims_rejected >= 1, "the late messages were screened");
+    assert!(!warnings(&sim).contains(CLASH), "{}", warnings(&sim));
+}
+
 /// A real reboot is one backwards step and no clash.
 #[test]
 fn an_autopilot_reboot_is_not_taken_for_a_second_vehicle() {
