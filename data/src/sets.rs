@@ -132,16 +132,23 @@ impl Runs {
 
     /// Start-up tidying (see the module docs). Removals are best effort: what is left is
     /// tried again at the next start and never read as a result.
-    /// `own`: the run being opened, left as it is (a pipeline rebuilt in the same daemon
-    /// keeps the sets still in their grace).
+    /// `own`: the run being opened, whose complete sets are left as they are (a pipeline
+    /// rebuilt in the same daemon keeps the sets still in their grace); a set it left half
+    /// written (a panic while writing) goes.
     fn tidy(&self, layout: Layout, own: &str) -> io::Result<()> {
         fs::create_dir_all(&self.root)
             .map_err(|e| io::Error::new(e.kind(), format!("cannot create {}: {e}", self.root.display())))?;
         let _ = remove_file_if_any(&self.tmp_link());
         self.adopt_legacy(layout)?;
         if layout == Layout::Sets {
-            for run in subdirs(&self.root)?.into_iter().filter(|r| r != own) {
-                let dir = self.root.join(run);
+            for run in subdirs(&self.root)? {
+                let dir = self.root.join(&run);
+                if run == own {
+                    for p in scan(&dir).map(|s| s.partial).unwrap_or_default() {
+                        let _ = fs::remove_dir_all(dir.join(p));
+                    }
+                    continue;
+                }
                 self.tidy_run(&dir);
                 // A run that never wrote a set (a start on the ground, stopped before its
                 // first landmark) leaves nothing to keep: `remove_dir` takes only an empty one.
@@ -499,8 +506,9 @@ mod tests {
         w(now + REPLACED_SET_GRACE * 3, "five");
         assert_eq!(names(&sets.run_dir()), ["set-4", "set-5"], "the one replaced just now stays");
         assert_eq!(fs::read_to_string(sets.runs().link().join("a.csv")).unwrap(), "five");
-        // The pipeline rebuilt in the same daemon opens its run again: the sets in their
-        // grace stay.
+        // The pipeline rebuilt in the same daemon (after a panic while writing set-6)
+        // opens its run again: the sets in their grace stay, the half-written one goes.
+        fs::create_dir(sets.run_dir().join("set-6.partial")).unwrap();
         let again = ResultSets::open(sets.runs().link(), "r1").unwrap();
         assert_eq!(names(&again.run_dir()), ["set-4", "set-5"]);
         // The clock set back by an hour (a computer getting the time): set-4, replaced
