@@ -479,6 +479,7 @@ fn resolve_relative_paths(s: &mut Settings, origins: &BTreeMap<String, String>, 
     resolve("camera.path", &mut s.camera.path);
     resolve("camera.device", &mut s.camera.device);
     resolve("indoor.model", &mut s.indoor.model);
+    resolve("mavlink.px4_events", &mut s.mavlink.px4_events);
     if !s.mavlink.signing_key.starts_with("credential:") {
         resolve("mavlink.signing_key", &mut s.mavlink.signing_key);
     }

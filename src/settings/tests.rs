@@ -287,9 +287,15 @@ fn enum_names_match_the_schema() {
 fn relative_paths_in_a_file_are_beside_the_file_and_on_the_command_line_in_the_working_folder() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("mavloc.toml");
-    std::fs::write(&file, "[indoor]\nmodel = \"floor.model\"\n[camera]\npath = \"/abs/frames\"\n").unwrap();
+    std::fs::write(
+        &file,
+        "[indoor]\nmodel = \"floor.model\"\n[camera]\npath = \"/abs/frames\"\n[mavlink]\npx4_events = \"px4/all_events.json\"\n",
+    )
+    .unwrap();
     let loaded = load_file(&file).unwrap();
     assert_eq!(Path::new(&loaded.settings.indoor.model), dir.path().join("floor.model"));
+    // Every path key (px4_events was taken from the working folder, `/` under systemd).
+    assert_eq!(Path::new(&loaded.settings.mavlink.px4_events), dir.path().join("px4/all_events.json"));
     assert_eq!(loaded.settings.camera.path, "/abs/frames", "absolute paths stay");
     let cli = load(&Layers {
         file: Some(file.clone()),
