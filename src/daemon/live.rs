@@ -65,6 +65,21 @@ const AREA_FILES: [&str; 6] =
 /// A new run id: the UTC time now (`yyyymmddThhmmssZ`), made unique among the runs of
 /// both pipelines under `results` (`-2`, `-3`, ... for starts within one second). The
 /// daemon takes one per start and per pipeline reset.
+/// Keeps `failing`, the writes that failed since the last that worked (a full disk), up
+/// to date with one more, `ok` or not. The first that works after failures returns
+/// `"{again}, after N failed {what}"`: without it the warnings were the last word in the
+/// log and on the ground station.
+fn count_write(failing: &mut u64, ok: bool, again: &str, what: &str) -> Option<String> {
+    if !ok {
+        *failing += 1;
+        return None;
+    }
+    match std::mem::take(failing) {
+        0 => None,
+        n => Some(format!("{again}, after {n} failed {what}")),
+    }
+}
+
 pub fn new_run(results: &Path) -> String {
     sets::new_run_id(std::time::SystemTime::now(), |id| {
         ["area", "indoor"].iter().any(|n| results.join(format!("{n}.runs")).join(id).exists())
@@ -235,17 +250,7 @@ impl AreaLive {
     /// Counts a write in flight (a checkpoint, the map at the touchdown, the adjusted
     /// map): after failed ones, the first that works returns the line saying so.
     fn count_write<T>(&mut self, written: &io::Result<T>) -> Option<String> {
-        match written {
-            Ok(_) if self.writes_failing > 0 => Some(format!(
-                "area: results written again, after {} failed writes",
-                std::mem::take(&mut self.writes_failing)
-            )),
-            Ok(_) => None,
-            Err(_) => {
-                self.writes_failing += 1;
-                None
-            }
-        }
+        count_write(&mut self.writes_failing, written.is_ok(), "area: results written again", "writes")
     }
 
     /// Whether a checkpoint or the stop writes a set: not while this run has no landmark
@@ -965,17 +970,12 @@ impl LivePipeline for IndoorLive {
             true_y: truth[1],
             fix: e.fix,
         };
-        match self.trajectory.push(&row) {
-            Ok(()) if self.writes_failing > 0 => report.events.push(format!(
-                "indoor: trajectory.csv written again, after {} failed appends",
-                std::mem::take(&mut self.writes_failing)
-            )),
-            Ok(()) => {}
-            Err(err) => {
-                self.writes_failing += 1;
-                let line = format!("indoor: cannot append to trajectory.csv: {err}");
-                report.warnings.push(Warning::WriteFailed(line));
-            }
+        let appended = self.trajectory.push(&row);
+        let again = "indoor: trajectory.csv written again";
+        report.events.extend(count_write(&mut self.writes_failing, appended.is_ok(), again, "appends"));
+        if let Err(err) = appended {
+            let line = format!("indoor: cannot append to trajectory.csv: {err}");
+            report.warnings.push(Warning::WriteFailed(line));
         }
         // No fix, no estimate for the autopilot: the heaviest spot of particles still spread
         // over the floor is metres off as often as not, and EKF2 would fly on it.
@@ -1260,6 +1260,23 @@ mod tests {
         let mut report = Report::default();
         live.checkpoint(&mut report);
         assert!(report.events.is_empty(), "said once: {report:?}");
+    }
+
+    /// The bookkeeping both pipelines share (the area's checkpoints above, the indoor
+    /// trajectory's appends): said once, with the count, at the first write that works.
+    #[test]
+    fn the_first_write_after_failed_ones_is_said_once_with_their_count() {
+        let mut failing = 0;
+        let again = "indoor: trajectory.csv written again";
+        assert_eq!(count_write(&mut failing, true, again, "appends"), None);
+        for _ in 0..3 {
+            assert_eq!(count_write(&mut failing, false, again, "appends"), None);
+        }
+        assert_eq!(
+            count_write(&mut failing, true, again, "appends").as_deref(),
+            Some("indoor: trajectory.csv written again, after 3 failed appends")
+        );
+        assert_eq!(count_write(&mut failing, true, again, "appends"), None, "once");
     }
 
     #[test]
