@@ -19,6 +19,7 @@
 //! * [`state`]: state files that do not parse are moved aside (`NAME.corrupt-<stamp>`);
 //!   UTC stamps for names.
 //! * [`truth`]: the simulated vehicle's true track (`truth.csv`).
+//! * `testing` (tests and the `test-util` feature only): a real full disk for tests.
 
 pub mod atomic;
 pub mod dataset;
@@ -29,6 +30,8 @@ pub mod sets;
 pub mod staged;
 pub mod state;
 pub mod table;
+#[cfg(any(test, feature = "test-util"))]
+pub mod testing;
 pub mod truth;
 
 pub use atomic::write_atomic;

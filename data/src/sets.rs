@@ -583,25 +583,11 @@ mod tests {
     #[test]
     fn a_full_disk_leaves_the_previous_set_current_and_nothing_behind() {
         let dir = tempfile::tempdir().unwrap();
-        let mounted = std::process::Command::new("mount")
-            .args(["-t", "tmpfs", "-o", "size=64k", "tmpfs"])
-            .arg(dir.path())
-            .stderr(std::process::Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success());
-        if !mounted {
-            eprintln!(
-                "skipped: cannot mount a tmpfs here (needs root); the injected-error test covers the logic"
-            );
+        let Some(_tmpfs) =
+            crate::testing::mount_tmpfs(dir.path(), "64k", "; the injected-error test covers the logic")
+        else {
             return;
-        }
-        struct Unmount<'a>(&'a Path);
-        impl Drop for Unmount<'_> {
-            fn drop(&mut self) {
-                let _ = std::process::Command::new("umount").arg(self.0).status();
-            }
-        }
-        let _guard = Unmount(dir.path());
+        };
         let link = dir.path().join("area");
         let sets = ResultSets::open(&link, "r1").unwrap();
         write_set(&sets, "old");

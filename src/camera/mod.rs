@@ -298,6 +298,17 @@ pub fn spawn(
         .expect("spawn camera thread")
 }
 
+/// For tests: a 32x24 grey image in `dir` for each `(file name, shade)`, in the format
+/// its extension names.
+#[cfg(test)]
+pub(crate) fn write_grey_frames(dir: &std::path::Path, frames: &[(&str, f64)]) {
+    use opencv::{core, imgcodecs};
+    for (name, shade) in frames {
+        let m = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(*shade)).unwrap();
+        imgcodecs::imwrite(dir.join(name), &m, &core::Vector::new()).unwrap();
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -318,12 +329,8 @@ mod tests {
     /// they happen, so `status.json` counts what the log names one by one.
     #[test]
     fn the_source_thread_tells_the_unreadable_frames_it_skipped() {
-        use opencv::{core, imgcodecs, prelude::*};
         let dir = tempfile::tempdir().unwrap();
-        let grey = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(90.0)).unwrap();
-        for name in ["1.png", "4.png"] {
-            imgcodecs::imwrite(dir.path().join(name), &grey, &core::Vector::new()).unwrap();
-        }
+        write_grey_frames(dir.path(), &[("1.png", 90.0), ("4.png", 90.0)]);
         std::fs::write(dir.path().join("2.jpg"), b"").unwrap();
         std::fs::write(dir.path().join("3.png"), b"not a picture").unwrap();
         let mut s = Settings::default();
@@ -356,16 +363,10 @@ mod tests {
     /// good), and goes on at the image it stopped at when the folder is back.
     #[test]
     fn a_folder_camera_that_vanishes_says_so_once_and_goes_on_where_it_stopped() {
-        use opencv::{core, imgcodecs, prelude::*};
         let root = tempfile::tempdir().unwrap();
         let dir = root.path().join("card");
         std::fs::create_dir(&dir).unwrap();
-        for i in 0..3 {
-            let m =
-                Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(40.0 * i as f64))
-                    .unwrap();
-            imgcodecs::imwrite(dir.join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
-        }
+        write_grey_frames(&dir, &[("0.png", 0.0), ("1.png", 40.0), ("2.png", 80.0)]);
         let mut s = Settings::default();
         s.camera.source = CameraSource::File;
         s.camera.path = dir.to_string_lossy().into();

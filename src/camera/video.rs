@@ -287,6 +287,7 @@ impl FrameSource for Video {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::write_grey_frames;
     use std::sync::atomic::AtomicBool;
     use std::sync::{Arc, Mutex};
 
@@ -322,10 +323,7 @@ mod tests {
     #[test]
     fn an_image_folder_plays_in_name_order_and_ends() {
         let dir = tempfile::tempdir().unwrap();
-        for (i, v) in [(1, 10.0), (0, 200.0)] {
-            let m = Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
-            imgcodecs::imwrite(dir.path().join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
-        }
+        write_grey_frames(dir.path(), &[("1.png", 10.0), ("0.png", 200.0)]);
         let mut v = folder_camera(dir.path());
         let a = v.next().unwrap().unwrap();
         assert_eq!(*a.image.at_2d::<core::Vec3b>(0, 0).unwrap(), core::Vec3b::from([200, 200, 200]));
@@ -340,12 +338,7 @@ mod tests {
         let root = tempfile::tempdir().unwrap();
         let dir = root.path().join("frames");
         std::fs::create_dir(&dir).unwrap();
-        for i in 0..3 {
-            let m =
-                Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(10.0 * i as f64))
-                    .unwrap();
-            imgcodecs::imwrite(dir.join(format!("{i}.png")), &m, &core::Vector::new()).unwrap();
-        }
+        write_grey_frames(&dir, &[("0.png", 0.0), ("1.png", 10.0), ("2.png", 20.0)]);
         let mut v = folder_camera(&dir);
         assert!(v.resumable());
         assert_eq!(v.next().unwrap().unwrap().index, 0);
@@ -386,8 +379,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let shade =
             |v: f64| Mat::new_rows_cols_with_default(24, 32, core::CV_8UC3, core::Scalar::all(v)).unwrap();
-        imgcodecs::imwrite(dir.path().join("1.png"), &shade(10.0), &core::Vector::new()).unwrap();
-        imgcodecs::imwrite(dir.path().join("3.jpg"), &shade(200.0), &core::Vector::new()).unwrap();
+        write_grey_frames(dir.path(), &[("1.png", 10.0), ("3.jpg", 200.0)]);
         // Between them, JPEGs cut off as a full card leaves them: after their first bytes,
         // and just before their end (which OpenCV alone decodes without an error).
         let mut jpeg = core::Vector::<u8>::new();

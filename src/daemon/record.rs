@@ -769,23 +769,7 @@ mod tests {
     #[test]
     fn the_recording_stops_at_the_reserve_and_leaves_the_room() {
         let dir = tempfile::tempdir().unwrap();
-        let mounted = std::process::Command::new("mount")
-            .args(["-t", "tmpfs", "-o", "size=512k", "tmpfs"])
-            .arg(dir.path())
-            .stderr(std::process::Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success());
-        if !mounted {
-            eprintln!("skipped: cannot mount a tmpfs here (needs root)");
-            return;
-        }
-        struct Unmount<'a>(&'a Path);
-        impl Drop for Unmount<'_> {
-            fn drop(&mut self) {
-                let _ = std::process::Command::new("umount").arg(self.0).status();
-            }
-        }
-        let _guard = Unmount(dir.path());
+        let Some(_tmpfs) = mavloc_data::testing::mount_tmpfs(dir.path(), "512k", "") else { return };
         let rec_dir = dir.path().join("run-1");
         let reserve = 256 * 1024;
         let r = Recorder::start(RecordSpec {

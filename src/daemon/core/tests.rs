@@ -829,11 +829,17 @@ fn command_int_is_handled_like_command_long() {
             && a.result == MavResult::MAV_RESULT_UNSUPPORTED)));
 }
 
-#[test]
-fn a_spoofed_reboot_is_not_believed_while_the_autopilot_speaks_on_its_old_clock() {
+/// An autopilot that booted with mavloc, 30 s of telemetry ago: its clock is mavloc's.
+fn autopilot_booted_with_mavloc_30_s_ago() -> Sim {
     let mut sim = Sim::new(settings());
     sim.ap = FakeAutopilot::new(Mono::ZERO);
     sim.run_until(secs(30));
+    sim
+}
+
+#[test]
+fn a_spoofed_reboot_is_not_believed_while_the_autopilot_speaks_on_its_old_clock() {
+    let mut sim = autopilot_booted_with_mavloc_30_s_ago();
     assert!(sim.core.autopilot_found());
     // A stranger sends "ATTITUDE at boot + 0.1 s" as the autopilot, ten times a second
     // for 5 s, while the real one goes on streaming on its own clock.
@@ -861,9 +867,7 @@ const CLASH: &str = "same MAV_SYS_ID twice?";
 /// clock, and the user hears of it, once a minute at most, so the ids can be fixed.
 #[test]
 fn a_second_vehicle_with_the_autopilots_system_id_is_named_once_a_minute() {
-    let mut sim = Sim::new(settings());
-    sim.ap = FakeAutopilot::new(Mono::ZERO);
-    sim.run_until(secs(30));
+    let mut sim = autopilot_booted_with_mavloc_30_s_ago();
     assert!(sim.core.autopilot_found());
     assert!(!warnings(&sim).contains(CLASH), "one autopilot alone: {}", warnings(&sim));
     // The second vehicle booted 20 s ago and streams ATTITUDE at 10 Hz for 2 minutes.
@@ -887,9 +891,7 @@ fn a_second_vehicle_with_the_autopilots_system_id_is_named_once_a_minute() {
 /// taken for a second vehicle (the gimbal's refusals counted as the autopilot's before).
 #[test]
 fn a_gimbals_clock_or_two_late_messages_are_not_taken_for_a_second_vehicle() {
-    let mut sim = Sim::new(settings());
-    sim.ap = FakeAutopilot::new(Mono::ZERO);
-    sim.run_until(secs(30));
+    let mut sim = autopilot_booted_with_mavloc_30_s_ago();
     let level = [1.0, 0.0, 0.0, 0.0];
     for i in 0..600 {
         let ms = (sim.now.0 / 1000) as u32 + if i < 20 { 0 } else { 600_000 };
@@ -913,9 +915,7 @@ fn a_gimbals_clock_or_two_late_messages_are_not_taken_for_a_second_vehicle() {
 /// A real reboot is one backwards step and no clash.
 #[test]
 fn an_autopilot_reboot_is_not_taken_for_a_second_vehicle() {
-    let mut sim = Sim::new(settings());
-    sim.ap = FakeAutopilot::new(Mono::ZERO);
-    sim.run_until(secs(30));
+    let mut sim = autopilot_booted_with_mavloc_30_s_ago();
     sim.ap.reboot(sim.now);
     sim.run_for(Duration::from_secs(60));
     assert_eq!(sim.core.counters().autopilot_reboots, 1);
