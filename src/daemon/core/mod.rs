@@ -418,6 +418,8 @@ pub struct Core {
     /// (reboot claims disproved, stamps from the future) already said.
     clash_warned: Option<Mono>,
     clash_said: (u64, u64),
+    /// When the first of the counts not yet said came.
+    clash_first: Option<Mono>,
     /// The downward rangefinder's reading the last time the vehicle stood (m): the
     /// floor, from where "off the floor" counts.
     ground_range: f64,
@@ -473,6 +475,7 @@ impl Core {
             writes_failed_unsaid: 0,
             clash_warned: None,
             clash_said: (0, 0),
+            clash_first: None,
             tuned,
             params_unsaved: (0, Mono::ZERO),
             settings,
@@ -857,19 +860,28 @@ impl Core {
     /// vehicles (or a simulator and a vehicle) with the same MAV_SYS_ID on one network
     /// look like this, and so does a spoofer; either way the telemetry is screened (the
     /// stamps are dropped) but the user has to hear of it to fix the ids. A gimbal's
-    /// clock does not count, nor one or two stray messages (a duplicate that came late
-    /// by another path): [`CLASH_MIN`] since the last warning, at most once a minute.
+    /// clock does not count, nor stray messages (a duplicate that came late by another
+    /// path): [`CLASH_MIN`] within a minute, said at most once a minute.
     fn warn_of_a_second_clock(&mut self, rx: Mono) {
         let now = (self.telemetry.reboot_claims_rejected, self.telemetry.autopilot_from_the_future);
         let (said_claims, said_future) = self.clash_said;
-        if (now.0 - said_claims) + (now.1 - said_future) < CLASH_MIN {
+        let unsaid = (now.0 - said_claims) + (now.1 - said_future);
+        if unsaid == 0 {
+            return;
+        }
+        let first = *self.clash_first.get_or_insert(rx);
+        if unsaid < CLASH_MIN {
+            // Strays spread over more than a minute are not a second clock: forgotten.
+            if rx.saturating_sub(first) > CLASH_WARN_EVERY {
+                (self.clash_said, self.clash_first) = (now, None);
+            }
             return;
         }
         if self.clash_warned.is_some_and(|t| rx.saturating_sub(t) < CLASH_WARN_EVERY) {
             return;
         }
         self.clash_warned = Some(rx);
-        self.clash_said = now;
+        (self.clash_said, self.clash_first) = (now, None);
         let sys = self.settings.mavlink.autopilot_system_id;
         self.notes.warn_short(
             &format!(

@@ -887,8 +887,9 @@ fn a_second_vehicle_with_the_autopilots_system_id_is_named_once_a_minute() {
 }
 
 /// One vehicle alone: a gimbal device whose clock jumps ahead (its reports refused for a
-/// minute) and two of the autopilot's messages arriving 10 s late by another path are not
-/// taken for a second vehicle (the gimbal's refusals counted as the autopilot's before).
+/// minute) and the autopilot's messages arriving 10 s late by another path, two within
+/// seconds and a third 90 s later, are not taken for a second vehicle (the gimbal's
+/// refusals counted as the autopilot's before, and strays added up over any time).
 #[test]
 fn a_gimbals_clock_or_two_late_messages_are_not_taken_for_a_second_vehicle() {
     let mut sim = autopilot_booted_with_mavloc_30_s_ago();
@@ -908,7 +909,12 @@ fn a_gimbals_clock_or_two_late_messages_are_not_taken_for_a_second_vehicle() {
         ));
         sim.run_for(Duration::from_secs(5));
     }
-    assert!(sim.core.counters().reboot_claims_rejected >= 1, "the late messages were screened");
+    // A third late one, a minute and a half after them: strays, not a second clock.
+    sim.run_for(Duration::from_secs(90));
+    let ms = (sim.now.0 / 1000) as u32 - 10_000;
+    sim.deliver(frame(1, 1, MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: ms, ..Default::default() })));
+    sim.run_for(Duration::from_secs(5));
+    assert!(sim.core.counters().reboot_claims_rejected >= 3, "the late messages were screened");
     assert!(!warnings(&sim).contains(CLASH), "{}", warnings(&sim));
 }
 
