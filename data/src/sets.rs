@@ -328,23 +328,18 @@ impl ResultSets {
         let mut all: Vec<u64> = complete.iter().copied().filter(|&o| o != current).collect();
         all.push(current);
         all.sort_unstable();
-        for pair in all.windows(2) {
-            let (old, successor) = (pair[0], pair[1]);
-            if grace.is_zero() {
-                if !linked(old) {
-                    let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
-                }
-                continue;
-            }
-            if successor == current {
-                continue;
-            }
-            let replaced_at = fs::metadata(run_dir.join(set_name(successor))).and_then(|m| m.modified());
-            let expired = match replaced_at.map(|t| now.duration_since(t)) {
+        // Whether the set `n` was published at least `grace` before `now`.
+        let aged = |n: u64| {
+            let published = fs::metadata(run_dir.join(set_name(n))).and_then(|m| m.modified());
+            match published.map(|t| now.duration_since(t)) {
                 Ok(Ok(age)) => age >= grace,
                 Ok(Err(ahead)) => ahead.duration() > grace,
-                Err(_) => true, // its successor is gone: nothing says when; not kept forever
-            };
+                Err(_) => true, // gone: nothing says when; not kept forever
+            }
+        };
+        for pair in all.windows(2) {
+            let (old, successor) = (pair[0], pair[1]);
+            let expired = grace.is_zero() || (successor != current && aged(successor));
             if expired && !linked(old) {
                 let _ = fs::remove_dir_all(run_dir.join(set_name(old)));
             }
