@@ -33,8 +33,9 @@ def free_port():
 
 
 class Daemon:
-    def __init__(self, extra_config="", scheme="udpin", same_as=None):
-        """A running `mavloc run`; `same_as`: restart with another daemon's folder and port."""
+    def __init__(self, extra_config="", scheme="udpin", same_as=None, connection=None):
+        """A running `mavloc run`; `same_as`: restart with another daemon's folder and port;
+        `connection`: `mavlink.connection` instead of `scheme` on a free loopback port."""
         if same_as is None:
             self.dir = tempfile.mkdtemp(prefix="mavloc-e2e-")
             self.port = free_port()
@@ -49,7 +50,7 @@ class Daemon:
 state_dir = "{self.state}"
 pipeline = "area"
 [mavlink]
-connection = "{scheme}:127.0.0.1:{self.port}"
+connection = "{connection or f'{scheme}:127.0.0.1:{self.port}'}"
 {extra_config}
 """)
         self.log = open(os.path.join(self.dir, "mavloc.log"), "a")
@@ -711,6 +712,143 @@ def test_component_metadata_over_mavlink_ftp():
         c.close()
     finally:
         assert d.stop() == 0
+
+
+class SerialPeer:
+    """The autopilot's end of a pseudo-terminal: mavloc opens the other end as its serial
+    device, as it opens a UART to PX4's TELEM2 or a USB CDC port. What is written here goes
+    through the terminal's input processing to mavloc, and what mavloc writes comes through
+    its output processing: a device left in the terminal's default (cooked) mode turns CR
+    into LF, eats ^S/^Q as flow control, and adds a CR before each LF."""
+
+    def __init__(self, link):
+        import pty
+        self.master, slave = pty.openpty()
+        self.device = os.ttyname(slave)
+        os.close(slave)
+        if os.path.lexists(link):
+            os.remove(link)
+        # As udev's /dev/serial/by-id names: a link that follows the device when it comes back.
+        os.symlink(self.device, link)
+        self.mav = mav2.MAVLink(self, srcSystem=1, srcComponent=1)
+        self.mav.robust_parsing = True
+        self.backlog = []
+
+    def write(self, data):
+        os.write(self.master, data)
+
+    def messages(self, timeout):
+        """What came from mavloc within `timeout` s."""
+        import select
+        r, _, _ = select.select([self.master], [], [], timeout)
+        if not r:
+            return []
+        try:
+            data = os.read(self.master, 65536)
+        except OSError:  # EIO: mavloc has not opened its end yet
+            time.sleep(timeout)
+            return []
+        return [m for m in (self.mav.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
+
+    def recv(self, kind, timeout=5.0, cond=lambda m: True):
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            for m in self.messages(0.2):
+                if m.get_srcComponent() == MAVLOC_COMP and m.get_type() == kind and cond(m):
+                    return m
+        raise AssertionError(f"no {kind} from mavloc over the serial device within {timeout} s")
+
+    def hello(self, timeout=10.0):
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            self.mav.heartbeat_send(mav2.MAV_TYPE_QUADROTOR, mav2.MAV_AUTOPILOT_PX4, 0, 0, mav2.MAV_STATE_STANDBY)
+            try:
+                return self.recv("HEARTBEAT", timeout=0.5)
+            except AssertionError:
+                pass
+        raise AssertionError("mavloc sent no heartbeat over the serial device")
+
+    def unplug(self):
+        os.close(self.master)
+
+
+# The bytes a terminal in its default mode acts on: ^C ^D ^Q ^S ^Z (signals, end of file,
+# flow control), CR and LF (translated), DEL; and 0xFD/0xFE, MAVLink's start bytes.
+TTY_BYTES = [0x03, 0x04, 0x0A, 0x0D, 0x11, 0x13, 0x1A, 0x7F, 0xFD, 0xFE, 0x00, 0xFF]
+
+
+def test_serial_link_is_raw_both_ways_and_survives_an_unplug():
+    """Over a serial device (a pseudo-terminal behind a by-id style link): frames whose
+    bytes a cooked terminal would change arrive whole both ways; the device unplugged is
+    said and waited for, mavloc keeps running, and the device plugged back in under the same
+    name carries the link again."""
+    work = tempfile.mkdtemp(prefix="mavloc-serial-")
+    link = os.path.join(work, "usb-PX4_FMU_v6X-if00")
+    peer = SerialPeer(link)
+    d = Daemon(connection=f"serial:{link}:921600")
+    try:
+        peer.hello()
+        # Wait for the autopilot to be found, then count from there: what came before mavloc
+        # set its end of the terminal up may have been cut.
+        deadline = time.time() + 5
+        while True:
+            # mavloc speaks first on a serial link, so its heartbeat says nothing of ours.
+            peer.mav.heartbeat_send(mav2.MAV_TYPE_QUADROTOR, mav2.MAV_AUTOPILOT_PX4, 0, 0, mav2.MAV_STATE_STANDBY)
+            try:
+                before = d.status()
+                if before["autopilot_found"]:
+                    break
+            except (OSError, ValueError):  # not written yet
+                pass
+            assert time.time() < deadline, "the autopilot on the serial link was not found"
+            time.sleep(0.3)
+        errors_before = peer.mav.total_receive_errors
+        sent = 300
+        for i in range(sent):
+            value = [(TTY_BYTES[(i + k) % len(TTY_BYTES)] + 128) % 256 - 128 for k in range(32)]
+            peer.mav.memory_vect_send(TTY_BYTES[i % len(TTY_BYTES)] * 257, 1, 0, value)
+            if i % 50 == 0:
+                time.sleep(0.05)  # about 115 kB/s, what a 921600 baud UART carries
+        # mavloc's way out: every parameter, floats of all bit patterns.
+        peer.mav.param_request_list_send(1, MAVLOC_COMP)
+        got, count = {}, None
+        deadline = time.time() + 10
+        while time.time() < deadline and (count is None or len(got) < count):
+            for m in peer.messages(0.2):
+                if m.get_type() == "PARAM_VALUE" and m.get_srcComponent() == MAVLOC_COMP:
+                    count = m.param_count
+                    got[m.param_index] = m
+        assert count and len(got) == count, f"{len(got)} of {count} parameters came through the terminal"
+        damaged_out = peer.mav.total_receive_errors - errors_before
+        assert damaged_out == 0, f"{damaged_out} frames from mavloc were damaged"
+        deadline = time.time() + 5
+        while True:
+            after = d.status()
+            arrived = after["frames_in"] - before["frames_in"]
+            if arrived >= sent or time.time() > deadline:
+                break
+            time.sleep(0.2)
+        damaged = {k: after["skipped"][k] - before["skipped"][k] for k in after["skipped"]}
+        assert arrived >= sent and not any(damaged.values()), f"{arrived} of {sent} arrived; skipped: {damaged}"
+
+        # Unplugged: the device goes away (its name with it), mavloc says so and keeps running.
+        peer.unplug()
+        deadline = time.time() + 5
+        while "link down" not in d.logtext():
+            assert time.time() < deadline, "the unplugged device was not noticed"
+            time.sleep(0.2)
+        time.sleep(1.5)
+        assert d.proc.poll() is None, "mavloc must keep running while its serial device is away"
+        # Plugged back in: another terminal under the same name.
+        peer = SerialPeer(link)
+        peer.hello(timeout=15)  # the retries back off up to 5 s
+        text = d.logtext()
+        assert "link up again: serial" in text, text[-2000:]
+        assert text.count("No such file or directory") <= 1, "the missing device was said more than once"
+        peer.unplug()
+    finally:
+        code = d.stop()
+    assert code == 0, f"exit status {code}"
 
 
 TESTS = {n: f for n, f in globals().items() if n.startswith("test_")}

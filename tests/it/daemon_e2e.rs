@@ -46,6 +46,13 @@ fn link_parameters_commands_garbage_and_peer_loss() {
     run_python(&["test_link_params_commands_garbage_and_peer_loss"], Duration::from_secs(60));
 }
 
+/// The link over a serial device (a pseudo-terminal, as a UART or USB port to PX4 is a
+/// terminal): raw both ways, and an unplugged device waited for and taken again.
+#[test]
+fn a_serial_link_is_raw_both_ways_and_survives_an_unplug() {
+    run_python(&["test_serial_link_is_raw_both_ways_and_survives_an_unplug"], Duration::from_secs(45));
+}
+
 #[test]
 fn signing_refuses_unsigned_and_wrongly_signed_sets() {
     run_python(&["test_signing"], Duration::from_secs(30));
