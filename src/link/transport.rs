@@ -234,6 +234,29 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
     }
 }
 
+/// A serial device that would not open, with what usually stands behind it: the bare errno
+/// text ("Permission denied", "Device or resource busy") leaves the user guessing, and the
+/// causes are few and well known.
+fn serial_open_error(e: tokio_serial::Error) -> std::io::Error {
+    use std::io::ErrorKind as Io;
+    use tokio_serial::ErrorKind as K;
+    let hint = match e.kind {
+        // serialport reports a lock held by another opener (its flock, or TIOCEXCL's EBUSY)
+        // as "no device".
+        K::NoDevice if e.description.contains("lock") || e.description.contains("busy") => {
+            "in use by another program (a second mavloc, mavlink-router, ModemManager, or a login console on the port?)"
+        }
+        K::NoDevice | K::Io(Io::NotFound) => {
+            "no such device (unplugged? a USB port is best named by its /dev/serial/by-id/ link, which follows it)"
+        }
+        K::Io(Io::PermissionDenied) => {
+            "permission denied (the user needs the dialout group; the systemd service has it)"
+        }
+        _ => return std::io::Error::other(e.description),
+    };
+    std::io::Error::other(format!("{}: {hint}", e.description))
+}
+
 /// An open transport.
 enum Endpoint {
     /// `udpin` (peers learnt from vouching frames) or `udpout` (one fixed peer).
@@ -293,8 +316,7 @@ impl Link {
             }
             LinkAddress::Serial { device, baud } => {
                 use tokio_serial::SerialPortBuilderExt;
-                let s =
-                    tokio_serial::new(device, *baud).open_native_async().map_err(std::io::Error::other)?;
+                let s = tokio_serial::new(device, *baud).open_native_async().map_err(serial_open_error)?;
                 Ok((Endpoint::Single, Some(Box::new(s)), format!("serial {device} at {baud} baud")))
             }
         }
@@ -635,8 +657,26 @@ mod tests {
     //! The link on real loopback sockets: who gets mavloc's output, and that no peer
     //! can make it wait.
     use super::*;
+
     use crate::link::codec::Encoder;
     use mavlink::dialects::common::HEARTBEAT_DATA;
+
+    #[test]
+    fn a_serial_device_that_will_not_open_is_named_with_its_usual_cause() {
+        use tokio_serial::{Error, ErrorKind};
+        let said = |kind, what: &str| super::serial_open_error(Error::new(kind, what)).to_string();
+        let locked = said(ErrorKind::NoDevice, "Unable to acquire exclusive lock on serial port");
+        assert!(
+            locked.starts_with("Unable to acquire") && locked.contains("in use by another program"),
+            "{locked}"
+        );
+        assert!(said(ErrorKind::NoDevice, "Device or resource busy").contains("in use by another program"));
+        let gone = said(ErrorKind::Io(std::io::ErrorKind::NotFound), "No such file or directory");
+        assert!(gone.contains("unplugged?") && gone.contains("/dev/serial/by-id/"), "{gone}");
+        let denied = said(ErrorKind::Io(std::io::ErrorKind::PermissionDenied), "Permission denied");
+        assert!(denied.contains("dialout group"), "{denied}");
+        assert_eq!(said(ErrorKind::InvalidInput, "bad baud rate"), "bad baud rate");
+    }
 
     fn trust(signing: bool) -> Trust {
         Trust { autopilot_system_id: 1, gcs_system_id: 255, signing, accept_unsigned_telemetry: false }
