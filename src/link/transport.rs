@@ -198,11 +198,14 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
     let (mut rd, mut wr) = tokio::io::split(stream);
     let (queue, mut rx) = mpsc::channel::<Arc<[u8]>>(PEER_QUEUE);
     let w = wire.clone();
+    // A serial device has no peer to close it: its end of file is the device going away.
+    let ended =
+        if what.starts_with("serial") { "the device went away (unplugged?)" } else { "closed by the peer" };
     let reader = tokio::spawn(async move {
         let mut buf = vec![0u8; 16384];
         let reason = loop {
             match rd.read(&mut buf).await {
-                Ok(0) => break "closed by the peer".to_string(),
+                Ok(0) => break ended.to_string(),
                 Ok(n) => {
                     if w.send(Wire::Bytes(id, buf[..n].to_vec())).await.is_err() {
                         return;
