@@ -438,6 +438,7 @@ impl Shell {
                 use std::sync::atomic::Ordering::Relaxed;
                 let skipped = *self.link.stats.skipped.lock().expect("stats");
                 let stats = ShellStats {
+                    link_up: self.link_state.starts_with("up"),
                     link_in: self.link.stats.frames_in.load(Relaxed),
                     link_bad_frames: skipped.total_frames(),
                     link_garbage_bytes: skipped.garbage_bytes,

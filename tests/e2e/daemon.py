@@ -779,7 +779,8 @@ TTY_BYTES = [0x03, 0x04, 0x0A, 0x0D, 0x11, 0x13, 0x1A, 0x7F, 0xFD, 0xFE, 0x00, 0
 
 def test_serial_link_is_raw_both_ways_and_survives_an_unplug():
     """Over a serial device (a pseudo-terminal behind a by-id style link): held by another
-    program at the start, it is said so and waited for; frames whose bytes a cooked
+    program at the start, it is said so and waited for; noise instead of frames (a baud
+    rate other than the autopilot's) is named as that; frames whose bytes a cooked
     terminal would change arrive whole both ways; the device unplugged is said and waited
     for, mavloc keeps running, and the device plugged back in under the same name carries
     the link again."""
@@ -798,6 +799,16 @@ def test_serial_link_is_raw_both_ways_and_survives_an_unplug():
             assert time.time() < deadline, "a device held by another program was not said: " + d.logtext()[-1500:]
             time.sleep(0.2)
         os.close(holder)
+        # At another baud rate than mavloc's, the autopilot's frames arrive as noise: after
+        # the wait, mavloc names the baud rate (the first thing to check on a new harness).
+        noise = random.Random(7)
+        deadline = time.time() + 20
+        while "but no MAVLink frame in them" not in d.logtext():
+            assert time.time() < deadline, "noise on the port was not said: " + d.logtext()[-1500:]
+            peer.write(bytes(noise.choice([0x00, 0x80, 0xF8, 0x78, 0x86, 0x06]) for _ in range(200)))
+            peer.messages(0.2)  # mavloc's own heartbeats, read so the terminal never fills
+        said = d.logtext()
+        assert "does the autopilot send at 921600 baud" in said and "SER_TEL2_BAUD" in said, said[-1500:]
         peer.hello()
         # Wait for the autopilot to be found, then count from there: what came before mavloc
         # set its end of the terminal up may have been cut.

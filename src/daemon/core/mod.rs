@@ -37,6 +37,7 @@ pub mod streams;
 pub mod telemetry;
 pub mod time;
 pub mod timesync;
+pub mod waiting;
 
 #[cfg(test)]
 mod sim;
@@ -191,6 +192,8 @@ pub enum CameraEvent {
 /// Counters the shell keeps (link and frame queues), handed in once a second.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct ShellStats {
+    /// Whether the link is open (a serial device present, a socket bound or connected).
+    pub link_up: bool,
     pub link_in: u64,
     pub link_bad_frames: u64,
     pub link_garbage_bytes: u64,
@@ -362,6 +365,8 @@ enum Job {
 
 pub struct Core {
     settings: Settings,
+    /// Why no autopilot yet, said once the wait is long.
+    waiting: waiting::Waiting,
     tuned: BTreeMap<String, f64>,
     /// Tuned parameters whose last save failed (a full disk): failed tries since the last
     /// good save, and when the next try is due. They are saved again until one succeeds
@@ -442,6 +447,7 @@ impl Core {
             system_id,
             signing,
             autopilot: Autopilot::new(Duration::from_secs_f64(m.autopilot_timeout_s)),
+            waiting: waiting::Waiting::default(),
             telemetry: Telemetry::new(&settings),
             streams: Streams::new(wants_truth(&settings)),
             timesync: TimeSync::default(),
@@ -903,6 +909,9 @@ impl Core {
             return;
         }
         let from = (f.header.system_id as u8, f.header.component_id);
+        if !self.autopilot.present() {
+            self.waiting.heard(from);
+        }
         if let Some(id) = f.unknown_command {
             let target = match &f.message {
                 MavMessage::COMMAND_LONG(c) => (c.target_system, c.target_component),
@@ -940,6 +949,7 @@ impl Core {
                         self.system_id = sys;
                     }
                     self.notes.info(&format!("autopilot found: system {sys} ({what})"));
+                    self.waiting.found();
                     self.streams.start();
                     self.timesync.start(rx);
                     if self.gps.enabled() {
@@ -1558,6 +1568,12 @@ impl Core {
     }
 
     fn on_stats(&mut self, now: Mono, s: ShellStats) {
+        let m = &self.settings.mavlink;
+        if let Some((log, short)) =
+            self.waiting.on_stats(now, &s, &m.connection, m.autopilot_system_id, self.signing)
+        {
+            self.notes.warn_short(&log, short);
+        }
         self.counters.frames_dropped = s.frames_dropped;
         self.counters.peer_lines_suppressed = self.peer_lines.suppressed;
         self.counters.telemetry_from_the_future = self.telemetry.implausible;

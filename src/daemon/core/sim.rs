@@ -362,6 +362,8 @@ pub struct Sim {
     pub start_result: Result<(), String>,
     /// Whether the shell's saves of the tuned parameters fail (a full disk).
     pub disk_full: bool,
+    /// The link's counters as the shell hands them in (an open link that counted nothing).
+    pub link: ShellStats,
     pub steps: u64,
 }
 
@@ -381,6 +383,7 @@ impl Sim {
             actions: Vec::new(),
             start_result: Ok(()),
             disk_full: false,
+            link: ShellStats { link_up: true, ..ShellStats::default() },
             steps: 0,
         }
     }
@@ -418,7 +421,7 @@ impl Sim {
                     self.core.handle(done(token))
                 }
                 Action::Report => {
-                    self.core.handle(Input::Stats { now: self.now, stats: ShellStats::default() });
+                    self.core.handle(Input::Stats { now: self.now, stats: self.link });
                 }
                 _ => {}
             }

@@ -1448,3 +1448,32 @@ fn a_strangers_command_flood_is_answered_a_bounded_number_of_times() {
     });
     assert_eq!(last, Some(255), "the ground station is answered");
 }
+
+/// A vehicle whose MAV_SYS_ID is 2 where mavloc expects 1, beside a ground station: after
+/// ten seconds mavloc says which systems it hears and which setting to check, once; a
+/// vehicle with the right id found within the wait is not doubted.
+#[test]
+fn no_autopilot_after_the_wait_is_said_once_with_the_systems_heard() {
+    let mut sim = Sim::new(settings());
+    let mut t = 0;
+    while t < 40 {
+        let hb = HEARTBEAT_DATA { autopilot: MavAutopilot::MAV_AUTOPILOT_PX4, ..Default::default() };
+        sim.deliver(frame(2, 1, MavMessage::HEARTBEAT(hb)));
+        sim.gcs_sends(MavMessage::HEARTBEAT(HEARTBEAT_DATA::default()));
+        t += 1;
+        sim.run_until(secs(t));
+    }
+    assert!(!sim.core.autopilot_found());
+    let said: Vec<String> = sim.statustexts().into_iter().filter(|t| t.contains("no autopilot")).collect();
+    assert_eq!(said, ["mavloc: no autopilot: other system ids only"], "{:?}", sim.statustexts());
+    let at = sim.sent.iter().find(|(_, m)| matches!(m, MavMessage::STATUSTEXT(s) if String::from_utf8_lossy(&s.text[..]).contains("no autopilot"))).unwrap().0;
+    assert!(at >= secs(10) && at < secs(12), "said at {at:?}");
+
+    // The right vehicle, 5 s after start: nothing to say.
+    let mut sim = Sim::new(settings());
+    sim.run_until(secs(5));
+    sim.ap = FakeAutopilot::new(secs(5));
+    sim.run_until(secs(60));
+    assert!(sim.core.autopilot_found());
+    assert!(!sim.statustexts().iter().any(|t| t.contains("no autopilot")), "{:?}", sim.statustexts());
+}
