@@ -441,6 +441,7 @@ impl Shell {
                     link_up: self.link_state.starts_with("up"),
                     link_in: self.link.stats.frames_in.load(Relaxed),
                     link_bad_frames: skipped.total_frames(),
+                    link_bad_signatures: skipped.bad_signature,
                     link_garbage_bytes: skipped.garbage_bytes,
                     frames_dropped: self.live.dropped(),
                 };

@@ -199,8 +199,9 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
     let (queue, mut rx) = mpsc::channel::<Arc<[u8]>>(PEER_QUEUE);
     let w = wire.clone();
     // A serial device has no peer to close it: its end of file is the device going away.
-    let ended =
-        if what.starts_with("serial") { "the device went away (unplugged?)" } else { "closed by the peer" };
+    let serial = what.starts_with("serial");
+    let failed = move |e: &std::io::Error| if serial { serial_io_error(e) } else { e.to_string() };
+    let ended = if serial { SERIAL_GONE } else { "closed by the peer" };
     let reader = tokio::spawn(async move {
         let mut buf = vec![0u8; 16384];
         let reason = loop {
@@ -211,7 +212,7 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
                         return;
                     }
                 }
-                Err(e) => break e.to_string(),
+                Err(e) => break failed(&e),
             }
         };
         let _ = w.send(Wire::Closed { id, reason, stalled: false }).await;
@@ -220,7 +221,7 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
         while let Some(bytes) = rx.recv().await {
             let (reason, stalled) = match tokio::time::timeout(WRITE_STALL, wr.write_all(&bytes)).await {
                 Ok(Ok(())) => continue,
-                Ok(Err(e)) => (e.to_string(), false),
+                Ok(Err(e)) => (failed(&e), false),
                 Err(_) => (format!("stopped reading (a write waited {WRITE_STALL:?})"), true),
             };
             let _ = wire.send(Wire::Closed { id, reason, stalled }).await;
@@ -237,6 +238,21 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
     }
 }
 
+const GONE: &str =
+    "no such device (unplugged? a USB port is best named by its /dev/serial/by-id/ link, which follows it)";
+
+/// How a serial device's read or write failed: EIO, ENODEV and ENXIO, as a USB adapter
+/// pulled out or a pseudo-terminal closed gives them, are the device going away.
+fn serial_io_error(e: &std::io::Error) -> String {
+    match e.raw_os_error() {
+        Some(libc::EIO | libc::ENODEV | libc::ENXIO) => SERIAL_GONE.to_string(),
+        _ => e.to_string(),
+    }
+}
+
+/// A serial device's end of file, or the errors of [`serial_io_error`].
+const SERIAL_GONE: &str = "the device went away (unplugged?)";
+
 /// A serial device that would not open, with what usually stands behind it: the bare errno
 /// text ("Permission denied", "Device or resource busy") leaves the user guessing, and the
 /// causes are few and well known.
@@ -247,13 +263,14 @@ fn serial_open_error(e: tokio_serial::Error) -> std::io::Error {
         // serialport reports a lock held by another opener (its flock, or TIOCEXCL's EBUSY)
         // as "no device".
         K::NoDevice if e.description.contains("lock") || e.description.contains("busy") => {
-            "in use by another program (a second mavloc, mavlink-router, ModemManager, or a login console on the port?)"
+            "in use by another program (a second mavloc, mavlink-router or ModemManager?)"
         }
-        K::NoDevice | K::Io(Io::NotFound) => {
-            "no such device (unplugged? a USB port is best named by its /dev/serial/by-id/ link, which follows it)"
-        }
+        // ENODEV and ENXIO come as "unknown", named only by their text.
+        K::NoDevice | K::Io(Io::NotFound) => GONE,
+        K::Unknown if e.description.starts_with("No such device") => GONE,
         K::Io(Io::PermissionDenied) => {
-            "permission denied (the user needs the dialout group; the systemd service has it)"
+            "permission denied (the user needs the dialout group, which the systemd service has; a serial login \
+             console on the port, as Raspberry Pi OS can enable, keeps it for the tty group: turn the console off)"
         }
         _ => return std::io::Error::other(e.description),
     };
@@ -677,7 +694,13 @@ mod tests {
         let gone = said(ErrorKind::Io(std::io::ErrorKind::NotFound), "No such file or directory");
         assert!(gone.contains("unplugged?") && gone.contains("/dev/serial/by-id/"), "{gone}");
         let denied = said(ErrorKind::Io(std::io::ErrorKind::PermissionDenied), "Permission denied");
-        assert!(denied.contains("dialout group"), "{denied}");
+        assert!(denied.contains("dialout group") && denied.contains("login console"), "{denied}");
+        assert!(said(ErrorKind::Unknown, "No such device or address").contains("unplugged?"));
+        for errno in [libc::EIO, libc::ENODEV, libc::ENXIO] {
+            assert_eq!(super::serial_io_error(&std::io::Error::from_raw_os_error(errno)), super::SERIAL_GONE);
+        }
+        let other = std::io::Error::from_raw_os_error(libc::EAGAIN);
+        assert_eq!(super::serial_io_error(&other), other.to_string());
         assert_eq!(said(ErrorKind::InvalidInput, "bad baud rate"), "bad baud rate");
     }
 

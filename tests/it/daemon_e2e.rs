@@ -50,7 +50,7 @@ fn link_parameters_commands_garbage_and_peer_loss() {
 /// terminal): raw both ways, and an unplugged device waited for and taken again.
 #[test]
 fn a_serial_link_is_raw_both_ways_and_survives_an_unplug() {
-    run_python(&["test_serial_link_is_raw_both_ways_and_survives_an_unplug"], Duration::from_secs(45));
+    run_python(&["test_serial_link_is_raw_both_ways_and_survives_an_unplug"], Duration::from_secs(90));
 }
 
 #[test]

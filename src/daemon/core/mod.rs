@@ -196,6 +196,8 @@ pub struct ShellStats {
     pub link_up: bool,
     pub link_in: u64,
     pub link_bad_frames: u64,
+    /// Of the bad frames, those whose signature did not check.
+    pub link_bad_signatures: u64,
     pub link_garbage_bytes: u64,
     pub frames_dropped: u64,
 }
@@ -906,6 +908,9 @@ impl Core {
             return;
         }
         if self.signing && f.auth != Auth::Signed && !self.settings.mavlink.accept_unsigned_telemetry {
+            if !self.autopilot.present() {
+                self.waiting.unsigned();
+            }
             return;
         }
         let from = (f.header.system_id as u8, f.header.component_id);
@@ -1570,7 +1575,7 @@ impl Core {
     fn on_stats(&mut self, now: Mono, s: ShellStats) {
         let m = &self.settings.mavlink;
         if let Some((log, short)) =
-            self.waiting.on_stats(now, &s, &m.connection, m.autopilot_system_id, self.signing)
+            self.waiting.on_stats(now, &s, &m.connection, m.autopilot_system_id, m.gcs_system_id)
         {
             self.notes.warn_short(&log, short);
         }

@@ -1465,7 +1465,7 @@ fn no_autopilot_after_the_wait_is_said_once_with_the_systems_heard() {
     }
     assert!(!sim.core.autopilot_found());
     let said: Vec<String> = sim.statustexts().into_iter().filter(|t| t.contains("no autopilot")).collect();
-    assert_eq!(said, ["mavloc: no autopilot: other system ids only"], "{:?}", sim.statustexts());
+    assert_eq!(said, ["mavloc: no autopilot: another system id heard"], "{:?}", sim.statustexts());
     let at = sim.sent.iter().find(|(_, m)| matches!(m, MavMessage::STATUSTEXT(s) if String::from_utf8_lossy(&s.text[..]).contains("no autopilot"))).unwrap().0;
     assert!(at >= secs(10) && at < secs(12), "said at {at:?}");
 
