@@ -209,6 +209,8 @@ struct Status<'a> {
     uptime_s: f64,
     link: &'a str,
     autopilot_found: bool,
+    /// Why no autopilot yet, once mavloc has waited long enough to say (null otherwise).
+    autopilot_missing: Option<&'static str>,
     system_id: u8,
     mav_state: String,
     pipeline: String,
@@ -278,6 +280,8 @@ struct Shell {
     dir: PathBuf,
     link: transport::LinkHandle,
     link_state: String,
+    /// The last STATUS= told to systemd (`systemctl status` shows it).
+    told: String,
     live: Live,
     /// The link's queue was full on the last flush: retry shortly instead of spinning.
     link_full: bool,
@@ -296,6 +300,19 @@ const STATUS_FAILURE_EVERY: Duration = Duration::from_secs(60);
 const MAX_SERVED_BYTES: u64 = 8 << 20;
 
 impl Shell {
+    /// Tells systemd the link's state, and why no autopilot yet once that has been said,
+    /// when either changed.
+    fn tell_status(&mut self, core: &Core) {
+        let line = match core.autopilot_missing() {
+            Some(why) => format!("link {}; {why}", self.link_state),
+            None => format!("link {}", self.link_state),
+        };
+        if line != self.told {
+            notify(&[sd_notify::NotifyState::Status(&line)]);
+            self.told = line;
+        }
+    }
+
     /// Rewrites `status.json` with the daemon's state now; a failure is logged once a
     /// minute while it lasts, and the recovery once.
     fn write_status(&mut self, core: &Core, now: Mono) -> std::io::Result<()> {
@@ -458,6 +475,7 @@ impl Shell {
                     }
                 }
                 core.handle(Input::Stats { now, stats });
+                self.tell_status(core);
                 let _ = self.write_status(core, now);
                 self.serve_area_results(core, now);
             }
@@ -631,6 +649,7 @@ pub async fn run(
         dir,
         link,
         link_state: String::from("opening"),
+        told: String::from("link opening"),
         live,
         link_full: false,
         served_area: None,
@@ -706,11 +725,11 @@ async fn serve(
                 }
                 Some(LinkEvent::Up(what)) => {
                     shell.link_state = format!("up: {what}");
-                    notify(&[sd_notify::NotifyState::Status(&format!("link {}", shell.link_state))]);
+                    shell.tell_status(core);
                 }
                 Some(LinkEvent::Down(why)) => {
                     shell.link_state = format!("down: {why}");
-                    notify(&[sd_notify::NotifyState::Status(&format!("link {}", shell.link_state))]);
+                    shell.tell_status(core);
                 }
                 None => anyhow::bail!("the link task ended unexpectedly"),
             },
@@ -946,6 +965,7 @@ fn write_status(
         uptime_s: now.secs(),
         link: link_state,
         autopilot_found: core.autopilot_found(),
+        autopilot_missing: core.autopilot_missing(),
         system_id: core.system_id(),
         mav_state: format!("{:?}", core.mav_state()),
         pipeline: format!("{:?}", core.pipeline()),
@@ -1033,6 +1053,7 @@ mod shell_tests {
                 dir: path,
                 link,
                 link_state: "test".into(),
+                told: String::new(),
                 live,
                 link_full: false,
                 served_area: None,

@@ -48,3 +48,60 @@ fn ready_comes_before_the_link_with_an_absent_serial_device() {
     assert!(said.contains("ttyNOPE"), "{said:?}");
     assert!(status.success(), "{status:?}");
 }
+
+/// With the link up and no autopilot, systemd's status line (what `systemctl status mavloc`
+/// shows) says why after the wait, beside the link's state, and `status.json` says it too.
+#[test]
+fn the_status_line_says_why_no_autopilot_came() {
+    let dir = tempfile::tempdir().unwrap();
+    let sock_path = dir.path().join("notify");
+    let sock = UnixDatagram::bind(&sock_path).unwrap();
+    sock.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+    let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let state = dir.path().join("state");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_mavloc"))
+        .args(["run", "--mavlink", &format!("udpin:127.0.0.1:{port}")])
+        .args(["--set", &format!("daemon.state_dir={}", state.display())])
+        .args(["--set", "daemon.pipeline=none", "--set", "camera.source=none"])
+        .env("NOTIFY_SOCKET", &sock_path)
+        .env_remove("STATE_DIRECTORY")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    let mut said = String::new();
+    let why = "no autopilot: nothing from it heard";
+    while start.elapsed() < Duration::from_secs(20) && !said.contains(why) {
+        let mut buf = [0u8; 4096];
+        if let Ok(n) = sock.recv(&mut buf) {
+            said.push_str(&String::from_utf8_lossy(&buf[..n]));
+            said.push('\n');
+        }
+    }
+    let took = start.elapsed();
+    // status.json, rewritten every second, says it within the next report.
+    let json = format!("\"autopilot_missing\": \"{why}\"");
+    let mut status = String::new();
+    while start.elapsed() < took + Duration::from_secs(3) && !status.contains(&json) {
+        std::thread::sleep(Duration::from_millis(100));
+        status = std::fs::read_to_string(state.join("status.json")).unwrap_or_default();
+    }
+    // Two more seconds: the line is not told again.
+    while start.elapsed() < took + Duration::from_secs(5) {
+        let mut buf = [0u8; 4096];
+        if let Ok(n) = sock.recv(&mut buf) {
+            said.push_str(&String::from_utf8_lossy(&buf[..n]));
+            said.push('\n');
+        }
+    }
+    unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+    let exit = child.wait().unwrap();
+    let line =
+        said.lines().find(|l| l.contains(why)).unwrap_or_else(|| panic!("not said within 20 s: {said:?}"));
+    assert_eq!(line, format!("STATUS=link up: listening on udp 127.0.0.1:{port}; {why}"));
+    assert!(took >= Duration::from_secs(10), "said after {took:?}, before the wait was over");
+    assert!(status.contains(&json), "{status}");
+    assert_eq!(said.matches(why).count(), 1, "told once: {said:?}");
+    assert!(exit.success(), "{exit:?}");
+}

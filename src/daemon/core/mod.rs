@@ -509,6 +509,11 @@ impl Core {
         self.component_id
     }
 
+    /// Why no autopilot yet, in short, once that has been said (see [`waiting`]).
+    pub fn autopilot_missing(&self) -> Option<&'static str> {
+        self.waiting.note()
+    }
+
     pub fn autopilot_found(&self) -> bool {
         self.autopilot.present()
     }

@@ -65,6 +65,8 @@ pub struct Waiting {
     /// Unsigned frames dropped with signing on (the core's count, not the link's).
     unsigned: u64,
     said: Option<Evidence>,
+    /// The short form of what was said last, for systemd's status line and `status.json`.
+    short: Option<&'static str>,
 }
 
 impl Default for Waiting {
@@ -75,6 +77,7 @@ impl Default for Waiting {
             heard: BTreeSet::new(),
             unsigned: 0,
             said: None,
+            short: None,
         }
     }
 }
@@ -96,6 +99,11 @@ impl Waiting {
     pub fn found(&mut self) {
         self.since = None;
         self.heard.clear();
+    }
+
+    /// What was said last, in short, while the autopilot is still missing.
+    pub fn note(&self) -> Option<&'static str> {
+        self.since.and(self.short)
     }
 
     /// The shell's counters, once a second: what to say now, if anything, as a log line
@@ -228,6 +236,7 @@ impl Waiting {
                 }
             }
         };
+        self.short = Some(said.1);
         Some(said)
     }
 }
@@ -288,7 +297,9 @@ mod tests {
         // Down and up again with the same silence: not said again.
         assert_eq!(w.on_stats(at(60), &down, SERIAL, 1, 255), None);
         assert!(said(&mut w, 61, 120, &up(950), SERIAL).is_empty());
+        assert_eq!(w.note(), Some("no autopilot: nothing from it heard"));
         w.found();
+        assert_eq!(w.note(), None, "found: no longer missing");
         assert!(said(&mut w, 120, 200, &up(90_000), SERIAL).is_empty());
     }
 
