@@ -54,6 +54,9 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
                 loaded.origins.len(),
                 if loaded.origins.len() == 1 { "" } else { "s" }
             );
+            if let Some(note) = serial_note(&loaded.settings.mavlink.connection) {
+                println!("note: mavlink.connection: {note}");
+            }
             Ok(ExitCode::SUCCESS)
         }
         ConfigCommand::Show => {
@@ -66,6 +69,34 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
                 }
             }
             Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+/// What `run` would meet on its serial device now. Not an error (the daemon waits for a
+/// device that is not there yet, as a USB adapter plugged in after boot), but the first
+/// fault of a new harness, which `config check` is run to find.
+fn serial_note(connection: &str) -> Option<String> {
+    use std::os::unix::fs::FileTypeExt;
+    let Ok(settings::LinkAddress::Serial { device, .. }) = settings::LinkAddress::parse(connection) else {
+        return None;
+    };
+    match std::fs::metadata(&device) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Some(format!("{device} does not exist now (unplugged? `mavloc run` waits for it)"))
+        }
+        Err(e) => Some(format!("{device}: {e}")),
+        Ok(m) if !m.file_type().is_char_device() => Some(format!(
+            "{device} is not a serial device (a character device such as /dev/ttyAMA0 or /dev/ttyACM0)"
+        )),
+        Ok(_) => {
+            let rw = rustix::fs::Access::READ_OK | rustix::fs::Access::WRITE_OK;
+            rustix::fs::access(device.as_str(), rw).err().map(|_| {
+                format!(
+                    "{device} cannot be opened for reading and writing by this user (the dialout group? the \
+                     systemd service has it)"
+                )
+            })
         }
     }
 }

@@ -76,6 +76,31 @@ fn config_check_checks_the_file_it_is_given() {
     }
 }
 
+/// A serial device that is not there, or not a device, is noted by `config check` (the
+/// configuration stays valid: `run` waits for the device); a present one is not.
+#[test]
+fn config_check_notes_a_serial_device_that_is_missing_or_not_a_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let note = |device: &str| {
+        let f = temp_config(&format!("[mavlink]\nconnection = \"serial:{device}:921600\"\n"));
+        let out = mavloc().args(["config", "check"]).arg(f.path()).assert().success();
+        String::from_utf8_lossy(&out.get_output().stdout).to_string()
+    };
+    let missing = dir.path().join("ttyUSB9");
+    let said = note(&missing.display().to_string());
+    assert!(
+        said.contains("note: mavlink.connection:") && said.contains("does not exist now (unplugged?"),
+        "{said}"
+    );
+    let file = dir.path().join("not-a-tty");
+    std::fs::write(&file, "").unwrap();
+    let said = note(&file.display().to_string());
+    assert!(said.contains("is not a serial device"), "{said}");
+    // /dev/null is a character device anyone may open: nothing to note.
+    let said = note("/dev/null");
+    assert!(said.contains("valid") && !said.contains("note:"), "{said}");
+}
+
 #[test]
 fn misspelt_key_fails_naming_key_and_file() {
     let f = temp_config("[area]\nukf_alfa = 0.7\n");
