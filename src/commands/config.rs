@@ -89,6 +89,10 @@ fn serial_note(connection: &str) -> Option<String> {
         Ok(m) if !m.file_type().is_char_device() => Some(format!(
             "{device} is not a serial device (a character device such as /dev/ttyAMA0 or /dev/ttyACM0)"
         )),
+        // access() says yes to root for any device: checked as root (`sudo mavloc config
+        // check`, as the README says for the service), judge by what the service's dynamic
+        // user, in the dialout group, will meet.
+        Ok(m) if unsafe { libc::geteuid() } == 0 => service_note(&device, &m),
         Ok(_) => {
             let rw = rustix::fs::Access::READ_OK | rustix::fs::Access::WRITE_OK;
             rustix::fs::access(device.as_str(), rw).err().map(|_| {
@@ -99,6 +103,40 @@ fn serial_note(connection: &str) -> Option<String> {
             })
         }
     }
+}
+
+/// Whether the service (a dynamic user in the dialout group) can open `device`, from its
+/// owner group and mode.
+fn service_note(device: &str, m: &std::fs::Metadata) -> Option<String> {
+    use std::os::unix::fs::MetadataExt;
+    let mode = m.mode() & 0o777;
+    let group = group_name(m.gid());
+    let open_to = |bits: u32| mode & bits == bits;
+    if open_to(0o006) || (open_to(0o060) && group.as_deref() == Some("dialout")) {
+        return None;
+    }
+    let group = group.unwrap_or_else(|| m.gid().to_string());
+    Some(if group == "tty" {
+        format!(
+            "{device} belongs to the tty group (mode {mode:o}): a serial login console on the port? The service, in \
+             the dialout group, cannot open it: turn the console off"
+        )
+    } else {
+        format!(
+            "{device} is not open to the dialout group (group {group}, mode {mode:o}): the service, a dynamic user \
+             in that group, cannot open it"
+        )
+    })
+}
+
+/// The name of group `gid` from `/etc/group` (where Debian's dialout and tty are).
+fn group_name(gid: u32) -> Option<String> {
+    let groups = std::fs::read_to_string("/etc/group").ok()?;
+    groups.lines().find_map(|l| {
+        let mut f = l.split(':');
+        let name = f.next()?;
+        (f.nth(1)?.parse::<u32>().ok()? == gid).then(|| name.to_string())
+    })
 }
 
 /// Whether two paths name the same file (either may not exist).

@@ -99,6 +99,37 @@ fn config_check_notes_a_serial_device_that_is_missing_or_not_a_device() {
     // /dev/null is a character device anyone may open: nothing to note.
     let said = note("/dev/null");
     assert!(said.contains("valid") && !said.contains("note:"), "{said}");
+    // Checked as root, a device is judged by what the service (in dialout) can open.
+    if unsafe { libc::geteuid() } != 0 {
+        eprintln!("skipped: the dialout checks of a device need root (mknod)");
+        return;
+    }
+    let gid = |name: &str| -> u32 {
+        let groups = std::fs::read_to_string("/etc/group").unwrap();
+        let line = groups.lines().find(|l| l.starts_with(&format!("{name}:"))).unwrap();
+        line.split(':').nth(2).unwrap().parse().unwrap()
+    };
+    let tty = dir.path().join("ttyS7");
+    let path = std::ffi::CString::new(tty.as_os_str().as_encoded_bytes()).unwrap();
+    // A character device with /dev/null's numbers, mode 0600 root:root.
+    if unsafe { libc::mknod(path.as_ptr(), libc::S_IFCHR | 0o600, libc::makedev(1, 3)) } != 0 {
+        eprintln!("skipped: mknod is not allowed here");
+        return;
+    }
+    let device = tty.display().to_string();
+    assert!(
+        note(&device).contains("is not open to the dialout group (group root, mode 600)"),
+        "{}",
+        note(&device)
+    );
+    let own = |group: u32, mode: u32| {
+        std::os::unix::fs::chown(&tty, Some(0), Some(group)).unwrap();
+        std::fs::set_permissions(&tty, std::os::unix::fs::PermissionsExt::from_mode(mode)).unwrap();
+    };
+    own(gid("dialout"), 0o660);
+    assert!(!note(&device).contains("note:"), "{}", note(&device));
+    own(gid("tty"), 0o620);
+    assert!(note(&device).contains("login console"), "{}", note(&device));
 }
 
 #[test]

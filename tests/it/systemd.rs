@@ -50,7 +50,8 @@ fn ready_comes_before_the_link_with_an_absent_serial_device() {
 }
 
 /// With the link up and no autopilot, systemd's status line (what `systemctl status mavloc`
-/// shows) says why after the wait, beside the link's state, and `status.json` says it too.
+/// shows) says why after the wait, beside the link's state, and `status.json` says it too;
+/// once the autopilot comes, the line is the link's state alone.
 #[test]
 fn the_status_line_says_why_no_autopilot_came() {
     let dir = tempfile::tempdir().unwrap();
@@ -95,6 +96,26 @@ fn the_status_line_says_why_no_autopilot_came() {
             said.push('\n');
         }
     }
+    // The autopilot comes: the line goes back to the link's state alone.
+    use mavlink::dialects::common::{MavAutopilot, MavMessage, HEARTBEAT_DATA};
+    let ap = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    let hb = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        autopilot: MavAutopilot::MAV_AUTOPILOT_PX4,
+        ..Default::default()
+    });
+    let mut frame = Vec::new();
+    mavlink::write_v2_msg(&mut frame, mavlink::MavHeader { system_id: 1, component_id: 1, sequence: 0 }, &hb)
+        .unwrap();
+    let plain = format!("STATUS=link up: listening on udp 127.0.0.1:{port}");
+    let found_at = Instant::now();
+    while found_at.elapsed() < Duration::from_secs(5) && !said.trim_end().ends_with(&plain) {
+        ap.send_to(&frame, ("127.0.0.1", port)).unwrap();
+        let mut buf = [0u8; 4096];
+        if let Ok(n) = sock.recv(&mut buf) {
+            said.push_str(&String::from_utf8_lossy(&buf[..n]));
+            said.push('\n');
+        }
+    }
     unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
     let exit = child.wait().unwrap();
     let line =
@@ -103,5 +124,9 @@ fn the_status_line_says_why_no_autopilot_came() {
     assert!(took >= Duration::from_secs(10), "said after {took:?}, before the wait was over");
     assert!(status.contains(&json), "{status}");
     assert_eq!(said.matches(why).count(), 1, "told once: {said:?}");
+    assert!(
+        said.trim_end().ends_with(&plain),
+        "the autopilot found, the diagnosis leaves the line: {said:?}"
+    );
     assert!(exit.success(), "{exit:?}");
 }

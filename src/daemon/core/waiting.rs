@@ -65,8 +65,11 @@ pub struct Waiting {
     /// Unsigned frames dropped with signing on (the core's count, not the link's).
     unsigned: u64,
     said: Option<Evidence>,
-    /// The short form of what was said last, for systemd's status line and `status.json`.
+    /// The short form of the evidence now, for systemd's status line and `status.json`.
     short: Option<&'static str>,
+    /// Whether `short` is of the link as it is now: not while it is down, nor before the
+    /// wait since it came up is over.
+    current: bool,
 }
 
 impl Default for Waiting {
@@ -78,6 +81,7 @@ impl Default for Waiting {
             unsigned: 0,
             said: None,
             short: None,
+            current: false,
         }
     }
 }
@@ -101,9 +105,10 @@ impl Waiting {
         self.heard.clear();
     }
 
-    /// What was said last, in short, while the autopilot is still missing.
+    /// Why no autopilot, in short, while it is still missing and the link has been up for
+    /// the wait.
     pub fn note(&self) -> Option<&'static str> {
-        self.since.and(self.short)
+        self.since.and(self.short).filter(|_| self.current)
     }
 
     /// The shell's counters, once a second: what to say now, if anything, as a log line
@@ -127,6 +132,7 @@ impl Waiting {
                 unsigned: self.unsigned,
             };
             self.heard.clear();
+            self.current = false;
             return None;
         }
         if now.0.saturating_sub(since.0) < WAIT.as_micros() as u64 {
@@ -150,10 +156,6 @@ impl Waiting {
         } else {
             Evidence::NoAutopilot
         };
-        if self.said == Some(evidence) {
-            return None;
-        }
-        self.said = Some(evidence);
         let waited = WAIT.as_secs();
         let list = |senders: &[&(u8, u8)]| -> String {
             senders.iter().map(|(s, c)| format!("{s}/{c}")).collect::<Vec<_>>().join(", ")
@@ -236,7 +238,14 @@ impl Waiting {
                 }
             }
         };
+        // Worked out each second (a few strings): the status line follows the evidence,
+        // the log says it only when it changes.
         self.short = Some(said.1);
+        self.current = true;
+        if self.said == Some(evidence) {
+            return None;
+        }
+        self.said = Some(evidence);
         Some(said)
     }
 }
@@ -294,9 +303,14 @@ mod tests {
         let after = said(&mut w, 21, 60, &up(950), SERIAL);
         assert_eq!(after.len(), 1, "{after:?}");
         assert!(after[0].0 == 30 && after[0].1.contains("nothing heard"), "{after:?}");
-        // Down and up again with the same silence: not said again.
+        // Down and up again with the same silence: not said again, and the status line
+        // carries no diagnosis while the link is down or before the wait is over again.
+        assert_eq!(w.note(), Some("no autopilot: nothing from it heard"));
         assert_eq!(w.on_stats(at(60), &down, SERIAL, 1, 255), None);
-        assert!(said(&mut w, 61, 120, &up(950), SERIAL).is_empty());
+        assert_eq!(w.note(), None, "an unplugged device is not a missing autopilot");
+        assert!(said(&mut w, 61, 70, &up(950), SERIAL).is_empty());
+        assert_eq!(w.note(), None, "not before the wait since the link came up");
+        assert!(said(&mut w, 70, 120, &up(950), SERIAL).is_empty());
         assert_eq!(w.note(), Some("no autopilot: nothing from it heard"));
         w.found();
         assert_eq!(w.note(), None, "found: no longer missing");
