@@ -34,7 +34,7 @@ struct LandmarkRow {
     east: f64,
     #[serde(serialize_with = "fixed::dp4")]
     down: f64,
-    #[serde(serialize_with = "fixed::dp4")]
+    #[serde(serialize_with = "fixed::nan_empty_dp4", deserialize_with = "fixed::de_nan_empty")]
     sigma_max_m: f64,
     observations: u32,
     first_frame: u64,
@@ -430,8 +430,17 @@ mod tests {
             "id,north,east,down,sigma_max_m,observations,first_frame,last_frame\n\
              3,10.5000,-2.2500,0.7500,0.3100,12,4,40\n"
         );
+        // An unknown sigma (the ground-plane baseline's) is an empty field, read back as NaN;
+        // "NaN", as older files have it, still reads.
         let nan = LandmarkRecord { sigma_max_m: f64::NAN, ..sample()[0].clone() };
-        assert!(parse_landmarks_csv(&landmarks_csv(&[nan]), "x").unwrap()[0].sigma_max_m.is_nan());
+        let text = landmarks_csv(&[nan]);
+        assert_eq!(text.lines().nth(1), Some("3,10.5000,-2.2500,0.7500,,12,4,40"), "{text}");
+        assert!(parse_landmarks_csv(&text, "x").unwrap()[0].sigma_max_m.is_nan());
+        let old = text.replace(",,", ",NaN,");
+        assert!(parse_landmarks_csv(&old, "x").unwrap()[0].sigma_max_m.is_nan());
+        let bad = text.replace(",,", ",wide,");
+        let err = parse_landmarks_csv(&bad, "x").unwrap_err();
+        assert!(err.contains("`wide` is not a number"), "{err}");
         let border = vec![vec![Vec3::new(1.0, 2.0, 3.0)], vec![Vec3::new(-1.5, 0.0, 0.25)]];
         let text = border_csv(&border);
         assert_eq!(text, "line,index,north,east,down\n0,0,1.0000,2.0000,3.0000\n1,0,-1.5000,0.0000,0.2500\n");

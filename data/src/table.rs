@@ -272,6 +272,27 @@ pub mod fixed {
         }
     }
 
+    /// `{:.4}`, or an empty field for NaN (a value nobody knows: the ground-plane
+    /// baseline's sigma). A spreadsheet or QGIS reads an empty field as missing, where
+    /// "NaN" would make the whole column text.
+    pub fn nan_empty_dp4<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_nan() {
+            s.serialize_str("")
+        } else {
+            dp4(v, s)
+        }
+    }
+
+    /// Reads what [`nan_empty_dp4`] writes: an empty field is NaN (so is "NaN", as files
+    /// before session 41 have it).
+    pub fn de_nan_empty<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        let text = String::deserialize(d)?;
+        if text.trim().is_empty() {
+            return Ok(f64::NAN);
+        }
+        text.trim().parse::<f64>().map_err(|_| serde::de::Error::custom(format!("`{text}` is not a number")))
+    }
+
     /// Booleans as `1` and `0`.
     pub fn bool01<S: Serializer>(v: &bool, s: S) -> Result<S::Ok, S::Error> {
         s.serialize_u8(*v as u8)
