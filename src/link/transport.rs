@@ -326,7 +326,16 @@ impl Link {
                 Ok((e, None, format!("sending to udp {peer}")))
             }
             LinkAddress::TcpOut { host, port } => {
-                let s = TcpStream::connect((host.as_str(), *port)).await?;
+                let s = TcpStream::connect((host.as_str(), *port)).await.map_err(|e| {
+                    if e.kind() == std::io::ErrorKind::ConnectionRefused {
+                        // mavlink-router's TCP server not started yet, or on another port.
+                        std::io::Error::other(format!(
+                            "{e}: nothing listens there (is mavlink-router running, with its TCP server on port {port}?)"
+                        ))
+                    } else {
+                        e
+                    }
+                })?;
                 tune(&s)?;
                 Ok((Endpoint::Single, Some(Box::new(s)), format!("connected to tcp {host}:{port}")))
             }

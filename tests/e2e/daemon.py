@@ -714,25 +714,14 @@ def test_component_metadata_over_mavlink_ftp():
         assert d.stop() == 0
 
 
-class SerialPeer:
-    """The autopilot's end of a pseudo-terminal: mavloc opens the other end as its serial
-    device, as it opens a UART to PX4's TELEM2 or a USB CDC port. What is written here goes
-    through the terminal's input processing to mavloc, and what mavloc writes comes through
-    its output processing: a device left in the terminal's default (cooked) mode turns CR
-    into LF, eats ^S/^Q as flow control, and adds a CR before each LF."""
+class StreamPeer:
+    """The autopilot on a byte stream to mavloc (a file descriptor: a terminal's master
+    end, a TCP connection), speaking through pymavlink's codec."""
 
-    def __init__(self, link):
-        import pty
-        self.master, slave = pty.openpty()
-        self.device = os.ttyname(slave)
-        os.close(slave)
-        if os.path.lexists(link):
-            os.remove(link)
-        # As udev's /dev/serial/by-id names: a link that follows the device when it comes back.
-        os.symlink(self.device, link)
+    def __init__(self, fd):
+        self.master = fd
         self.mav = mav2.MAVLink(self, srcSystem=1, srcComponent=1)
         self.mav.robust_parsing = True
-        self.backlog = []
 
     def write(self, data):
         os.write(self.master, data)
@@ -745,7 +734,10 @@ class SerialPeer:
             return []
         try:
             data = os.read(self.master, 65536)
-        except OSError:  # EIO: mavloc has not opened its end yet
+        except OSError:  # EIO: mavloc has not opened the terminal's other end yet
+            time.sleep(timeout)
+            return []
+        if not data:  # the connection closed
             time.sleep(timeout)
             return []
         return [m for m in (self.mav.parse_buffer(data) or []) if m.get_type() != "BAD_DATA"]
@@ -756,7 +748,7 @@ class SerialPeer:
             for m in self.messages(0.2):
                 if m.get_srcComponent() == MAVLOC_COMP and m.get_type() == kind and cond(m):
                     return m
-        raise AssertionError(f"no {kind} from mavloc over the serial device within {timeout} s")
+        raise AssertionError(f"no {kind} from mavloc over the stream within {timeout} s")
 
     def hello(self, timeout=10.0):
         deadline = time.time() + timeout
@@ -766,11 +758,30 @@ class SerialPeer:
                 return self.recv("HEARTBEAT", timeout=0.5)
             except AssertionError:
                 pass
-        raise AssertionError("mavloc sent no heartbeat over the serial device")
+        raise AssertionError("mavloc sent no heartbeat over the stream")
 
     def unplug(self):
         os.close(self.master)
 
+
+
+class SerialPeer(StreamPeer):
+    """The autopilot's end of a pseudo-terminal: mavloc opens the other end as its serial
+    device, as it opens a UART to PX4's TELEM2 or a USB CDC port. What is written here goes
+    through the terminal's input processing to mavloc, and what mavloc writes comes through
+    its output processing: a device left in the terminal's default (cooked) mode turns CR
+    into LF, eats ^S/^Q as flow control, and adds a CR before each LF."""
+
+    def __init__(self, link):
+        import pty
+        master, slave = pty.openpty()
+        self.device = os.ttyname(slave)
+        os.close(slave)
+        if os.path.lexists(link):
+            os.remove(link)
+        # As udev's /dev/serial/by-id names: a link that follows the device when it comes back.
+        os.symlink(self.device, link)
+        super().__init__(master)
 
 # The bytes a terminal in its default mode acts on: ^C ^D ^Q ^S ^Z (signals, end of file,
 # flow control), CR and LF (translated), DEL; and 0xFD/0xFE, MAVLink's start bytes.
@@ -872,6 +883,56 @@ def test_serial_link_is_raw_both_ways_and_survives_an_unplug():
         code = d.stop()
     assert code == 0, f"exit status {code}"
 
+
+
+def test_tcpout_reconnects_to_a_router_that_restarts():
+    """`tcpout` to a TCP server, as mavlink-router's (port 5760) or ArduPilot SITL's: nothing
+    listening at first is said (with what to check) and retried; once it listens, the
+    autopilot behind it is found; the server restarting (the connection closed, the port
+    closed, then open again) is said and the link taken again, mavloc running throughout."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    d = Daemon(connection=f"tcpout:127.0.0.1:{port}")
+
+    def serve():
+        srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        srv.bind(("127.0.0.1", port))
+        srv.listen(1)
+        srv.settimeout(15)  # the retries back off up to 5 s
+        conn, _ = srv.accept()
+        srv.close()
+        return conn
+
+    try:
+        deadline = time.time() + 10
+        while "nothing listens there" not in d.logtext():
+            assert time.time() < deadline, "a refused connection was not said: " + d.logtext()[-1500:]
+            time.sleep(0.2)
+        conn = serve()
+        peer = StreamPeer(conn.fileno())
+        peer.hello()
+        deadline = time.time() + 5
+        while "autopilot found" not in d.logtext():
+            assert time.time() < deadline, "the autopilot behind the router was not found"
+            peer.mav.heartbeat_send(mav2.MAV_TYPE_QUADROTOR, mav2.MAV_AUTOPILOT_PX4, 0, 0, mav2.MAV_STATE_STANDBY)
+            time.sleep(0.3)
+        # The router restarts.
+        conn.close()
+        deadline = time.time() + 5
+        while "closed by the peer" not in d.logtext():
+            assert time.time() < deadline, "the closed connection was not noticed"
+            time.sleep(0.2)
+        assert d.proc.poll() is None, "mavloc must keep running while the router is away"
+        conn = serve()
+        StreamPeer(conn.fileno()).hello()
+        assert "link up again: connected to tcp" in d.logtext()
+        conn.close()
+    finally:
+        code = d.stop()
+    assert code == 0, f"exit status {code}"
 
 TESTS = {n: f for n, f in globals().items() if n.startswith("test_")}
 

@@ -53,6 +53,13 @@ fn a_serial_link_is_raw_both_ways_and_survives_an_unplug() {
     run_python(&["test_serial_link_is_raw_both_ways_and_survives_an_unplug"], Duration::from_secs(90));
 }
 
+/// `tcpout` to a router's TCP server: refused at first (said), then connected, then the
+/// server restarting and the link taken again.
+#[test]
+fn tcpout_reconnects_to_a_router_that_restarts() {
+    run_python(&["test_tcpout_reconnects_to_a_router_that_restarts"], Duration::from_secs(60));
+}
+
 #[test]
 fn signing_refuses_unsigned_and_wrongly_signed_sets() {
     run_python(&["test_signing"], Duration::from_secs(30));
