@@ -509,7 +509,8 @@ impl Core {
         self.component_id
     }
 
-    /// Why no autopilot yet, in short, once that has been said (see [`waiting`]).
+    /// Why no autopilot yet, in short, while the link has been up for the wait (see
+    /// [`waiting`]).
     pub fn autopilot_missing(&self) -> Option<&'static str> {
         self.waiting.note()
     }
