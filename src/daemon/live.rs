@@ -62,9 +62,6 @@ pub const AREA_QUEUE_FRAMES: usize = 4;
 const AREA_FILES: [&str; 6] =
     ["landmarks.csv", "landmarks.ply", "area.geojson", "area.kml", "border.csv", "summary.json"];
 
-/// A new run id: the UTC time now (`yyyymmddThhmmssZ`), made unique among the runs of
-/// both pipelines under `results` (`-2`, `-3`, ... for starts within one second). The
-/// daemon takes one per start and per pipeline reset.
 /// Keeps `failing`, the writes that failed since the last that worked (a full disk), up
 /// to date with one more, `ok` or not. The first that works after failures returns
 /// `"{again}, after N failed {what}"`: without it the warnings were the last word in the
@@ -80,6 +77,9 @@ fn count_write(failing: &mut u64, ok: bool, again: &str, what: &str) -> Option<S
     }
 }
 
+/// A new run id: the UTC time now (`yyyymmddThhmmssZ`), made unique among the runs of
+/// both pipelines under `results` (`-2`, `-3`, ... for starts within one second). The
+/// daemon takes one per start and per pipeline reset.
 pub fn new_run(results: &Path) -> String {
     sets::new_run_id(std::time::SystemTime::now(), |id| {
         ["area", "indoor"].iter().any(|n| results.join(format!("{n}.runs")).join(id).exists())
