@@ -194,12 +194,18 @@ impl Drop for Conn {
     }
 }
 
-fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender<Wire>) -> Conn {
+/// `serial`: the stream is a serial device, whose end of file and I/O errors are the
+/// device going away, not a peer closing.
+fn start_conn(
+    id: u64,
+    what: String,
+    stream: Box<dyn Stream>,
+    serial: bool,
+    wire: mpsc::Sender<Wire>,
+) -> Conn {
     let (mut rd, mut wr) = tokio::io::split(stream);
     let (queue, mut rx) = mpsc::channel::<Arc<[u8]>>(PEER_QUEUE);
     let w = wire.clone();
-    // A serial device has no peer to close it: its end of file is the device going away.
-    let serial = what.starts_with("serial");
     let failed = move |e: &std::io::Error| if serial { serial_io_error(e) } else { e.to_string() };
     let ended = if serial { SERIAL_GONE } else { "closed by the peer" };
     let reader = tokio::spawn(async move {
@@ -238,8 +244,11 @@ fn start_conn(id: u64, what: String, stream: Box<dyn Stream>, wire: mpsc::Sender
     }
 }
 
-const GONE: &str =
+/// A serial device that is not there when it is opened.
+const NO_DEVICE: &str =
     "no such device (unplugged? a USB port is best named by its /dev/serial/by-id/ link, which follows it)";
+/// A serial device's end of file, or the errors of [`serial_io_error`].
+const SERIAL_GONE: &str = "the device went away (unplugged?)";
 
 /// How a serial device's read or write failed: EIO, ENODEV and ENXIO, as a USB adapter
 /// pulled out or a pseudo-terminal closed gives them, are the device going away.
@@ -249,9 +258,6 @@ fn serial_io_error(e: &std::io::Error) -> String {
         _ => e.to_string(),
     }
 }
-
-/// A serial device's end of file, or the errors of [`serial_io_error`].
-const SERIAL_GONE: &str = "the device went away (unplugged?)";
 
 /// A serial device that would not open, with what usually stands behind it: the bare errno
 /// text ("Permission denied", "Device or resource busy") leaves the user guessing, and the
@@ -266,8 +272,8 @@ fn serial_open_error(e: tokio_serial::Error) -> std::io::Error {
             "in use by another program (a second mavloc, mavlink-router or ModemManager?)"
         }
         // ENODEV and ENXIO come as "unknown", named only by their text.
-        K::NoDevice | K::Io(Io::NotFound) => GONE,
-        K::Unknown if e.description.starts_with("No such device") => GONE,
+        K::NoDevice | K::Io(Io::NotFound) => NO_DEVICE,
+        K::Unknown if e.description.starts_with("No such device") => NO_DEVICE,
         K::Io(Io::PermissionDenied) => {
             "permission denied (the user needs the dialout group, which the systemd service has; a serial login \
              console on the port, as Raspberry Pi OS can enable, keeps it for the tty group: turn the console off)"
@@ -424,7 +430,8 @@ impl Link {
         let mut conns: HashMap<u64, Conn> = HashMap::new();
         let mut next_id = 0u64;
         if let Some(s) = stream {
-            conns.insert(next_id, start_conn(next_id, what.clone(), s, wire_tx.clone()));
+            let serial = matches!(self.address, LinkAddress::Serial { .. });
+            conns.insert(next_id, start_conn(next_id, what.clone(), s, serial, wire_tx.clone()));
             next_id += 1;
         }
         let listening = matches!(endpoint, Endpoint::Listener(_) | Endpoint::Udp { fixed: None, .. });
@@ -477,7 +484,7 @@ impl Link {
                             continue;
                         }
                         client_lines.say(format!("tcp client {peer} connected"));
-                        conns.insert(next_id, start_conn(next_id, format!("tcp client {peer}"), Box::new(s), wire_tx.clone()));
+                        conns.insert(next_id, start_conn(next_id, format!("tcp client {peer}"), Box::new(s), false, wire_tx.clone()));
                         next_id += 1;
                     }
                     Err(e) => return End::Down(format!("{}: {e}", self.address)),
