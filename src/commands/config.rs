@@ -129,14 +129,21 @@ fn service_note(device: &str, m: &std::fs::Metadata) -> Option<String> {
     })
 }
 
-/// The name of group `gid` from `/etc/group` (where Debian's dialout and tty are).
+/// The name of group `gid`, from the system's group database (`getgrgid_r`, which follows
+/// NSS as `ls -l` does).
 fn group_name(gid: u32) -> Option<String> {
-    let groups = std::fs::read_to_string("/etc/group").ok()?;
-    groups.lines().find_map(|l| {
-        let mut f = l.split(':');
-        let name = f.next()?;
-        (f.nth(1)?.parse::<u32>().ok()? == gid).then(|| name.to_string())
-    })
+    let mut buf = vec![0 as libc::c_char; 16 * 1024];
+    // SAFETY: a zeroed `group` is valid to overwrite; `buf` outlives the call and the name
+    // is copied out of it before it is dropped.
+    unsafe {
+        let mut group: libc::group = std::mem::zeroed();
+        let mut found: *mut libc::group = std::ptr::null_mut();
+        let r = libc::getgrgid_r(gid, &mut group, buf.as_mut_ptr(), buf.len(), &mut found);
+        if r != 0 || found.is_null() {
+            return None;
+        }
+        Some(std::ffi::CStr::from_ptr(group.gr_name).to_string_lossy().into_owned())
+    }
 }
 
 /// Whether two paths name the same file (either may not exist).
