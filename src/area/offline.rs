@@ -34,7 +34,8 @@ use mavloc_data::results::border_csv;
 use mavloc_data::table::{fixed, Appender, Row};
 
 const CHECKPOINT_FRAMES: u64 = 100;
-/// Datasets this short (photo surveys) get the residual report without `--trace`.
+/// Datasets this short (photo surveys) get the residual report without `--trace`, as does
+/// any run that refines its attitudes.
 pub const RESIDUAL_MAX_FRAMES: usize = 100;
 /// The baseline keeps one border pixel in this many along each contour.
 const BASELINE_STEP_PX: usize = 8;
@@ -482,7 +483,10 @@ pub fn run_observed(
         AreaMethod::Ukf => "ukf",
         AreaMethod::GroundPlane => "ground-plane",
     };
-    let residuals = observe || opts.trace || ds.records.len() <= RESIDUAL_MAX_FRAMES;
+    // The refinement needs every sighting too: without them `area.attitude_prior_deg` on a
+    // video longer than RESIDUAL_MAX_FRAMES was ignored unless `--trace` was given.
+    let refine = s.area.attitude_prior_deg > 0.0;
+    let residuals = observe || opts.trace || refine || ds.records.len() <= RESIDUAL_MAX_FRAMES;
     let mut seen: Vec<(u64, u64, crate::geometry::Pixel)> = Vec::new();
     // The subset the landmark filters accepted (the cross-line measure triangulates each
     // landmark from what it was built of, not from matches its gate refused).

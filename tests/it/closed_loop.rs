@@ -47,13 +47,32 @@ fn log(state: &Path) -> String {
     std::fs::read_to_string(state.join("mavloc.log")).unwrap_or_default()
 }
 
+/// The gimbal handed to a ground station and back, over a short real-time flight: the
+/// protocol with the real binary and pymavlink's codec. Whether the landmarks converge is
+/// the full flight's test (below, `make check-long`) and twin.rs's in simulated time.
 #[test]
+fn coastline_flight_hands_the_gimbal_to_a_ground_station_and_takes_it_back() {
+    coastline_flight(20.0, (9.0, 13.0), false);
+}
+
+/// The full live flight: 40 s, long enough for landmarks to converge on a loaded machine,
+/// with the gimbal handed to a ground station and back late in it.
+#[test]
+#[ignore = "a 40 s real-time flight: make check-long"]
 fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore() {
+    coastline_flight(40.0, (27.0, 32.0), true);
+}
+
+/// The simulated vehicle's coastline flight of `seconds` with `mavloc run` aiming the gimbal
+/// at the border, a ground station holding the gimbal over `gcs` (from, to), in real time.
+/// With `converges`, the landmarks converge and the result set holds them.
+fn coastline_flight(seconds: f64, gcs: (f64, f64), converges: bool) {
     let dir = tempfile::tempdir().unwrap();
     let state = dir.path().join("state");
+    let (duration, from, to) = (seconds.to_string(), gcs.0.to_string(), gcs.1.to_string());
     let seen = closed_loop(
         "area",
-        45.0,
+        seconds + 5.0,
         &state,
         &[
             "--set",
@@ -69,24 +88,21 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
             "--vehicle",
             "--duration",
             "--vehicle",
-            "40",
+            &duration,
             "--gcs-takes-gimbal",
-            "27",
-            "32",
+            &from,
+            &to,
         ],
     );
     let text = log(&state);
     assert_eq!(seen["daemon_exit"], 0, "{text}");
-    assert!(seen["lmk"].as_u64().unwrap() > 0, "DEBUG_VECT LMK streamed: {seen}");
-    // The first landmarks converge about 20-25 s into this flight (a 25 s flight on a loaded
-    // machine ended with none), so the flight is 40 s.
-    assert!(seen["named"]["LMK_CONV"].as_f64().unwrap() > 0.0, "{seen}");
-    assert!(seen["named"]["FR_DONE"].as_f64().unwrap() > 120.0, "about 6 Hz for 40 s: {seen}");
+    let frames = seen["named"]["FR_DONE"].as_f64().unwrap();
+    assert!(frames > 3.0 * seconds, "about 6 Hz for {seconds} s: {seen}");
     let states = seen["daemon_heartbeat_states"].as_array().unwrap();
     assert!(states.iter().any(|s| s == 4), "MAV_STATE_ACTIVE while flying: {states:?}");
     // Gimbal-manager control taken at the start, pitch/yaw setpoints accepted by the
-    // vehicle. A ground station (QGroundControl's 255/190) takes the gimbal 27 s in and
-    // lets go at 32 s: mavloc stops pointing it once the manager's status names the
+    // vehicle. A ground station (QGroundControl's 255/190) takes the gimbal `gcs.0` s in
+    // and lets go at `gcs.1` s: mavloc stops pointing it once the manager's status names the
     // station (2 Hz), says so, and takes control again only when the station lets go. At
     // the end of the flight it lets go (-3) when the vehicle lands, if that came in time.
     let gcs = seen["gcs"].as_array().unwrap();
@@ -129,18 +145,25 @@ fn coastline_flight_with_mavloc_aiming_the_gimbal_converges_near_the_true_shore(
             && texts.contains("gimbal let go by a ground station"),
         "{texts}"
     );
-    assert!(texts.contains("landmarks converged") && texts.contains("camera up"), "{texts}");
-
-    // The result files, complete. How accurate the landmarks are depends here on how many
-    // frames a busy machine drops; twin.rs asserts this flight's accuracy bounds (>= 30
-    // landmarks, none over 20 m, mean under 3 m) in simulated time.
-    let path = state.join("results/area/landmarks.csv");
-    let landmarks = parse_landmarks_csv(&std::fs::read_to_string(&path).unwrap(), "landmarks.csv").unwrap();
-    assert!(!landmarks.is_empty(), "landmarks.csv holds the converged landmarks");
-    let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
-    let e = evaluate(&landmarks, &world.ground_truth, &[], 6.0);
-    println!("live coastline: {} landmarks, mean {:.2} m, max {:.2} m", e.landmarks, e.mean_m, e.max_m);
-    assert!(state.join("results/area/area.kml").exists());
+    assert!(texts.contains("camera up"), "{texts}");
+    if converges {
+        // The first landmarks converge about 20-25 s into this flight (a 25 s flight on a
+        // loaded machine ended with none).
+        assert!(seen["lmk"].as_u64().unwrap() > 0, "DEBUG_VECT LMK streamed: {seen}");
+        assert!(seen["named"]["LMK_CONV"].as_f64().unwrap() > 0.0, "{seen}");
+        assert!(texts.contains("landmarks converged"), "{texts}");
+        // The result files, complete. How accurate the landmarks are depends here on how
+        // many frames a busy machine drops; twin.rs asserts this flight's accuracy bounds
+        // (>= 30 landmarks, none over 20 m, mean under 3 m) in simulated time.
+        let path = state.join("results/area/landmarks.csv");
+        let landmarks =
+            parse_landmarks_csv(&std::fs::read_to_string(&path).unwrap(), "landmarks.csv").unwrap();
+        assert!(!landmarks.is_empty(), "landmarks.csv holds the converged landmarks");
+        let world = World::build(&Scenario::load("coastline").unwrap()).unwrap();
+        let e = evaluate(&landmarks, &world.ground_truth, &[], 6.0);
+        println!("live coastline: {} landmarks, mean {:.2} m, max {:.2} m", e.landmarks, e.mean_m, e.max_m);
+        assert!(state.join("results/area/area.kml").exists());
+    }
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(state.join("results/area/summary.json")).unwrap())
             .unwrap();

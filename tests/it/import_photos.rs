@@ -612,8 +612,10 @@ fn seneca_survey() -> Option<PathBuf> {
     dir.join("IMG_0558.jpg").exists().then_some(dir)
 }
 
-/// Two overlapping lines of the Seneca survey, the return leg (IMG_0558-0561) and the
-/// next line out (IMG_0569-0572), imported with defaults: the senseFly tags put the same
+/// Two overlapping lines of the Seneca survey, three photos of the return leg
+/// (IMG_0559-0561) and the three beside them on the next line out (IMG_0569-0571; the eight
+/// of IMG_0558-0561 and 0569-0572 gave the same figures, 40 landmark pairs 24.2 m apart
+/// tagged and 0.12 m aligned, for 10.6 s of CPU against 8.4), imported with defaults: the senseFly tags put the same
 /// ground tens of metres apart from the two lines (headings 10-20 deg off the track), and
 /// aligning the photos by their tie points (`area::align`) brings the two lines' own
 /// triangulations of the shared tie points within centimetres of each other.
@@ -626,13 +628,13 @@ fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
     let dir = tempfile::tempdir().unwrap();
     let photos = dir.path().join("photos");
     std::fs::create_dir_all(&photos).unwrap();
-    for n in ["0558", "0559", "0560", "0561", "0569", "0570", "0571", "0572"] {
+    for n in ["0559", "0560", "0561", "0569", "0570", "0571"] {
         let name = format!("IMG_{n}.jpg");
         std::fs::copy(images.join(&name), photos.join(&name)).unwrap();
     }
     let ds = dir.path().join("ds");
     let r = import_photos(&photos, &ds, &ImportOptions::default()).unwrap();
-    assert_eq!(r.imported.len(), 8);
+    assert_eq!(r.imported.len(), 6);
     // One run: the alignment, then the landmark filters with a segmenter for its bare
     // fields (bright, colourless in near infrared) and the matching guided by each
     // landmark's prediction (rows of a field look alike).
@@ -660,14 +662,14 @@ fn seneca_lines_agree_after_the_photos_are_aligned_by_their_tie_points() {
         serde_json::from_str(&std::fs::read_to_string(fields.join("summary.json")).unwrap()).unwrap();
     let f = |k: &str| s[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {s}"));
     assert_eq!(s["flight_lines"], 2, "{s}");
-    assert!(f("aligned_photos") >= 7.0 && f("tie_points") >= 500.0, "{s}");
+    assert!(f("aligned_photos") >= 5.0 && f("tie_points") >= 500.0, "{s}");
     assert!(f("align_median_before_px") > 50.0 && f("align_median_after_px") < 1.5, "{s}");
     assert!(f("cross_line_tie_pairs") >= 20.0, "{s}");
     let (tagged, aligned) = (f("cross_line_tie_median_m"), f("cross_line_tie_aligned_median_m"));
     assert!(tagged > 10.0 && aligned < 0.3, "lines {tagged:.2} m apart as tagged, {aligned:.2} m aligned");
     // Each photo's correction is in alignment.csv, with the tie points it rests on.
     let csv = std::fs::read_to_string(fields.join("alignment.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 9, "{csv}");
+    assert_eq!(csv.lines().count(), 7, "{csv}");
     assert!(csv.starts_with("frame,tie_sightings,correction_deg,"), "{csv}");
     // Landmarks seen from both lines: each line's own triangulation tens of metres from
     // the other's with the tags and within centimetres aligned. (Built from the matches
