@@ -56,15 +56,25 @@ demo: deps
 # so the second reuses the first's build.
 CLIPPY_DRIVER = $(shell rustup which clippy-driver 2>/dev/null || command -v clippy-driver)
 LINTED = RUSTC_WORKSPACE_WRAPPER=$(CLIPPY_DRIVER) CLIPPY_ARGS=-Dwarnings
-# Four test threads on two cores: the longest integration tests are live flights and
-# end-to-end exchanges that mostly wait on the wall clock, so they overlap with the
-# CPU-bound ones (the integration binary: 287 s one test at a time, 132 s on four
-# threads, session 24).
-TEST_THREADS ?= 4
+# Two test processes at once: `realtime::` (tests/it/realtime: live flights and the
+# daemon's links, which mostly wait on the wall clock) on REALTIME_THREADS threads, and
+# everything else on TEST_THREADS, so the waiting tests hold none of the computing ones'
+# threads (one process on four threads left two cores half idle while four waiting tests
+# ran side by side; docs/history-suite.md, session 42). Cargo builds nothing here (the
+# line before built it all), so the two runs do not wait for each other's lock. The
+# realtime run's output is kept and shown after the rest's.
+TEST_THREADS ?= 3
+REALTIME_THREADS ?= 4
+REALTIME_LOG := target/realtime-tests.log
 test: deps
 	$(CARGO) fmt --all -- --check
 	$(LINTED) $(CARGO) test --workspace --all-targets --no-run
-	$(LINTED) $(CARGO) test --workspace -- --test-threads $(TEST_THREADS)
+	@echo "make test: the realtime:: tests run beside the rest; their output follows (also in $(REALTIME_LOG))"; \
+	$(LINTED) $(CARGO) test --test it -- --test-threads $(REALTIME_THREADS) realtime:: > $(REALTIME_LOG) 2>&1 & rt=$$!; \
+	$(LINTED) $(CARGO) test --workspace -- --test-threads $(TEST_THREADS) --skip realtime::; rest=$$?; \
+	wait $$rt; realtime=$$?; cat $(REALTIME_LOG); \
+	if [ $$rest -ne 0 ] || [ $$realtime -ne 0 ]; then \
+	  echo "make test: failed (exit $$rest for the rest, $$realtime for realtime::)" >&2; exit 1; fi
 
 # Full-size runs: the demo's own test and the long end-to-end flights (ignored in
 # `make test`, which must stay fast), then the demo itself DEMO_RUNS times in a row (a

@@ -782,14 +782,18 @@ fn image_up(
     let pose = |r: &TelemetryRecord| r.measured.camera_pose(camera.chain, camera.gimbal_frame);
     let mut feats = Vec::with_capacity(records.len());
     // Checked per photo and per pair: decoding and matching full-size photos is most of an
-    // import's time.
+    // import's time, so each is decoded only as large as the check needs.
+    let flags = imageup::reduced_read(camera.width);
     for r in records.iter() {
         if stopped() {
             return Err(STOPPED.into());
         }
         let path = dir.join("frames").join(format!("{:06}.jpg", r.frame));
-        let img = crate::imaging::read_image(&path, opencv::imgcodecs::IMREAD_COLOR)?;
-        feats.push(imageup::features(&img).map_err(|e| format!("{}: {e}", path.display()))?);
+        let img = crate::imaging::read_image(&path, flags)?;
+        feats.push(
+            imageup::features_of_reduced(&img, camera.width)
+                .map_err(|e| format!("{}: {e}", path.display()))?,
+        );
     }
     let mut votes = Vec::new();
     for i in 1..records.len() {

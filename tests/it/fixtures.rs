@@ -102,11 +102,19 @@ fn trainer_stamp() -> &'static str {
 }
 
 /// Builds `key` with `make` (which writes into the folder it is given) unless it was built
-/// with the same `stamp`. Serialised: fixtures are CPU-bound and used read-only.
+/// with the same `stamp`. Serialised, within this process and with any other test process
+/// (`make test` runs two at once, the Makefile's `test`): fixtures are CPU-bound and used
+/// read-only.
 fn cached(key: &str, stamp: &str, make: impl FnOnce(&Path)) -> PathBuf {
+    use std::os::fd::AsRawFd;
     static LOCK: Mutex<()> = Mutex::new(());
     let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("fixtures");
+    std::fs::create_dir_all(&root).unwrap();
+    // Held until this function returns (closing the file releases it).
+    let lock = std::fs::File::create(root.join(".lock")).unwrap();
+    // SAFETY: flock(2) on a descriptor this function owns.
+    assert_eq!(unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX) }, 0, "flock the fixtures");
     let dir = root.join(key);
     let stamp_file = stamp_of(&dir);
     if dir.is_dir() && std::fs::read_to_string(&stamp_file).ok().as_deref() == Some(stamp) {
@@ -117,7 +125,6 @@ fn cached(key: &str, stamp: &str, make: impl FnOnce(&Path)) -> PathBuf {
     let _ = std::fs::remove_dir_all(&partial);
     let _ = std::fs::remove_dir_all(&dir);
     let _ = std::fs::remove_file(&stamp_file);
-    std::fs::create_dir_all(&root).unwrap();
     make(&partial);
     std::fs::rename(&partial, &dir).unwrap();
     std::fs::write(&stamp_file, stamp).unwrap();
@@ -210,6 +217,22 @@ pub fn low_indoor_flight(frames: usize) -> PathBuf {
 pub fn indoor_views() -> PathBuf {
     let opts = RenderOptions { views: Some(400), size: Some((320, 240)), ..Default::default() };
     rendered("indoor-floor-views-400-320x240", "indoor-floor", &opts)
+}
+
+/// The indoor floor's orthophoto, 4 m each way from its centre at 5 mm a pixel (1600x1600),
+/// as `floor.png`: rendered once per build of the tests.
+pub fn indoor_orthophoto() -> PathBuf {
+    let scenario = Scenario::load("indoor-floor").unwrap();
+    let stamp = format!("{}\n{scenario:?}\northophoto 4.0 m 0.005 m", renderer_stamp());
+    let dir = cached("indoor-floor-orthophoto-4m-5mm", &stamp, |out| {
+        std::fs::create_dir_all(out).unwrap();
+        let world = mavloc_sim::World::build(&scenario).unwrap();
+        let (w, h, rgb) = world.orthophoto(4.0, 0.005);
+        let png = out.join("floor.png");
+        mavloc_data::pngfile::write(&png, w as u32, h as u32, &rgb, mavloc_data::pngfile::Channels::Rgb)
+            .unwrap();
+    });
+    dir.join("floor.png")
 }
 
 /// The small indoor model the live indoor flights use, trained on [`indoor_views`] with

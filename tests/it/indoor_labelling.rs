@@ -4,24 +4,14 @@
 
 use mavloc::indoor::labelling::OrthoMap;
 use mavloc_data::Dataset;
-use mavloc_sim::{render_dataset, RenderOptions, Scenario, World};
 
+/// On the first 30 of the small model's 400 training views (`fixtures::indoor_views`,
+/// rendered from random poses over the floor), against the orthophoto.
 #[test]
 fn homography_labels_match_the_true_positions() {
-    let dir = tempfile::tempdir().unwrap();
-    let scenario = Scenario::load("indoor-floor").unwrap();
-    let views = dir.path().join("views");
-    let opts = RenderOptions { views: Some(30), size: Some((320, 240)), ..Default::default() };
-    render_dataset(&scenario, &opts, &views, |_, _| {}).unwrap();
-
-    let world = World::build(&scenario).unwrap();
-    let (w, h, rgb) = world.orthophoto(4.0, 0.005);
-    let map_path = dir.path().join("floor.png");
-    mavloc_data::pngfile::write(&map_path, w as u32, h as u32, &rgb, mavloc_data::pngfile::Channels::Rgb)
-        .unwrap();
-    let map = OrthoMap::load(&map_path, 0.005, None, 25).unwrap();
-
-    let ds = Dataset::open(&views).unwrap();
+    let map = OrthoMap::load(&crate::fixtures::indoor_orthophoto(), 0.005, None, 25).unwrap();
+    let mut ds = Dataset::open(&crate::fixtures::indoor_views()).unwrap();
+    ds.records.truncate(30);
     let mut errors = Vec::new();
     let mut rejected = 0;
     for r in &ds.records {

@@ -2,7 +2,9 @@
 //! import neither the simulator, tokio, MAVLink nor the daemon's link and core; only the
 //! sim-facing layer imports the simulator; settings, camera and link do not import the
 //! layers above them; the data crate depends on no heavy crate; and neither the
-//! simulator's modules nor the top-level modules of `mavloc` form a circle.
+//! simulator's modules nor the top-level modules of `mavloc` form a circle. Beside them:
+//! no test outside `tests/it/realtime` has `realtime::` in its name, which `make test`
+//! skips in its main test process.
 //!
 //! The check reads `use` paths and qualified names in code (comments are skipped), so a
 //! new import that breaks a rule fails here with the file and line that has it.
@@ -320,4 +322,54 @@ fn the_checks_see_violations() {
         ("c".to_string(), BTreeSet::from(["a".to_string()])),
     ]);
     assert_eq!(find_cycle(&g).unwrap(), ["a", "b", "c", "a"]);
+}
+
+/// Files and `mod` lines under `root` that would put `realtime::` into a test's name outside
+/// `tests/it/realtime` (whose declaration in `tests/it/main.rs` is the one allowed).
+fn realtime_elsewhere(root: &Path) -> Vec<String> {
+    let mut found = Vec::new();
+    for dir in ["src", "data", "sim", "tests", "benches", "examples"] {
+        let d = root.join(dir);
+        if !d.is_dir() {
+            continue;
+        }
+        for f in sources(&d) {
+            let rel = f.strip_prefix(root).unwrap();
+            if rel.starts_with("tests/it/realtime") || rel == Path::new("tests/it/main.rs") {
+                continue;
+            }
+            if rel.components().any(|c| c.as_os_str() == "realtime" || c.as_os_str() == "realtime.rs") {
+                found.push(rel.display().to_string());
+            }
+            for (n, line) in code_lines(&f) {
+                // A declaration: `mod realtime`, after any `pub` or `pub(...)`.
+                let mut rest = line.trim_start();
+                if let Some(r) = rest.strip_prefix("pub") {
+                    rest = r.trim_start();
+                    if rest.starts_with('(') {
+                        rest = rest.split_once(')').map_or("", |(_, r)| r).trim_start();
+                    }
+                }
+                let name = rest.strip_prefix("mod ").map(|r| r.trim_start());
+                if name.is_some_and(|r| r.starts_with("realtime") && !r[8..].starts_with(is_ident)) {
+                    found.push(format!("{}:{n}", rel.display()));
+                }
+            }
+        }
+    }
+    found
+}
+
+/// `make test` runs `tests/it/realtime` in a test process of its own and everything else
+/// with `--skip realtime::`, which leaves out every test whose name holds that text: a
+/// module of that name anywhere else would have its tests run by neither.
+#[test]
+fn no_other_test_path_holds_the_realtime_filter() {
+    assert_eq!(realtime_elsewhere(&root()), Vec::<String>::new());
+    // The check sees both kinds.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir_all(dir.path().join("src/daemon")).unwrap();
+    std::fs::write(dir.path().join("src/daemon/mod.rs"), "pub mod realtime;\n").unwrap();
+    std::fs::write(dir.path().join("src/daemon/realtime.rs"), "fn f() {}\n").unwrap();
+    assert_eq!(realtime_elsewhere(dir.path()), ["src/daemon/mod.rs:1", "src/daemon/realtime.rs"]);
 }

@@ -4,8 +4,11 @@
 //! * Pipelines on datasets: `area_pipeline`, `bearing_only`, `indoor_pipeline`,
 //!   `indoor_labelling`,
 //!   `sim_sift`, `mission_plans`, `import_photos`, `opencv_link`.
-//! * The real binary: `cli` (commands, configuration errors), `daemon_e2e` (the daemon
-//!   over UDP from pymavlink), `closed_loop` (live flights against the simulated vehicle).
+//! * The real binary: `cli` (commands, configuration errors); `realtime`, the tests that
+//!   mostly wait on the wall clock, which `make test` runs in a process of its own beside
+//!   the rest: `realtime::daemon_e2e` (the daemon over its links from pymavlink),
+//!   `realtime::closed_loop` (live flights against the simulated vehicle),
+//!   `realtime::systemd`.
 //! * `twin`: the closed loop (vehicle, core, sim camera, live pipeline) in simulated time.
 //! * Architecture: `layers` (which module may import which).
 //!
@@ -14,8 +17,6 @@
 mod area_pipeline;
 mod bearing_only;
 mod cli;
-mod closed_loop;
-mod daemon_e2e;
 mod fixtures;
 mod import_photos;
 mod indoor_labelling;
@@ -25,6 +26,6 @@ mod layers;
 mod mission_plans;
 mod opencv_link;
 mod px4_replay;
+mod realtime;
 mod sim_sift;
-mod systemd;
 mod twin;
