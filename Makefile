@@ -62,7 +62,11 @@ LINTED = RUSTC_WORKSPACE_WRAPPER=$(CLIPPY_DRIVER) CLIPPY_ARGS=-Dwarnings
 # threads (one process on four threads left two cores half idle while four waiting tests
 # ran side by side; docs/history-suite.md, session 42). Cargo builds nothing here (the
 # line before built it all), so the two runs do not wait for each other's lock. The
-# realtime run's output is kept and shown after the rest's.
+# realtime run's output is kept and shown after the rest's. It runs in a process group of
+# its own (setsid), which the trap stops when `make test` is interrupted: a background job
+# of a script ignores SIGINT, so Ctrl-C alone would leave it running. (The e2e scripts it
+# started, each in a session of its own, end with their daemons within their own time
+# bound: nothing was left 30 s after an interrupt.)
 TEST_THREADS ?= 3
 REALTIME_THREADS ?= 4
 REALTIME_LOG := target/realtime-tests.log
@@ -70,7 +74,8 @@ test: deps
 	$(CARGO) fmt --all -- --check
 	$(LINTED) $(CARGO) test --workspace --all-targets --no-run
 	@echo "make test: the realtime:: tests run beside the rest; their output follows (also in $(REALTIME_LOG))"; \
-	$(LINTED) $(CARGO) test --test it -- --test-threads $(REALTIME_THREADS) realtime:: > $(REALTIME_LOG) 2>&1 & rt=$$!; \
+	$(LINTED) setsid -w $(CARGO) test --test it -- --test-threads $(REALTIME_THREADS) realtime:: > $(REALTIME_LOG) 2>&1 & rt=$$!; \
+	trap 'kill -TERM -$$rt 2>/dev/null; echo "make test: stopped" >&2; exit 130' INT TERM; \
 	$(LINTED) $(CARGO) test --workspace -- --test-threads $(TEST_THREADS) --skip realtime::; rest=$$?; \
 	wait $$rt; realtime=$$?; cat $(REALTIME_LOG); \
 	if [ $$rest -ne 0 ] || [ $$realtime -ne 0 ]; then \
