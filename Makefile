@@ -62,24 +62,28 @@ LINTED = RUSTC_WORKSPACE_WRAPPER=$(CLIPPY_DRIVER) CLIPPY_ARGS=-Dwarnings
 # threads (one process on four threads left two cores half idle while four waiting tests
 # ran side by side; docs/history-suite.md, session 42). Cargo builds nothing here (the
 # line before built it all), so the two runs do not wait for each other's lock. The
-# realtime run's output is kept and shown after the rest's. It runs in a process group of
-# its own (setsid), which the trap stops when `make test` is interrupted: a background job
-# of a script ignores SIGINT, so Ctrl-C alone would leave it running. (The e2e scripts it
-# started, each in a session of its own, end with their daemons within their own time
-# bound: nothing was left 30 s after an interrupt.)
+# rest's output streams; the realtime run's is kept and shown after it. Each runs in a
+# process group of its own (setsid) while the shell waits for both: an interrupted
+# `make test` (Ctrl-C, a TERM or a closed terminal) stops both groups and exits with
+# 128 + the signal. (The e2e scripts each run in a session of their own and end with
+# their daemons within their own time bound: nothing was left 30 s after an interrupt.)
 TEST_THREADS ?= 3
 REALTIME_THREADS ?= 4
-REALTIME_LOG := target/realtime-tests.log
+REALTIME_LOG := $(or $(CARGO_TARGET_DIR),target)/realtime-tests.log
 test: deps
 	$(CARGO) fmt --all -- --check
 	$(LINTED) $(CARGO) test --workspace --all-targets --no-run
 	@echo "make test: the realtime:: tests run beside the rest; their output follows (also in $(REALTIME_LOG))"; \
+	rt=; rest=; \
+	stop() { for g in $$rt $$rest; do kill -TERM -$$g 2>/dev/null; done; echo "make test: stopped" >&2; exit $$1; }; \
+	trap 'stop 130' INT; trap 'stop 143' TERM; trap 'stop 129' HUP; \
+	mkdir -p "$$(dirname $(REALTIME_LOG))"; \
 	$(LINTED) setsid -w $(CARGO) test --test it -- --test-threads $(REALTIME_THREADS) realtime:: > $(REALTIME_LOG) 2>&1 & rt=$$!; \
-	trap 'kill -TERM -$$rt 2>/dev/null; echo "make test: stopped" >&2; exit 130' INT TERM; \
-	$(LINTED) $(CARGO) test --workspace -- --test-threads $(TEST_THREADS) --skip realtime::; rest=$$?; \
+	$(LINTED) setsid -w $(CARGO) test --workspace -- --test-threads $(TEST_THREADS) --skip realtime:: & rest=$$!; \
+	wait $$rest; rest_status=$$?; \
 	wait $$rt; realtime=$$?; cat $(REALTIME_LOG); \
-	if [ $$rest -ne 0 ] || [ $$realtime -ne 0 ]; then \
-	  echo "make test: failed (exit $$rest for the rest, $$realtime for realtime::)" >&2; exit 1; fi
+	if [ $$rest_status -ne 0 ] || [ $$realtime -ne 0 ]; then \
+	  echo "make test: failed (exit $$rest_status for the rest, $$realtime for realtime::)" >&2; exit 1; fi
 
 # Full-size runs: the demo's own test and the long end-to-end flights (ignored in
 # `make test`, which must stay fast), then the demo itself DEMO_RUNS times in a row (a

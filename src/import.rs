@@ -783,17 +783,24 @@ fn image_up(
     let mut feats = Vec::with_capacity(records.len());
     // Checked per photo and per pair: decoding and matching full-size photos is most of an
     // import's time, so each is decoded only as large as the check needs.
-    let flags = imageup::reduced_read(camera.width);
+    let (flags, factor) = imageup::reduced_read(camera.width);
     for r in records.iter() {
         if stopped() {
             return Err(STOPPED.into());
         }
         let path = dir.join("frames").join(format!("{:06}.jpg", r.frame));
+        let err = |e: opencv::Error| format!("{}: {e}", path.display());
         let img = crate::imaging::read_image(&path, flags)?;
-        feats.push(
-            imageup::features_of_reduced(&img, camera.width)
-                .map_err(|e| format!("{}: {e}", path.display()))?,
-        );
+        let reduced =
+            imageup::features_of_reduced(&img, (camera.width, camera.height), factor).map_err(err)?;
+        let f = match reduced {
+            Some(f) => f,
+            None => {
+                let img = crate::imaging::read_image(&path, opencv::imgcodecs::IMREAD_COLOR)?;
+                imageup::features(&img).map_err(err)?
+            }
+        };
+        feats.push(f);
     }
     let mut votes = Vec::new();
     for i in 1..records.len() {

@@ -38,28 +38,39 @@ pub fn features(bgr: &Mat) -> opencv::Result<PhotoFeatures> {
 
 /// The `imread` flags for JPEG's scaled decoding (1/2, 1/4 or 1/8 of each side, done in
 /// its DCT) that still give at least the features' width from a photo `full_width` pixels
-/// wide: a 12 MP photo decoded at a quarter is several times quicker to read than decoded
-/// whole and resized (the README, "Which way up").
-pub fn reduced_read(full_width: u32) -> i32 {
+/// wide, and that factor: a 12 MP photo decoded at a quarter is several times quicker to
+/// read than decoded whole and resized (the README, "Which way up").
+pub fn reduced_read(full_width: u32) -> (i32, u32) {
     use opencv::imgcodecs::{
         IMREAD_COLOR, IMREAD_REDUCED_COLOR_2, IMREAD_REDUCED_COLOR_4, IMREAD_REDUCED_COLOR_8,
     };
     [(IMREAD_REDUCED_COLOR_8, 8), (IMREAD_REDUCED_COLOR_4, 4), (IMREAD_REDUCED_COLOR_2, 2)]
         .into_iter()
         .find(|&(_, f)| full_width as f64 / f as f64 >= WORK_WIDTH)
-        .map_or(IMREAD_COLOR, |(flags, _)| flags)
+        .unwrap_or((IMREAD_COLOR, 1))
 }
 
-/// [`features`] of a photo `full_width` pixels wide decoded smaller ([`reduced_read`]),
-/// its pixels in the photo's full resolution: a decoded pixel `i` is the mean of the
-/// photo's pixels `f i .. f (i + 1)`, so its centre is `(i + 0.5) f - 0.5`.
-pub fn features_of_reduced(bgr: &Mat, full_width: u32) -> opencv::Result<PhotoFeatures> {
+/// [`features`] of a photo of `full` (width, height) pixels decoded at `1 / factor` of
+/// each side ([`reduced_read`]), its pixels in the photo's full resolution: libjpeg makes
+/// the decoded image `ceil(full / factor)` wide and high, its pixel `i` the mean of the
+/// photo's pixels `factor i .. factor (i + 1)`, so its centre is `(i + 0.5) factor - 0.5`.
+/// `None` when the decoded image is not that size (an EXIF orientation turned it, or it is
+/// no JPEG): read it whole then.
+pub fn features_of_reduced(
+    bgr: &Mat,
+    full: (u32, u32),
+    factor: u32,
+) -> opencv::Result<Option<PhotoFeatures>> {
+    let expected = (full.0.div_ceil(factor) as i32, full.1.div_ceil(factor) as i32);
+    if (bgr.cols(), bgr.rows()) != expected {
+        return Ok(None);
+    }
     let mut f = features(bgr)?;
-    let s = full_width as f64 / bgr.cols() as f64;
+    let s = factor as f64;
     for p in &mut f.pixels {
         *p = Pixel::new((p.u + 0.5) * s - 0.5, (p.v + 0.5) * s - 0.5);
     }
-    Ok(f)
+    Ok(Some(f))
 }
 
 /// [`features`] with `count` keypoints on a copy `width` pixels wide (never enlarged).
@@ -252,20 +263,30 @@ mod tests {
         CameraPose::from_gimbal(Vec3::new(north, 0.0, -60.0), GimbalChain::YawPitchRoll, angles, Mount::Earth)
     }
 
-    /// A photo decoded at a quarter (4000 px wide: 1000, the first scale at least the
-    /// features' 900 px) gives its keypoints where the whole photo's are: the same ground
-    /// matched in both lies within a pixel of the full photo (a factor or half-pixel slip
-    /// in the mapping back would put them metres apart on the ground).
+    /// A photo decoded at a quarter (just under 4000 px wide: 1000, the first scale at least
+    /// the features' 900 px) gives its keypoints where the whole photo's are: the same
+    /// ground matched in both lies within a pixel of the full photo. The photo is 3997 px
+    /// wide, so its quarter is 1000 px, not 3997 / 4: a scale taken from the sizes, or a
+    /// half-pixel slip, puts them 1.5-3 px apart. A decode of another size (a turned photo)
+    /// is declined.
     #[test]
     fn features_of_a_reduced_decode_are_in_the_photos_full_pixels() {
         let path =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/dji-sample/DJI_0030.JPG");
-        assert_eq!(reduced_read(4000), opencv::imgcodecs::IMREAD_REDUCED_COLOR_4);
-        assert_eq!(reduced_read(1600), opencv::imgcodecs::IMREAD_COLOR);
-        let whole = crate::imaging::read_image(&path, opencv::imgcodecs::IMREAD_COLOR).unwrap();
-        let small = crate::imaging::read_image(&path, reduced_read(4000)).unwrap();
-        assert_eq!((small.cols(), small.rows()), (1000, 563));
-        let (a, b) = (features(&whole).unwrap(), features_of_reduced(&small, 4000).unwrap());
+        assert_eq!(reduced_read(4000), (opencv::imgcodecs::IMREAD_REDUCED_COLOR_4, 4));
+        assert_eq!(reduced_read(1600), (opencv::imgcodecs::IMREAD_COLOR, 1));
+        let photo = crate::imaging::read_image(&path, opencv::imgcodecs::IMREAD_COLOR).unwrap();
+        let whole = Mat::roi(&photo, core::Rect::new(0, 0, 3997, 2250)).unwrap().try_clone().unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let cut = dir.path().join("cut.jpg");
+        let quality = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 95]);
+        assert!(opencv::imgcodecs::imwrite(cut.to_str().unwrap(), &whole, &quality).unwrap());
+        let whole = crate::imaging::read_image(&cut, opencv::imgcodecs::IMREAD_COLOR).unwrap();
+        let (flags, factor) = reduced_read(3997);
+        let small = crate::imaging::read_image(&cut, flags).unwrap();
+        assert_eq!((small.cols(), small.rows(), factor), (1000, 563, 4));
+        let a = features(&whole).unwrap();
+        let b = features_of_reduced(&small, (3997, 2250), factor).unwrap().expect("the expected size");
         let pairs = matched(&a, &b).unwrap();
         assert!(pairs.len() > 300, "{} matches", pairs.len());
         let mut d: Vec<f64> = pairs
@@ -276,6 +297,8 @@ mod tests {
         let median = d[d.len() / 2];
         println!("{} matches, {median:.2} px apart (median) at full resolution", pairs.len());
         assert!(median < 1.0, "matched keypoints {median:.2} px apart at full resolution");
+        // Turned by EXIF, the decode is high where it should be wide.
+        assert!(features_of_reduced(&small, (2250, 3997), factor).unwrap().is_none());
     }
 
     /// Ground points seen from two nadir photos 30 m apart agree as tagged, and a photo

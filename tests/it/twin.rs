@@ -217,6 +217,29 @@ fn coastline_flight_aiming_the_gimbal_converges_near_the_true_shore_in_simulated
     let pointing = flight.core.gimbal_error_median_deg().expect("gimbal reports compared");
     println!("gimbal pointing error, median: {pointing:.2} deg");
     assert!(pointing < 2.0, "median pointing error {pointing:.2} deg");
+    // The landmarks streamed as they converged (what the real-time flight's relay counts,
+    // `make check-long`): one DEBUG_VECT `LMK` each, the `LMK_CONV` counter, and the
+    // ground station told.
+    let name =
+        |n: &mavlink::types::CharArray<10>| n.to_str().unwrap_or("").trim_end_matches('\0').to_string();
+    let streamed = flight
+        .sent
+        .iter()
+        .filter(|(_, m)| matches!(m, MavMessage::DEBUG_VECT(d) if name(&d.name) == "LMK"))
+        .count();
+    let converged = flight
+        .sent
+        .iter()
+        .filter_map(|(_, m)| match m {
+            MavMessage::NAMED_VALUE_FLOAT(v) if name(&v.name) == "LMK_CONV" => Some(v.value),
+            _ => None,
+        })
+        .fold(0.0f32, f32::max);
+    let told = flight.sent.iter().any(|(_, m)| {
+        matches!(m, MavMessage::STATUSTEXT(t) if t.text.to_str().unwrap_or("").contains("landmarks converged"))
+    });
+    println!("streamed {streamed} LMK, LMK_CONV up to {converged}, told: {told}");
+    assert!(streamed > 0 && converged > 0.0 && told, "LMK {streamed}, LMK_CONV {converged}, told {told}");
     // Accuracy: the live test's bounds, on every frame of the flight.
     let files = flight.frames.len();
     println!(
