@@ -781,7 +781,7 @@ pub fn run_observed(
                 summary.cross_line_tagged_median_m = cross(&tagged, &results).1;
             }
         }
-        if s.area.attitude_prior_deg > 0.0 && !results.is_empty() {
+        if refine && !results.is_empty() {
             // Attitude refinement (area::refine): landmarks, per-frame attitude
             // corrections and the gimbal's static offset together, from every sighting of
             // the converged landmarks.
