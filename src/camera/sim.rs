@@ -269,8 +269,16 @@ mod tests {
     use std::time::{Duration, Instant};
 
     /// A pose that arrives a little after the frame is due (telemetry late on a busy
-    /// machine) is waited for, not skipped to the next frame: the frame comes within half
-    /// a period of its tick, from that pose.
+    /// machine) is waited for, not skipped to the next frame: the frame is taken for the
+    /// tick it was due at, from that pose.
+    ///
+    /// The verdict is the camera's tick, not a stopwatch: a frame taken for its own tick
+    /// leaves the schedule one period on; a skipped period leaves it two on. The premise,
+    /// a pose *a little* late, depends on the feeder thread being scheduled on time, which
+    /// a loaded machine does not promise (CI saw it fail here with a two-core machine
+    /// running two test processes): a round whose pose came later than a third of a period
+    /// after its tick (or whose frame came past one and a half) proves nothing either way
+    /// and is repeated, up to eight rounds.
     #[test]
     fn a_frame_waits_for_a_pose_a_little_late_instead_of_skipping_a_period() {
         let mut s = Settings::default();
@@ -279,6 +287,7 @@ mod tests {
         s.camera.height = 54;
         // A period within the pose age limit (0.5 s), long enough for a loaded machine.
         s.camera.fps = 3.0;
+        let period = 1.0 / 3.0;
         s.camera.sim_noise = false;
         let ctx = SourceContext {
             started: Instant::now(),
@@ -298,20 +307,38 @@ mod tests {
         *latest.lock().unwrap() = Some((cam.ctx.now(), pose));
         let first = cam.next().unwrap().expect("a frame from the first pose");
         assert_eq!(first.index, 0);
-        // The second frame is due a period after the first; its pose comes 0.05 s late.
-        let due = cam.tick;
-        let feeder = std::thread::spawn(move || {
-            let at = started + Duration::from_secs_f64(due + 0.05);
-            std::thread::sleep(at.saturating_duration_since(Instant::now()));
-            let t = started.elapsed().as_secs_f64();
-            *latest.lock().unwrap() = Some((t, pose));
-            t
-        });
-        let second = cam.next().unwrap().expect("a second frame");
-        let at = started.elapsed().as_secs_f64() - due;
-        let fed = feeder.join().unwrap();
-        assert_eq!(second.capture_s, fed, "rendered from the late pose");
-        assert!(at < 0.5 / 3.0, "the late pose's frame came {at:.3} s after its tick: a period was skipped");
+        let mut late = Vec::new();
+        for _round in 0..8 {
+            // The next frame is due at the camera's tick; its pose is sent 0.05 s late.
+            let due = cam.tick;
+            let latest = latest.clone();
+            let feeder = std::thread::spawn(move || {
+                let at = started + Duration::from_secs_f64(due + 0.05);
+                std::thread::sleep(at.saturating_duration_since(Instant::now()));
+                let t = started.elapsed().as_secs_f64();
+                *latest.lock().unwrap() = Some((t, pose));
+                // When the pose was in place for the camera to see.
+                (t, started.elapsed().as_secs_f64())
+            });
+            let frame = cam.next().unwrap().expect("a frame");
+            let at = started.elapsed().as_secs_f64() - due;
+            let (fed, in_place) = feeder.join().unwrap();
+            // The feeder scheduled late is not the case under test; nor is the camera's
+            // thread woken so late (past two periods) that its schedule starts again.
+            if in_place - due > period / 3.0 || at > 1.5 * period {
+                late.push(in_place - due);
+                continue;
+            }
+            assert_eq!(frame.capture_s, fed, "rendered from the late pose");
+            let periods_on = (cam.tick - due) / period;
+            assert!(
+                (periods_on - 1.0).abs() < 1e-6,
+                "the pose came {:.3} s after its tick and the camera moved {periods_on:.2} periods on: a period was skipped",
+                fed - due
+            );
+            return;
+        }
+        panic!("in 8 rounds the feeder thread never sent its pose within a third of a period of the tick, or the camera woke past one and a half ({late:.3?} s late): the machine was too loaded to test this");
     }
 
     /// Positions quantised as PX4 sends them (1.1 cm north, 0.7 cm east) and a velocity
