@@ -514,7 +514,9 @@ mod tests {
                 Ok(Event::Pipeline(PipelineEvent::Note(n))) => notes.push(n),
                 Ok(e) => panic!("{e:?}"),
                 Err(_) => {
-                    assert!(t0.elapsed() < 4 * POLL_PERIOD, "{notes:?}");
+                    // Two polls take a second; the bound only ends a test whose worker
+                    // never polls, with room for a loaded machine.
+                    assert!(t0.elapsed() < 20 * POLL_PERIOD, "no poll without frames: {notes:?}");
                     std::thread::sleep(std::time::Duration::from_millis(10));
                 }
             }
