@@ -227,13 +227,15 @@ impl GpsDenied {
     }
 
     /// The next message, if due; `present`: the autopilot is there to hear it;
-    /// `attitude`: its latest (roll, pitch, yaw), echoed as the pipeline's estimates echo it.
+    /// `attitude`: its latest (roll, pitch, yaw), echoed as the pipeline's estimates echo it;
+    /// `stamp`: `now` on the autopilot's clock (us), the messages' `time_usec`.
     pub fn poll_transmit(
         &mut self,
         now: Mono,
         present: bool,
         target: u8,
         attitude: Option<(f64, f64, f64)>,
+        stamp: u64,
     ) -> Option<MavMessage> {
         let origin = self.origin?;
         if !present {
@@ -243,7 +245,7 @@ impl GpsDenied {
             OriginState::Waiting if self.vision_since.is_some_and(|t| t + ORIGIN_AFTER <= now) => {
                 self.state = OriginState::Sent { tries: 1, next: now + ORIGIN_RETRY };
                 self.notices.push(Notice::OriginSent(origin));
-                return Some(set_origin(&origin, target, now));
+                return Some(set_origin(&origin, target, stamp));
             }
             OriginState::Sent { tries, next } if next <= now && tries >= ORIGIN_TRIES => {
                 self.state = OriginState::GaveUp;
@@ -251,7 +253,7 @@ impl GpsDenied {
             }
             OriginState::Sent { tries, next } if next <= now => {
                 self.state = OriginState::Sent { tries: tries + 1, next: now + ORIGIN_RETRY };
-                return Some(set_origin(&origin, target, now));
+                return Some(set_origin(&origin, target, stamp));
             }
             _ => {}
         }
@@ -284,7 +286,7 @@ impl GpsDenied {
             // The attitude is echoed, not measured: EKF2 turns the vision frame by how far the
             // attitude sent is from its own (ev_control.cpp), so a level one would tilt it.
             let attitude = attitude.unwrap_or((0.0, 0.0, 0.0));
-            return Some(odometry(Some(&e), &v, now.0, attitude, self.floor.map(|f| f.1)));
+            return Some(odometry(Some(&e), &v, stamp, attitude, self.floor.map(|f| f.1)));
         }
         None
     }
@@ -293,13 +295,13 @@ impl GpsDenied {
 // The message MAVLink now marks superseded by MAV_CMD_DO_SET_GLOBAL_ORIGIN: PX4 v1.16
 // handles the message and not the command.
 #[allow(deprecated)]
-fn set_origin(o: &Geodetic, target: u8, now: Mono) -> MavMessage {
+fn set_origin(o: &Geodetic, target: u8, stamp: u64) -> MavMessage {
     MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA {
         latitude: (o.lat_deg * 1e7).round() as i32,
         longitude: (o.lon_deg * 1e7).round() as i32,
         altitude: (o.alt_m * 1e3).round() as i32,
         target_system: target,
-        time_usec: now.0,
+        time_usec: stamp,
     })
 }
 

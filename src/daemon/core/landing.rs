@@ -122,11 +122,12 @@ impl Landing {
         }
     }
 
-    pub fn poll_transmit(&mut self, now: Mono, target: u8) -> Option<MavMessage> {
+    /// `stamp`: `now` on the autopilot's clock (us), the landing target's `time_usec`.
+    pub fn poll_transmit(&mut self, now: Mono, target: u8, stamp: u64) -> Option<MavMessage> {
         if let (true, Some(p)) = (self.streaming && self.next_target <= now, self.target) {
             self.next_target = now + TARGET_PERIOD;
             return Some(MavMessage::LANDING_TARGET(LANDING_TARGET_DATA {
-                time_usec: now.0,
+                time_usec: stamp,
                 frame: MavFrame::MAV_FRAME_LOCAL_NED,
                 x: p[0] as f32,
                 y: p[1] as f32,
@@ -196,15 +197,15 @@ mod tests {
         let mut l = Landing::default();
         assert!(l.request(Mono::from_millis(1000), None));
         assert!(!l.request(Mono::from_millis(1000), None), "one landing at a time");
-        assert!(l.poll_transmit(Mono::from_millis(1000), 1).is_some());
-        assert!(l.poll_transmit(Mono::from_millis(1500), 1).is_none());
+        assert!(l.poll_transmit(Mono::from_millis(1000), 1, 0).is_some());
+        assert!(l.poll_transmit(Mono::from_millis(1500), 1, 0).is_none());
         assert_eq!(l.deadline(), Some(Mono::from_millis(2000)));
-        assert!(l.poll_transmit(Mono::from_millis(2000), 1).is_some());
+        assert!(l.poll_transmit(Mono::from_millis(2000), 1, 0).is_some());
         assert_eq!(
             l.on_ack(Mono::from_millis(2100), MavCmd::MAV_CMD_NAV_LAND, MavResult::MAV_RESULT_ACCEPTED),
             Some(LandingNotice::Accepted)
         );
-        assert!(l.poll_transmit(Mono::from_millis(9000), 1).is_none());
+        assert!(l.poll_transmit(Mono::from_millis(9000), 1, 0).is_none());
         assert_eq!(l.deadline(), None);
     }
 
@@ -218,7 +219,7 @@ mod tests {
         while let Some(d) = l.deadline() {
             now = d;
             notice = l.on_timeout(now).or(notice);
-            sent += l.poll_transmit(now, 1).is_some() as u32;
+            sent += l.poll_transmit(now, 1, 0).is_some() as u32;
         }
         assert_eq!(sent, TRIES);
         assert_eq!(notice, Some(LandingNotice::GaveUp(TRIES)));
@@ -233,7 +234,7 @@ mod tests {
         let mut commands = Vec::new();
         let mut now = Mono::ZERO;
         while now <= Mono::from_millis(1000) {
-            while let Some(m) = l.poll_transmit(now, 1) {
+            while let Some(m) = l.poll_transmit(now, 1, 0) {
                 match m {
                     MavMessage::LANDING_TARGET(t) => {
                         assert_eq!((t.x, t.y, t.position_valid), (2.5, 1.0, MavBool::MAV_BOOL_TRUE));
@@ -254,7 +255,7 @@ mod tests {
             Some(LandingNotice::PlainInstead(MavResult::MAV_RESULT_UNSUPPORTED))
         );
         assert!(!l.streaming());
-        let Some(MavMessage::COMMAND_LONG(c)) = l.poll_transmit(now, 1) else { panic!() };
+        let Some(MavMessage::COMMAND_LONG(c)) = l.poll_transmit(now, 1, 0) else { panic!() };
         assert_eq!(c.command, MavCmd::MAV_CMD_NAV_LAND);
         assert_eq!(
             l.on_ack(now, MavCmd::MAV_CMD_NAV_LAND, MavResult::MAV_RESULT_ACCEPTED),
@@ -266,13 +267,16 @@ mod tests {
     fn the_target_streams_after_the_accept_until_the_vehicle_is_down() {
         let mut l = Landing::default();
         l.request(Mono::ZERO, Some([0.0, 0.0, 0.0]));
-        assert!(matches!(l.poll_transmit(Mono::ZERO, 1), Some(MavMessage::LANDING_TARGET(_))));
-        assert!(matches!(l.poll_transmit(Mono::ZERO, 1), Some(MavMessage::COMMAND_LONG(_))));
+        assert!(matches!(l.poll_transmit(Mono::ZERO, 1, 0), Some(MavMessage::LANDING_TARGET(_))));
+        assert!(matches!(l.poll_transmit(Mono::ZERO, 1, 0), Some(MavMessage::COMMAND_LONG(_))));
         l.on_ack(Mono::ZERO, MavCmd::MAV_CMD_NAV_LAND_LOCAL, MavResult::MAV_RESULT_ACCEPTED);
-        assert!(matches!(l.poll_transmit(Mono::from_millis(5000), 1), Some(MavMessage::LANDING_TARGET(_))));
+        assert!(matches!(
+            l.poll_transmit(Mono::from_millis(5000), 1, 0),
+            Some(MavMessage::LANDING_TARGET(_))
+        ));
         assert!(!l.request(Mono::from_millis(5000), None), "one landing at a time");
         l.landed();
-        assert_eq!(l.poll_transmit(Mono::from_millis(9000), 1), None);
+        assert_eq!(l.poll_transmit(Mono::from_millis(9000), 1, 0), None);
         assert_eq!(l.deadline(), None);
     }
 }

@@ -527,6 +527,21 @@ impl Core {
         &self.telemetry.aligner
     }
 
+    /// Local time `local` (s) on the autopilot's clock as mavloc tracks it, in
+    /// microseconds: the stamp of what the autopilot fuses (vision estimates, the landing
+    /// target) and of the answers to its TIMESYNC requests. PX4 maps such stamps onto its
+    /// clock with a filtered offset (Timesync.cpp: exponential smoothing with a slow
+    /// skew term); stamped on mavloc's own clock, that offset drifts with the two clocks'
+    /// rates, and against PX4 v1.16 SIH, whose lockstep clock ran 1.2-2.5 % slower than
+    /// the wall clock, the filter lagged the observed offset by 40-78 ms in flight: EKF2
+    /// took each vision estimate for one made that much later. On the autopilot's clock
+    /// the offset PX4 observes stays near zero whatever the rates, and mavloc's clock
+    /// model (`align::ClockSync`) follows the rate. Before any telemetry, mavloc's own.
+    fn autopilot_usec(&self, local: f64) -> u64 {
+        let t = self.telemetry.aligner.clock.to_autopilot(local).unwrap_or(local);
+        (t.max(0.0) * 1e6) as u64
+    }
+
     /// `gimbal.aim = "border"`: the median angle between mavloc's setpoints and the
     /// gimbal's reports over the last minute (degrees).
     pub fn gimbal_error_median_deg(&self) -> Option<f64> {
@@ -763,7 +778,8 @@ impl Core {
             .or_else(|| {
                 let present = self.autopilot.present();
                 let attitude = self.telemetry.attitude();
-                let m = self.gps.poll_transmit(now, present, target, attitude);
+                let stamp = self.autopilot_usec(now.secs());
+                let m = self.gps.poll_transmit(now, present, target, attitude, stamp);
                 if m.as_ref().is_some_and(|m| matches!(m, MavMessage::ODOMETRY(_))) {
                     self.counters.standing_estimates_sent += 1;
                 }
@@ -772,7 +788,10 @@ impl Core {
             })
             .or_else(|| self.streams.poll_transmit(now, target))
             .or_else(|| self.timesync.poll_transmit(now, target))
-            .or_else(|| self.landing.poll_transmit(now, target))
+            .or_else(|| {
+                let stamp = self.autopilot_usec(now.secs());
+                self.landing.poll_transmit(now, target, stamp)
+            })
             .or_else(|| {
                 let aim = self.gimbal_aim();
                 self.gimbal.poll_transmit(now, target, (self.system_id, self.component_id), aim)
@@ -1030,7 +1049,8 @@ impl Core {
                 }
             }
             MavMessage::TIMESYNC(t) if self.is_autopilot_system(&f) => {
-                let (reply, sample) = self.timesync.on_timesync(rx, t, from);
+                let now_autopilot = self.telemetry.aligner.clock.to_autopilot(rx.secs());
+                let (reply, sample) = self.timesync.on_timesync(rx, t, from, now_autopilot);
                 if let Some(r) = reply {
                     self.counters.timesync_answered += 1;
                     self.reply(r);
@@ -1615,8 +1635,8 @@ impl Core {
     }
 
     /// Publishes what the pipeline found on one frame captured at local time `capture`
-    /// (seconds on mavloc's monotonic clock, the clock its TIMESYNC replies carry, so PX4
-    /// can map the stamps onto its own).
+    /// (seconds on mavloc's monotonic clock), stamped on the autopilot's clock
+    /// ([`Core::autopilot_usec`]), the clock mavloc's TIMESYNC answers carry.
     ///
     /// The indoor estimate goes out as ODOMETRY when the camera measured the velocity too
     /// (position in the local NED frame, velocity in body axes; PX4's EKF2 fuses the
@@ -1632,7 +1652,7 @@ impl Core {
         } else {
             self.counters.frames_skipped += 1;
         }
-        let usec = (capture.max(0.0) * 1e6) as u64;
+        let usec = self.autopilot_usec(capture);
         for p in &report.new_landmarks {
             self.result(MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {
                 time_usec: usec,

@@ -1477,3 +1477,61 @@ fn no_autopilot_after_the_wait_is_said_once_with_the_systems_heard() {
     assert!(sim.core.autopilot_found());
     assert!(!sim.statustexts().iter().any(|t| t.contains("no autopilot")), "{:?}", sim.statustexts());
 }
+
+/// PX4 maps the stamps of what mavloc sends onto its own clock with an offset it filters
+/// from TIMESYNC (Timesync.cpp). Against PX4 v1.16 SIH, whose lockstep clock ran 1.2-2.5 %
+/// slower than the wall clock, that offset drifted by 1.6 s in 95 s and the filter lagged
+/// it by 40-78 ms in flight: EKF2 took each vision estimate for one made that much later.
+/// mavloc answers the autopilot's TIMESYNC requests and stamps its estimates on the
+/// autopilot's clock as it tracks it, so with a clock 2 % slow the offset PX4 observes
+/// stays at zero for minutes, and each estimate's stamp is the autopilot's time when it
+/// left; a request that comes before mavloc knows that clock is not answered.
+#[test]
+fn timesync_answers_and_vision_stamps_are_on_an_autopilot_clock_that_runs_slow() {
+    let mut sim = Sim::new(gps_denied_settings());
+    px4_without_gps(&mut sim);
+    sim.ap.clock_rate = 0.98;
+    let request = |ts1: i64| {
+        frame(
+            1,
+            1,
+            MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1, target_system: 1, target_component: 191 }),
+        )
+    };
+    let answer = |sim: &Sim, from: Mono, ts1: i64| {
+        sim.sent.iter().filter(|(at, _)| *at >= from).find_map(|(at, m)| match m {
+            MavMessage::TIMESYNC(r) if r.tc1 != 0 && r.ts1 == ts1 => Some((*at, r.tc1)),
+            _ => None,
+        })
+    };
+    // Before anything from the autopilot has told mavloc its clock: no answer.
+    sim.deliver(request(1));
+    sim.run_for(Duration::from_millis(1));
+    assert_eq!(answer(&sim, Mono::ZERO, 1), None, "answered before the clock was known");
+    let (mut offsets_ms, mut stamp_errors_ms) = (Vec::new(), Vec::new());
+    for t in (20..=180).step_by(20) {
+        sim.run_until(secs(t));
+        let (from, ts1) = (sim.now, sim.ap.boot_us(sim.now) as i64 * 1000);
+        sim.deliver(request(ts1));
+        sim.run_for(Duration::from_millis(100));
+        let (at, tc1) = answer(&sim, from, ts1).expect("the request answered");
+        // As PX4 computes it, the answer coming back a link latency after it left.
+        let back = sim.ap.boot_us(at + sim.latency) as i64 * 1000;
+        offsets_ms.push(((ts1 + back) / 2 - tc1) as f64 * 1e-6);
+        let (left, usec) = sim
+            .sent
+            .iter()
+            .filter(|(at, _)| *at >= from)
+            .find_map(|(at, m)| match m {
+                MavMessage::ODOMETRY(o) => Some((*at, o.time_usec)),
+                _ => None,
+            })
+            .expect("standing estimates go out");
+        stamp_errors_ms.push((usec as f64 - sim.ap.boot_us(left) as f64) * 1e-3);
+    }
+    assert!(offsets_ms.iter().all(|o| o.abs() < 1.0), "the offset PX4 observes, ms: {offsets_ms:?}");
+    assert!(
+        stamp_errors_ms.iter().all(|e| e.abs() < 1.0),
+        "stamps against the autopilot's clock, ms: {stamp_errors_ms:?}"
+    );
+}

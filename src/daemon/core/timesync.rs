@@ -1,4 +1,4 @@
-//! TIMESYNC with the autopilot: mavloc asks once a second (at most 8 requests
+//! TIMESYNC with the autopilot: mavloc asks ten times a second (at most 8 requests
 //! remembered) to learn the offset between its clock and the autopilot's, and answers the
 //! autopilot's own requests so PX4 can map mavloc's timestamps onto its clock (without
 //! that, PX4 stamps vision estimates on arrival).
@@ -9,7 +9,10 @@ use mavlink::dialects::common::{MavMessage, TIMESYNC_DATA};
 
 use super::time::Mono;
 
-const PERIOD: Duration = Duration::from_secs(1);
+/// As often as PX4 asks (its Timesync runs at 10 Hz): the clock model fits a line through
+/// the last few seconds of answers (`align::ClockSync`), and PX4 SITL's lockstep clock
+/// changes its rate with the machine's load from one second to the next.
+const PERIOD: Duration = Duration::from_millis(100);
 const IN_FLIGHT: usize = 8;
 
 /// A round trip: when the request left, when the answer arrived (both mavloc's clock,
@@ -61,21 +64,26 @@ impl TimeSync {
     }
 
     /// A TIMESYNC from the autopilot received at `rx`: either its request (answered with
-    /// our time) or its answer to one of ours (a clock sample).
+    /// `now_autopilot`, the arrival on the autopilot's clock as mavloc tracks it, in
+    /// seconds: the clock mavloc stamps what it sends the autopilot in; unanswered while
+    /// mavloc does not know that clock yet) or its answer to one of ours (a clock sample).
     pub fn on_timesync(
         &mut self,
         rx: Mono,
         t: &TIMESYNC_DATA,
         from: (u8, u8),
+        now_autopilot: Option<f64>,
     ) -> (Option<MavMessage>, Option<Sample>) {
         if t.tc1 == 0 {
-            let reply = MavMessage::TIMESYNC(TIMESYNC_DATA {
-                tc1: rx.0 as i64 * 1000,
-                ts1: t.ts1,
-                target_system: from.0,
-                target_component: from.1,
+            let reply = now_autopilot.map(|a| {
+                MavMessage::TIMESYNC(TIMESYNC_DATA {
+                    tc1: (a.max(0.0) * 1e9) as i64,
+                    ts1: t.ts1,
+                    target_system: from.0,
+                    target_component: from.1,
+                })
             });
-            return (Some(reply), None);
+            return (reply, None);
         }
         match self.sent.iter().position(|&(ts1, _)| ts1 == t.ts1) {
             Some(i) => {
@@ -92,26 +100,25 @@ mod tests {
     use super::*;
 
     #[test]
-    fn once_a_second_and_the_answer_gives_a_sample_taken_at_arrival() {
+    fn ten_times_a_second_and_the_answer_gives_a_sample_taken_at_arrival() {
         let mut t = TimeSync::default();
         assert!(t.poll_transmit(Mono::ZERO, 1).is_none());
         t.start(Mono::from_millis(100));
         let Some(MavMessage::TIMESYNC(req)) = t.poll_transmit(Mono::from_millis(100), 1) else { panic!() };
-        assert!(t.poll_transmit(Mono::from_millis(600), 1).is_none());
-        assert_eq!(t.deadline(), Some(Mono::from_millis(1100)));
+        assert!(t.poll_transmit(Mono::from_millis(160), 1).is_none());
+        assert_eq!(t.deadline(), Some(Mono::from_millis(200)));
         let answer = TIMESYNC_DATA { tc1: 5_000_000_000, ts1: req.ts1, ..Default::default() };
-        let (reply, sample) = t.on_timesync(Mono::from_millis(140), &answer, (1, 1));
+        let (reply, sample) = t.on_timesync(Mono::from_millis(140), &answer, (1, 1), Some(5.02));
         assert!(reply.is_none());
         assert_eq!(sample, Some(Sample { sent: 0.1, received: 0.14, remote: 5.0 }));
         assert_eq!(t.in_flight(), 0);
-        // The autopilot's own request is answered with the arrival time.
-        let (reply, _) = t.on_timesync(
-            Mono::from_millis(2000),
-            &TIMESYNC_DATA { tc1: 0, ts1: 42, ..Default::default() },
-            (1, 1),
-        );
+        // The autopilot's own request is answered with the arrival on the autopilot's
+        // clock, and not at all while that clock is unknown.
+        let request = TIMESYNC_DATA { tc1: 0, ts1: 42, ..Default::default() };
+        let (reply, _) = t.on_timesync(Mono::from_millis(2000), &request, (1, 1), Some(6.9));
         let Some(MavMessage::TIMESYNC(r)) = reply else { panic!() };
-        assert_eq!((r.tc1, r.ts1), (2_000_000_000, 42));
+        assert_eq!((r.tc1, r.ts1), (6_900_000_000, 42));
+        assert_eq!(t.on_timesync(Mono::from_millis(2000), &request, (1, 1), None), (None, None));
     }
 
     #[test]
@@ -119,7 +126,7 @@ mod tests {
         let mut t = TimeSync::default();
         t.start(Mono::ZERO);
         for s in 0..100 {
-            t.poll_transmit(Mono::from_millis(s * 1000), 1);
+            t.poll_transmit(Mono::from_millis(s * 100), 1);
         }
         assert_eq!(t.in_flight(), IN_FLIGHT);
     }
