@@ -188,7 +188,7 @@ impl ClockSync {
     /// followed. (The samples are few: no solver crate.)
     fn timesync_line(&self) -> Option<(f64, f64, f64)> {
         let newest = self.syncs.back()?.0;
-        let (t0, o0, stt, sto, sw) = weighted_line(self.syncs.iter());
+        let (_, _, stt, sto, sw) = weighted_line(self.syncs.iter());
         // A rate needs samples spread in time (a weighted spread of about a second).
         let rate = if stt > 0.5 * sw { (sto / stt).clamp(-MAX_RATE, MAX_RATE) } else { 0.0 };
         // Under a part per million a fitted rate is rounding noise (3 us over the window):
@@ -197,9 +197,7 @@ impl ClockSync {
         let rate = if rate.abs() < MIN_RATE { 0.0 } else { rate };
         let recent = self.syncs.iter().filter(|s| s.0 >= newest - TIMESYNC_LEVEL_S);
         let (t1, o1, ..) = weighted_line(recent);
-        // With no rate both levels are the same weighted mean of nearly the same samples;
-        // the whole window's keeps the exact answers of constant offsets.
-        Some(if rate == 0.0 { (t0, o0, rate) } else { (t1, o1, rate) })
+        Some((t1, o1, rate))
     }
 
     /// Local minus autopilot time now (at the newest sample), and where it came from.

@@ -1484,8 +1484,9 @@ fn no_autopilot_after_the_wait_is_said_once_with_the_systems_heard() {
 /// it by 40-78 ms in flight: EKF2 took each vision estimate for one made that much later.
 /// mavloc answers the autopilot's TIMESYNC requests and stamps its estimates on the
 /// autopilot's clock as it tracks it, so with a clock 2 % slow the offset PX4 observes
-/// stays at zero for minutes, and each estimate's stamp is the autopilot's time when it
-/// left; a request that comes before mavloc knows that clock is not answered.
+/// stays within the link's asymmetry of zero for minutes (hundreds of milliseconds off
+/// before), and each estimate's stamp is the autopilot's time when it left; a request
+/// that comes before mavloc knows that clock is not answered.
 #[test]
 fn timesync_answers_and_vision_stamps_are_on_an_autopilot_clock_that_runs_slow() {
     let mut sim = Sim::new(gps_denied_settings());
@@ -1506,7 +1507,8 @@ fn timesync_answers_and_vision_stamps_are_on_an_autopilot_clock_that_runs_slow()
     };
     // Before anything from the autopilot has told mavloc its clock: no answer.
     sim.deliver(request(1));
-    sim.run_for(Duration::from_millis(1));
+    sim.run_for(sim.latency + Duration::from_millis(1));
+    assert!(sim.core.aligner().clock.to_autopilot(sim.now.secs()).is_none());
     assert_eq!(answer(&sim, Mono::ZERO, 1), None, "answered before the clock was known");
     let (mut offsets_ms, mut stamp_errors_ms) = (Vec::new(), Vec::new());
     for t in (20..=180).step_by(20) {
@@ -1529,9 +1531,13 @@ fn timesync_answers_and_vision_stamps_are_on_an_autopilot_clock_that_runs_slow()
             .expect("standing estimates go out");
         stamp_errors_ms.push((usec as f64 - sim.ap.boot_us(left) as f64) * 1e-3);
     }
-    assert!(offsets_ms.iter().all(|o| o.abs() < 1.0), "the offset PX4 observes, ms: {offsets_ms:?}");
+    // The fake autopilot answers mavloc's requests the moment they arrive and its answer
+    // takes the link's latency back, 2 ms, all of the round trip on one leg: mavloc's
+    // clock is off by half of it, 1 ms, which PX4 sees in both measures.
+    assert_eq!(answer(&sim, Mono::ZERO, 1), None, "the early request was answered later");
+    assert!(offsets_ms.iter().all(|o| o.abs() < 1.5), "the offset PX4 observes, ms: {offsets_ms:?}");
     assert!(
-        stamp_errors_ms.iter().all(|e| e.abs() < 1.0),
+        stamp_errors_ms.iter().all(|e| e.abs() < 1.5),
         "stamps against the autopilot's clock, ms: {stamp_errors_ms:?}"
     );
 }

@@ -13,7 +13,11 @@ use super::time::Mono;
 /// the last few seconds of answers (`align::ClockSync`), and PX4 SITL's lockstep clock
 /// changes its rate with the machine's load from one second to the next.
 const PERIOD: Duration = Duration::from_millis(100);
-const IN_FLIGHT: usize = 8;
+/// A second of requests: the clock model takes round trips of up to a second.
+const IN_FLIGHT: usize = 10;
+/// How far before the request's own stamp mavloc's idea of the autopilot's clock may put
+/// its arrival and still answer: the clock model's error (milliseconds, tens in SITL).
+const ANSWER_EARLY_S: f64 = 0.1;
 
 /// A round trip: when the request left, when the answer arrived (both mavloc's clock,
 /// seconds), and the autopilot's clock in between (seconds).
@@ -65,8 +69,12 @@ impl TimeSync {
 
     /// A TIMESYNC from the autopilot received at `rx`: either its request (answered with
     /// `now_autopilot`, the arrival on the autopilot's clock as mavloc tracks it, in
-    /// seconds: the clock mavloc stamps what it sends the autopilot in; unanswered while
-    /// mavloc does not know that clock yet) or its answer to one of ours (a clock sample).
+    /// seconds: the clock mavloc stamps what it sends the autopilot in) or its answer to
+    /// one of ours (a clock sample). A request is not answered while mavloc does not know
+    /// that clock, nor when the arrival it knows is not just after the request's own
+    /// stamp (its `ts1`, the autopilot's clock when it asked): an autopilot that has just
+    /// rebooted asks at 10 Hz from its boot, before mavloc believes the reboot (a few
+    /// stamps over half a second), and PX4 takes its first answer as the offset outright.
     pub fn on_timesync(
         &mut self,
         rx: Mono,
@@ -75,14 +83,18 @@ impl TimeSync {
         now_autopilot: Option<f64>,
     ) -> (Option<MavMessage>, Option<Sample>) {
         if t.tc1 == 0 {
-            let reply = now_autopilot.map(|a| {
-                MavMessage::TIMESYNC(TIMESYNC_DATA {
-                    tc1: (a.max(0.0) * 1e9) as i64,
-                    ts1: t.ts1,
-                    target_system: from.0,
-                    target_component: from.1,
-                })
-            });
+            let asked = t.ts1 as f64 * 1e-9;
+            // An answer of 0 would read as a request.
+            let reply = now_autopilot
+                .filter(|&a| a > 0.0 && (-ANSWER_EARLY_S..=1.0).contains(&(a - asked)))
+                .map(|a| {
+                    MavMessage::TIMESYNC(TIMESYNC_DATA {
+                        tc1: (a * 1e9) as i64,
+                        ts1: t.ts1,
+                        target_system: from.0,
+                        target_component: from.1,
+                    })
+                });
             return (reply, None);
         }
         match self.sent.iter().position(|&(ts1, _)| ts1 == t.ts1) {
@@ -112,13 +124,33 @@ mod tests {
         assert!(reply.is_none());
         assert_eq!(sample, Some(Sample { sent: 0.1, received: 0.14, remote: 5.0 }));
         assert_eq!(t.in_flight(), 0);
-        // The autopilot's own request is answered with the arrival on the autopilot's
-        // clock, and not at all while that clock is unknown.
-        let request = TIMESYNC_DATA { tc1: 0, ts1: 42, ..Default::default() };
+        // The autopilot's own request, stamped 6.895 s on its clock, is answered with the
+        // arrival on that clock, and not at all while that clock is unknown.
+        let request = TIMESYNC_DATA { tc1: 0, ts1: 6_895_000_000, ..Default::default() };
         let (reply, _) = t.on_timesync(Mono::from_millis(2000), &request, (1, 1), Some(6.9));
         let Some(MavMessage::TIMESYNC(r)) = reply else { panic!() };
-        assert_eq!((r.tc1, r.ts1), (6_900_000_000, 42));
+        assert_eq!((r.tc1, r.ts1), (6_900_000_000, 6_895_000_000));
         assert_eq!(t.on_timesync(Mono::from_millis(2000), &request, (1, 1), None), (None, None));
+    }
+
+    /// Just rebooted, an autopilot asks at 10 Hz from its boot while mavloc still maps
+    /// arrivals onto the old boot's clock (it believes a reboot after a few stamps over
+    /// half a second): an answer from that clock would be PX4's first offset, taken
+    /// outright. Only an arrival just after the request's own stamp is answered, and
+    /// never with 0, which would read as a request.
+    #[test]
+    fn a_request_from_another_clock_than_the_one_tracked_is_not_answered() {
+        let mut t = TimeSync::default();
+        let asked_at = |s: f64| TIMESYNC_DATA { tc1: 0, ts1: (s * 1e9) as i64, ..Default::default() };
+        let rx = Mono::from_millis(500_000);
+        // 0.3 s after the reboot, the old boot's clock says 412 s.
+        assert_eq!(t.on_timesync(rx, &asked_at(0.3), (1, 1), Some(412.0)), (None, None));
+        // An arrival 0.2 s before it was asked, and one at 0.
+        assert_eq!(t.on_timesync(rx, &asked_at(412.0), (1, 1), Some(411.8)), (None, None));
+        assert_eq!(t.on_timesync(rx, &asked_at(0.0), (1, 1), Some(0.0)), (None, None));
+        // Within the clock model's error either way, answered.
+        assert!(t.on_timesync(rx, &asked_at(412.0), (1, 1), Some(411.95)).0.is_some());
+        assert!(t.on_timesync(rx, &asked_at(412.0), (1, 1), Some(412.3)).0.is_some());
     }
 
     #[test]
