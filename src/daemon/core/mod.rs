@@ -529,7 +529,8 @@ impl Core {
 
     /// Local time `local` (s) on the autopilot's clock as mavloc tracks it, in
     /// microseconds: the stamp of what the autopilot fuses (vision estimates, the landing
-    /// target) and of the answers to its TIMESYNC requests. PX4 maps such stamps onto its
+    /// target), on the clock the answers to its TIMESYNC requests carry (the same
+    /// `to_autopilot`, in nanoseconds, in `TimeSync::on_timesync`). PX4 maps such stamps onto its
     /// clock with a filtered offset (Timesync.cpp: exponential smoothing with a slow
     /// skew term); stamped on mavloc's own clock, that offset drifts with the two clocks'
     /// rates, and against PX4 v1.16 SIH, whose lockstep clock ran 1.2-2.5 % slower than

@@ -1,4 +1,4 @@
-//! TIMESYNC with the autopilot: mavloc asks ten times a second (at most 8 requests
+//! TIMESYNC with the autopilot: mavloc asks ten times a second (at most 10 requests
 //! remembered) to learn the offset between its clock and the autopilot's, and answers the
 //! autopilot's own requests so PX4 can map mavloc's timestamps onto its clock (without
 //! that, PX4 stamps vision estimates on arrival).
