@@ -206,8 +206,8 @@ fn start_conn(
     let (mut rd, mut wr) = tokio::io::split(stream);
     let (queue, mut rx) = mpsc::channel::<Arc<[u8]>>(PEER_QUEUE);
     let w = wire.clone();
-    let failed = move |e: &std::io::Error| if serial { serial_io_error(e) } else { e.to_string() };
-    let ended = if serial { SERIAL_GONE } else { "closed by the peer" };
+    let failed = move |e: &std::io::Error| if serial { serial_io_error(e) } else { stream_io_error(e) };
+    let ended = if serial { SERIAL_GONE } else { PEER_CLOSED };
     let reader = tokio::spawn(async move {
         let mut buf = vec![0u8; 16384];
         let reason = loop {
@@ -241,6 +241,21 @@ fn start_conn(
         vouched: None,
         opened: Instant::now(),
         tasks: [reader, writer],
+    }
+}
+
+/// A network peer's end of file, or the errors of [`stream_io_error`].
+const PEER_CLOSED: &str = "closed by the peer";
+
+/// How a network stream's read or write failed. A peer that closes with mavloc's bytes
+/// still unread in its socket (a router killed or restarted: it has never read the last
+/// ones) makes the kernel send a reset instead of an end of file, so mavloc sees
+/// ECONNRESET or EPIPE, not a read of 0: both are the peer closing, said as such.
+fn stream_io_error(e: &std::io::Error) -> String {
+    use std::io::ErrorKind::*;
+    match e.kind() {
+        ConnectionReset | ConnectionAborted | BrokenPipe => format!("{PEER_CLOSED} ({e})"),
+        _ => e.to_string(),
     }
 }
 
@@ -718,6 +733,17 @@ mod tests {
         let other = std::io::Error::from_raw_os_error(libc::EAGAIN);
         assert_eq!(super::serial_io_error(&other), other.to_string());
         assert_eq!(said(ErrorKind::InvalidInput, "bad baud rate"), "bad baud rate");
+    }
+
+    #[test]
+    fn a_network_peer_that_resets_the_connection_is_said_to_have_closed_it() {
+        for errno in [libc::ECONNRESET, libc::EPIPE, libc::ECONNABORTED] {
+            let e = std::io::Error::from_raw_os_error(errno);
+            let said = super::stream_io_error(&e);
+            assert!(said.starts_with(super::PEER_CLOSED) && said.contains(&e.to_string()), "{said}");
+        }
+        let other = std::io::Error::from_raw_os_error(libc::ETIMEDOUT);
+        assert_eq!(super::stream_io_error(&other), other.to_string());
     }
 
     fn trust(signing: bool) -> Trust {

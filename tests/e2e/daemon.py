@@ -897,8 +897,9 @@ def test_serial_link_is_raw_both_ways_and_survives_an_unplug():
 def test_tcpout_reconnects_to_a_router_that_restarts():
     """`tcpout` to a TCP server, as mavlink-router's (port 5760) or ArduPilot SITL's: nothing
     listening at first is said (with what to check) and retried; once it listens, the
-    autopilot behind it is found; the server restarting (the connection closed, the port
-    closed, then open again) is said and the link taken again, mavloc running throughout."""
+    autopilot behind it is found; the server restarting (the connection reset, the port
+    closed, then open again) is said and the link taken again, mavloc running throughout;
+    a connection ended cleanly is said the same way."""
     s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
@@ -928,16 +929,25 @@ def test_tcpout_reconnects_to_a_router_that_restarts():
             assert time.time() < deadline, "the autopilot behind the router was not found"
             peer.mav.heartbeat_send(mav2.MAV_TYPE_QUADROTOR, mav2.MAV_AUTOPILOT_PX4, 0, 0, mav2.MAV_STATE_STANDBY)
             time.sleep(0.3)
-        # The router restarts.
+        # The router is killed with mavloc's last bytes unread: the kernel resets the
+        # connection instead of ending it, and mavloc reads an error, not an end of file.
+        import select
+        assert select.select([conn], [], [], 3)[0], "mavloc sent nothing to the autopilot"
         conn.close()
         deadline = time.time() + 5
-        while "closed by the peer" not in d.logtext():
-            assert time.time() < deadline, "the closed connection was not noticed"
+        while "closed by the peer (Connection reset" not in d.logtext():
+            assert time.time() < deadline, "the reset connection was not said to be closed by the peer: " + d.logtext()[-1500:]
             time.sleep(0.2)
         assert d.proc.poll() is None, "mavloc must keep running while the router is away"
         conn = serve()
         StreamPeer(conn.fileno()).hello()
         assert "link up again: connected to tcp" in d.logtext()
+        # Then it stops cleanly: an end of file.
+        conn.shutdown(socket.SHUT_WR)
+        deadline = time.time() + 5
+        while "closed by the peer;" not in d.logtext():
+            assert time.time() < deadline, "the ended connection was not noticed: " + d.logtext()[-1500:]
+            time.sleep(0.2)
         conn.close()
     finally:
         code = d.stop()
