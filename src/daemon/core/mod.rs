@@ -537,7 +537,10 @@ impl Core {
     /// the wall clock, the filter lagged the observed offset by 40-78 ms in flight: EKF2
     /// took each vision estimate for one made that much later. On the autopilot's clock
     /// the offset PX4 observes stays near zero whatever the rates, and mavloc's clock
-    /// model (`align::ClockSync`) follows the rate. Before any telemetry, mavloc's own.
+    /// model (`align::ClockSync`) follows the rate. Before any telemetry, mavloc's own:
+    /// harmless with PX4, which takes a companion's stamps only once its TIMESYNC filter
+    /// has converged (`Timesync::sync_stamp`; until then it stamps on arrival), and mavloc
+    /// answers its requests only once it knows the autopilot's clock.
     fn autopilot_usec(&self, local: f64) -> u64 {
         let t = self.telemetry.aligner.clock.to_autopilot(local).unwrap_or(local);
         (t.max(0.0) * 1e6) as u64
