@@ -930,12 +930,13 @@ def test_tcpout_reconnects_to_a_router_that_restarts():
             peer.mav.heartbeat_send(mav2.MAV_TYPE_QUADROTOR, mav2.MAV_AUTOPILOT_PX4, 0, 0, mav2.MAV_STATE_STANDBY)
             time.sleep(0.3)
         # The router is killed with mavloc's last bytes unread: the kernel resets the
-        # connection instead of ending it, and mavloc reads an error, not an end of file.
+        # connection instead of ending it, and mavloc's reader or writer meets an error
+        # (ECONNRESET or EPIPE, whichever runs first), not an end of file.
         import select
         assert select.select([conn], [], [], 3)[0], "mavloc sent nothing to the autopilot"
         conn.close()
         deadline = time.time() + 5
-        while "closed by the peer (Connection reset" not in d.logtext():
+        while "closed by the peer (" not in d.logtext():
             assert time.time() < deadline, "the reset connection was not said to be closed by the peer: " + d.logtext()[-1500:]
             time.sleep(0.2)
         assert d.proc.poll() is None, "mavloc must keep running while the router is away"
