@@ -221,6 +221,8 @@ def fly_coastline(m, max_s, events, aim):
 
 # PX4 custom modes (main mode << 16): OFFBOARD.
 PX4_OFFBOARD = 6
+# PX4's AUTO (4) sub-modes LAND (6) and PRECLAND (9): what mavloc's landing asks for.
+PX4_LANDING_MODES = {(4, 6), (4, 9)}
 
 
 def wait_prearm(m, timeout, events, t0):
@@ -317,27 +319,38 @@ def fly_indoor(m, zone, max_s, events, t0, status_path):
     dx, dy = zone[0] - x, zone[1] - y
     dist = (dx * dx + dy * dy) ** 0.5
     fly_start = time.time()
-    offboard = True
+    # PX4 acknowledges the switch before its heartbeats show it: a heartbeat of the mode
+    # before (AUTO.LOITER) can come after the ACK. Taken for PX4 leaving offboard, it once
+    # stopped the setpoints, and PX4's offboard-loss failsafe landed the vehicle by the
+    # pad. So leaving counts only once a heartbeat has shown offboard.
+    offboard, offboard_seen = True, False
     landing_seen = None
     while time.time() - fly_start < max_s:
         f = min(1.0, 0.5 * (time.time() - fly_start) / max(dist, 1e-6))
         if offboard:
             setpoint(x + f * dx, y + f * dy)
-        hb = m.recv_match(type="HEARTBEAT", blocking=False)
-        if hb is not None and hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1:
-            main_mode = (hb.custom_mode >> 16) & 0xff
-            if offboard and main_mode != PX4_OFFBOARD:
+        if not offboard_seen and time.time() - fly_start > 5:
+            raise RuntimeError("PX4 acknowledged OFFBOARD but its heartbeats never showed it within 5 s")
+        # Every message waiting, so that no heartbeat or warning is skipped.
+        while (msg := m.recv_match(blocking=False)) is not None:
+            kind = msg.get_type()
+            if kind == "STATUSTEXT" and msg.severity <= mavutil.mavlink.MAV_SEVERITY_WARNING:
+                events.append(f"STATUSTEXT {msg.get_srcSystem()}/{msg.get_srcComponent()}: {msg.text}")
+            if kind != "HEARTBEAT" or msg.get_srcSystem() != 1 or msg.get_srcComponent() != 1:
+                continue
+            main_mode = (msg.custom_mode >> 16) & 0xff
+            sub = (msg.custom_mode >> 24) & 0xff
+            if main_mode == PX4_OFFBOARD:
+                offboard_seen = True
+            elif offboard and offboard_seen:
                 offboard = False
                 landing_seen = time.time()
-                sub = (hb.custom_mode >> 24) & 0xff
+                whose = "mavloc's landing" if (main_mode, sub) in PX4_LANDING_MODES else "not a landing mode"
                 events.append(f"PX4 left offboard for mode {main_mode}.{sub} {time.time() - fly_start:.1f} s "
-                              f"after setting off (mavloc's landing)")
-            if not hb.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
+                              f"after setting off ({whose})")
+            if not msg.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED:
                 events.append(f"disarmed {time.time() - fly_start:.1f} s after setting off")
                 return
-        st = m.recv_match(type="STATUSTEXT", blocking=False)
-        if st is not None:
-            events.append(f"STATUSTEXT {st.get_srcSystem()}/{st.get_srcComponent()}: {st.text}")
         time.sleep(0.05)
     raise RuntimeError("not disarmed within --max-s" + ("" if landing_seen else " (mavloc never took over)"))
 
