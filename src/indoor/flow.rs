@@ -56,7 +56,7 @@ const SHIFT_SD_PX: f64 = 0.3;
 /// 0.02 m/s RMS off on x and 0.03-0.05 on y at about 1 m, under the 0.059-0.070 m/s this
 /// claims. Kept above what was measured on purpose: claiming the measured 0.15 deg (0.042
 /// m/s), with `EKF2_EVV_NOISE` 0.03 to let it count, EKF2's velocity came out closer to the
-/// truth (0.047 m/s RMS against 0.055) but PX4's precision landings touched down farther
+/// truth (0.046 m/s RMS against 0.057) but PX4's precision landings touched down farther
 /// from the zone, 0.210 m on average over 13 cold starts (two misses) against 0.134 m over
 /// 14 with this (README, "Against PX4 SITL", session 44).
 const ATTITUDE_CHANGE_SD_RAD: f64 = 0.25 * std::f64::consts::PI / 180.0;

@@ -9,9 +9,9 @@ use mavlink::dialects::common::{MavMessage, TIMESYNC_DATA};
 
 use super::time::Mono;
 
-/// As often as PX4 asks (its Timesync runs at 10 Hz): the clock model fits a line through
-/// the last few seconds of answers (`align::ClockSync`), and PX4 SITL's lockstep clock
-/// changes its rate with the machine's load from one second to the next.
+/// As often as PX4 asks (its Timesync runs at 10 Hz): the clock model takes its level from
+/// the last 2 s of answers and its rate from 30 s (`align::ClockSync`), and PX4 SITL's
+/// lockstep clock changes its rate with the machine's load from one second to the next.
 const PERIOD: Duration = Duration::from_millis(100);
 /// A second of requests: the clock model takes round trips of up to a second.
 const IN_FLIGHT: usize = 10;
