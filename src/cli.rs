@@ -98,11 +98,11 @@ pub struct CalibrateGimbalArgs {
     #[arg(long, requires = "marker")]
     pub marker_pixels: Option<PathBuf>,
     /// SD of the prior on each offset, degrees (it only keeps an unobservable one at 0).
-    #[arg(long, value_parser = positive, default_value_t = 10.0)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 10.0)]
     pub prior_deg: f64,
     /// The largest SD (degrees, over groups of frames) an offset may have to be reported as
     /// calibrated and written; above it the command exits 2 and writes nothing.
-    #[arg(long, value_parser = positive, default_value_t = 0.5)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 0.5)]
     pub max_sd_deg: f64,
     /// Write the offsets into this configuration file's [gimbal] section (other lines and
     /// comments kept).
@@ -137,7 +137,7 @@ pub enum ImportCommand {
         /// senseFly) it is the take-off's altitude, replacing the tags' absolute altitude
         /// (barometric on some DJI models). Photos with no attitude tags at all are taken
         /// as from a camera fixed to a level airframe heading along its track.
-        #[arg(long, value_parser = number, allow_hyphen_values = true, value_name = "METRES")]
+        #[arg(long, value_parser = ground_altitude, allow_hyphen_values = true, value_name = "METRES")]
         ground_alt_m: Option<f64>,
         /// What the photos' absolute altitudes are heights above: `ellipsoid` (WGS84; the
         /// default for DJI, whose AbsoluteAltitude is geodetic height) or `sea-level` (the
@@ -170,10 +170,10 @@ pub struct DemoArgs {
     #[arg(long, default_value = "out/demo")]
     pub out: PathBuf,
     /// Seconds of coastline flight before the vehicle lands.
-    #[arg(long, value_parser = positive, default_value_t = 90.0)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 90.0)]
     pub coast_s: f64,
     /// Longest indoor flight, seconds (mavloc's landing normally ends it sooner).
-    #[arg(long, value_parser = positive, default_value_t = 60.0)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 60.0)]
     pub indoor_s: f64,
     /// Views of the floor rendered to train the indoor model.
     #[arg(long, default_value_t = 1000)]
@@ -204,10 +204,10 @@ pub enum SimCommand {
         #[arg(long)]
         out: PathBuf,
         /// Half the side of the square, metres.
-        #[arg(long, value_parser = positive, default_value_t = 4.0)]
+        #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 4.0)]
         half_extent_m: f64,
         /// Ground size of one pixel, metres.
-        #[arg(long, value_parser = positive, default_value_t = 0.01)]
+        #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 0.01)]
         metres_per_px: f64,
     },
     /// Run a simulated MAVLink vehicle (PX4-like autopilot with a gimbal) that flies a
@@ -224,10 +224,10 @@ pub enum SimCommand {
         #[arg(long, default_value_t = 1)]
         system_id: u8,
         /// Land after this many seconds of mission and exit once on the ground (default: fly until stopped).
-        #[arg(long, value_parser = positive)]
+        #[arg(long, value_parser = positive, allow_hyphen_values = true)]
         duration: Option<f64>,
         /// Start this many seconds into the mission.
-        #[arg(long, value_parser = non_negative, default_value_t = 0.0)]
+        #[arg(long, value_parser = non_negative, allow_hyphen_values = true, default_value_t = 0.0)]
         start: f64,
         /// Write the true state (t, north, east, down, roll, pitch, yaw, phase) to this CSV at 10 Hz.
         #[arg(long)]
@@ -247,7 +247,7 @@ pub struct RenderArgs {
     #[arg(long)]
     pub seed: Option<u64>,
     /// Render at most this many frames (default: one lap of the mission).
-    #[arg(long)]
+    #[arg(long, value_parser = frame_count)]
     pub frames: Option<usize>,
     /// Image width in pixels (default: the scenario's; the field of view is kept).
     #[arg(long, requires = "height")]
@@ -259,26 +259,26 @@ pub struct RenderArgs {
     #[arg(long, conflicts_with_all = ["gimbal_sd_deg", "position_sd_m", "gimbal_offset_deg", "gimbal_lag_s", "drop_rate", "gimbal_drift_deg"])]
     pub no_noise: bool,
     /// Gimbal yaw and pitch noise SD, degrees (seed table 6.2: 0.5).
-    #[arg(long, value_parser = non_negative)]
+    #[arg(long, value_parser = non_negative, allow_hyphen_values = true)]
     pub gimbal_sd_deg: Option<f64>,
     /// Position noise SD north,east,down in metres (seed table 6.2: 0.5,0.5,2).
-    #[arg(long, value_parser = parse_sd_triple, value_name = "N,E,D")]
+    #[arg(long, value_parser = parse_sd_triple, allow_hyphen_values = true, value_name = "N,E,D")]
     pub position_sd_m: Option<[f64; 3]>,
     /// Static gimbal offsets yaw,pitch,roll in degrees (seed sec. 6.10).
     #[arg(long, value_parser = parse_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
     pub gimbal_offset_deg: Option<[f64; 3]>,
     /// Gimbal telemetry lags the frames by this many seconds (seed sec. 5.6.1).
-    #[arg(long, value_parser = number)]
+    #[arg(long, value_parser = number, allow_hyphen_values = true)]
     pub gimbal_lag_s: Option<f64>,
     /// SD of a slowly varying gimbal error yaw,pitch,roll in degrees (an autopilot's
     /// attitude estimate wanders; PX4 SIH's heading: 3 SD).
-    #[arg(long, value_parser = parse_sd_triple, value_name = "YAW,PITCH,ROLL")]
+    #[arg(long, value_parser = parse_sd_triple, allow_hyphen_values = true, value_name = "YAW,PITCH,ROLL")]
     pub gimbal_drift_deg: Option<[f64; 3]>,
     /// Correlation time of that error, seconds (default 20).
-    #[arg(long, value_parser = positive, requires = "gimbal_drift_deg")]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, requires = "gimbal_drift_deg")]
     pub gimbal_drift_tau_s: Option<f64>,
     /// Fraction of frames dropped, 0..1.
-    #[arg(long, value_parser = fraction)]
+    #[arg(long, value_parser = fraction, allow_hyphen_values = true)]
     pub drop_rate: Option<f64>,
     /// Render this many random labelled views instead of the flight (indoor-floor only;
     /// indoor seed sec. 3.4.2).
@@ -288,7 +288,7 @@ pub struct RenderArgs {
     #[arg(long, value_parser = number, allow_hyphen_values = true)]
     pub brightness: Option<f64>,
     /// Contrast factor for every frame of the flight.
-    #[arg(long, value_parser = non_negative)]
+    #[arg(long, value_parser = non_negative, allow_hyphen_values = true)]
     pub contrast: Option<f64>,
     /// Box-blur kernel for every frame of the flight, pixels (odd).
     #[arg(long)]
@@ -321,7 +321,7 @@ pub struct AreaArgs {
     #[arg(long)]
     pub trace: bool,
     /// Process at most this many frames.
-    #[arg(long)]
+    #[arg(long, value_parser = frame_count)]
     pub frames: Option<usize>,
     /// Write contact sheets of every frame beside its target mask (check the segmenter):
     /// masks.png, or masks-01.png, masks-02.png, ... 12 frames to a page.
@@ -357,11 +357,11 @@ pub struct IndoorTrainArgs {
     #[arg(long, requires = "map_metres_per_px")]
     pub orthomap: Option<PathBuf>,
     /// The orthomap's scale, metres per pixel.
-    #[arg(long, value_parser = positive)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true)]
     pub map_metres_per_px: Option<f64>,
     /// North, east of the orthomap's top-left pixel, metres (default: map centred on the
     /// origin).
-    #[arg(long, value_parser = parse_pair)]
+    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true)]
     pub map_origin: Option<[f64; 2]>,
     /// Frames with fewer RANSAC inliers than this are rejected.
     #[arg(long, default_value_t = 25)]
@@ -383,7 +383,7 @@ pub struct IndoorRunArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Process at most this many frames.
-    #[arg(long)]
+    #[arg(long, value_parser = frame_count)]
     pub frames: Option<usize>,
     /// Ignore the telemetry's velocity (the velocity model then fits one to its estimates).
     #[arg(long)]
@@ -410,7 +410,7 @@ pub struct LandingsArgs {
     #[arg(long, default_value_t = 20)]
     pub trials: usize,
     /// Give up a trial after this long, seconds.
-    #[arg(long, value_parser = positive, default_value_t = 60.0)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 60.0)]
     pub max_s: f64,
     /// Seed of the random numbers (same seed, same result).
     #[arg(long, default_value_t = 1)]
@@ -423,7 +423,7 @@ pub struct MapEvalArgs {
     #[arg(long)]
     pub map: PathBuf,
     /// Its scale, metres per pixel.
-    #[arg(long, value_parser = positive, default_value_t = 0.005)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 0.005)]
     pub metres_per_px: f64,
     /// Synthetic views to generate.
     #[arg(long, default_value_t = 400)]
@@ -432,7 +432,7 @@ pub struct MapEvalArgs {
     #[arg(long, default_value = "map-eval.png")]
     pub out: PathBuf,
     /// SD of the ideal similarity, metres (sigma_x = sigma_y, sec. 3.4.1).
-    #[arg(long, value_parser = positive, default_value_t = 0.5)]
+    #[arg(long, value_parser = positive, allow_hyphen_values = true, default_value_t = 0.5)]
     pub sigma_m: f64,
     /// Print one JSON object.
     #[arg(long)]
@@ -481,7 +481,7 @@ pub enum ConfigCommand {
         /// The file to check (default: --config, else /etc/mavloc/mavloc.toml).
         file: Option<PathBuf>,
     },
-    /// Print the configuration in force, each non-default value with where it came from.
+    /// Print the configuration in force, each value a layer set marked with that layer (`# from ...`).
     Show,
 }
 
@@ -546,6 +546,28 @@ fn non_negative(s: &str) -> Result<f64, String> {
     number(s).and_then(|v| if v >= 0.0 { Ok(v) } else { Err(format!("`{s}` must be 0 or more")) })
 }
 
+/// A ground's altitude, within what a geodetic altitude may be ([-12000, 100000] m): out
+/// of it, every photo was refused in turn as if its own altitude were wrong.
+fn ground_altitude(s: &str) -> Result<f64, String> {
+    number(s).and_then(|v| {
+        if (-12000.0..=100000.0).contains(&v) {
+            Ok(v)
+        } else {
+            Err(format!("`{s}` m is no altitude of a ground: it must lie in [-12000, 100000] m"))
+        }
+    })
+}
+
+/// A count of frames, at least 1: `--frames 0` made an empty dataset, and `area` then
+/// said no two photos shared a tie point.
+fn frame_count(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("`0`: at least 1 frame (leave the option out for all of them)".into()),
+        Ok(n) => Ok(n),
+        Err(_) => Err(format!("`{s}` is not a whole number of frames")),
+    }
+}
+
 /// A fraction, 0 to 1.
 fn fraction(s: &str) -> Result<f64, String> {
     number(s).and_then(|v| {
@@ -574,12 +596,19 @@ mod tests {
             (&["--gimbal-offset-deg", "nan,0,0"][..], "`nan` is not a finite number"),
             (&["--gimbal-sd-deg", "nan"], "`nan` is not a finite number"),
             (&["--gimbal-sd-deg=-1"], "`-1` must be 0 or more"),
+            // Written with a space, a negative number was taken for an unknown option.
+            (&["--gimbal-sd-deg", "-1"], "`-1` must be 0 or more"),
             (&["--position-sd-m", "0.5,inf,2"], "`inf` is not a finite number"),
             (&["--drop-rate", "1.5"], "`1.5` must be between 0 and 1"),
+            (&["--frames", "0"], "`0`: at least 1 frame"),
         ] {
             let e = parse(&[&render[..], bad].concat()).unwrap_err();
             assert!(e.contains(says), "{bad:?}: {e}");
         }
+        let e =
+            parse(&["mavloc", "import", "photos", "d", "--out", "o", "--ground-alt-m", "1e9"]).unwrap_err();
+        assert!(e.contains("no altitude of a ground"), "{e}");
+        assert!(parse(&["mavloc", "import", "photos", "d", "--out", "o", "--ground-alt-m", "-12"]).is_ok());
         let e = parse(&["mavloc", "import", "photos", "d", "--out", "o", "--mount-deg", "nan,-90,0"])
             .unwrap_err();
         assert!(e.contains("not a finite number"), "{e}");

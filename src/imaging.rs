@@ -42,6 +42,24 @@ pub fn image_files(dir: &std::path::Path) -> std::io::Result<Vec<std::path::Path
     Ok(files)
 }
 
+/// Whether a video file gives a frame: opened and one frame read, as the `file` camera
+/// will. A file of something else (notes named `.mp4`) passed the start checks, and the
+/// daemon then idled with no camera (outside audit).
+pub fn probe_video(path: &std::path::Path) -> Result<(), String> {
+    use opencv::videoio;
+    let not_video = || format!("{} is not a video OpenCV can read", path.display());
+    let name = path.to_str().ok_or_else(not_video)?;
+    let mut cap = videoio::VideoCapture::from_file(name, videoio::CAP_ANY).map_err(|_| not_video())?;
+    if !cap.is_opened().unwrap_or(false) {
+        return Err(not_video());
+    }
+    let mut frame = Mat::default();
+    match cap.read(&mut frame) {
+        Ok(true) if !frame.empty() => Ok(()),
+        _ => Err(format!("{}: OpenCV opens it but decodes no frame from it", path.display())),
+    }
+}
+
 /// Reads and decodes an image file (`flags`: `imgcodecs::IMREAD_*`), with the reason in
 /// words and the file's name when it cannot be used: missing, unreadable, truncated JPEG,
 /// or not an image.

@@ -351,7 +351,8 @@ impl Dataset {
         let text = fs::read_to_string(&tpath)
             .map_err(|e| format!("{}: {e} (an interrupted render leaves no telemetry)", tpath.display()))?;
         let lines: Vec<&str> = crate::table::strip_bom(&text).split_inclusive('\n').collect();
-        let mut records = Vec::new();
+        let mut records: Vec<TelemetryRecord> = Vec::new();
+        let mut prev_line = 0;
         let mut torn = None;
         for (n, line) in lines.iter().enumerate() {
             if line.trim().is_empty() {
@@ -367,6 +368,31 @@ impl Dataset {
                 }
                 Err(e) => return Err(format!("{} line {}: {e}", tpath.display(), n + 1)),
             };
+            // Each frame once, in the order it was taken: a repeated number would pose one
+            // frame twice and leave the other out, a step back in time would turn every
+            // speed worked out from it around. Both used to pass without a word.
+            if let Some(last) = records.last() {
+                let m = prev_line;
+                if r.frame <= last.frame {
+                    return Err(format!(
+                        "{} line {}: frame {} after frame {} (line {m}): frames go in increasing order, each once",
+                        tpath.display(),
+                        n + 1,
+                        r.frame,
+                        last.frame
+                    ));
+                }
+                if r.t < last.t {
+                    return Err(format!(
+                        "{} line {}: t {} s is before line {m}'s {} s: records go in time order",
+                        tpath.display(),
+                        n + 1,
+                        r.t,
+                        last.t
+                    ));
+                }
+            }
+            prev_line = n + 1;
             records.push(r);
         }
         if records.is_empty() {
@@ -548,6 +574,17 @@ mod tests {
         fs::write(d.join(TELEMETRY_FILE), format!("{}\n{torn}\n", line(0))).unwrap();
         let e = Dataset::open(d).unwrap_err();
         assert!(e.contains("telemetry.jsonl line 2"), "a complete bad last line is an error: {e}");
+        // A frame twice, or out of order, and a step back in time, are named by line.
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n{}\n{}\n", line(0), line(1), line(1))).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("telemetry.jsonl line 3: frame 1 after frame 1 (line 2)"), "{e}");
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n\n{}\n{}\n", line(0), line(2), line(1))).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("line 4: frame 1 after frame 2 (line 3)"), "{e}");
+        let back = serde_json::to_string(&TelemetryRecord { t: 0.5, ..rec(2) }).unwrap();
+        fs::write(d.join(TELEMETRY_FILE), format!("{}\n{}\n{back}\n", line(0), line(1))).unwrap();
+        let e = Dataset::open(d).unwrap_err();
+        assert!(e.contains("line 3: t 0.5 s is before line 2's 1 s"), "{e}");
         // A byte-order mark (a Windows editor's save) is not a bad first record.
         fs::write(d.join(TELEMETRY_FILE), format!("\u{feff}{}\n{}\n", line(0), line(1))).unwrap();
         assert_eq!(Dataset::open(d).unwrap().records, vec![rec(0), rec(1)]);

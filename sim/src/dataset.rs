@@ -100,7 +100,17 @@ impl FramesFrom {
     ) -> Result<(), String> {
         let dir = self.ds.dir.display();
         let r = self.ds.records.iter().find(|r| r.frame == i as u64).ok_or_else(|| {
-            format!("--frames-from {dir}: it has no frame {i} (dropped when it was rendered); render the frames anew")
+            // Past its last frame it is shorter (rendered with fewer --frames); inside it,
+            // the frame was dropped as it was rendered (--drop-rate).
+            let last = self.ds.records.last().map_or(0, |r| r.frame);
+            if i as u64 > last {
+                format!(
+                    "--frames-from {dir}: it ends at frame {last}, and this render needs frame {i}: render no more frames than it holds (--frames {}), or render the frames anew",
+                    last + 1
+                )
+            } else {
+                format!("--frames-from {dir}: it has no frame {i} (dropped when it was rendered); render the frames anew")
+            }
         })?;
         // A tolerance, though serde_json's float_roundtrip gives the numbers back exactly:
         // the check must not hang on a feature flag.

@@ -83,9 +83,10 @@ fn run_on_dataset(args: AreaArgs, settings: &settings::Settings) -> anyhow::Resu
             opts.out.display()
         );
     }
+    // Where they are: beside complete earlier results (`NAME.stopped`) after a Ctrl-C.
     println!(
         "{}: {} frames ({} skipped) in {:.1} s, {:.1} frames/s; {} landmarks, {} border line{} ({})",
-        opts.out.display(),
+        summary.written_to.display(),
         summary.frames,
         summary.skipped_frames,
         summary.elapsed_s,

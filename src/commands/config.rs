@@ -57,6 +57,9 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
             if let Some(note) = serial_note(&loaded.settings.mavlink.connection) {
                 println!("note: mavlink.connection: {note}");
             }
+            if let Some(note) = camera_note(&loaded.settings) {
+                println!("note: camera.device: {note}");
+            }
             Ok(ExitCode::SUCCESS)
         }
         ConfigCommand::Show => {
@@ -102,6 +105,26 @@ fn serial_note(connection: &str) -> Option<String> {
                 )
             })
         }
+    }
+}
+
+/// What `run` would meet on its V4L2 camera now: like a serial device, a camera not there
+/// yet is waited for, so it is noted, not refused (a missing /dev/video0 passed unsaid).
+fn camera_note(s: &settings::Settings) -> Option<String> {
+    use std::os::unix::fs::FileTypeExt;
+    if s.camera.source != settings::CameraSource::V4l2 || s.daemon.pipeline == settings::PipelineKind::None {
+        return None;
+    }
+    let device = &s.camera.device;
+    match std::fs::metadata(device) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            Some(format!("{device} does not exist now (unplugged? `mavloc run` retries it)"))
+        }
+        Err(e) => Some(format!("{device}: {e}")),
+        Ok(m) if !m.file_type().is_char_device() => {
+            Some(format!("{device} is not a video device (a character device such as /dev/video0)"))
+        }
+        Ok(_) => None,
     }
 }
 

@@ -91,7 +91,12 @@ struct Live {
     /// The simulator's true position between its quantised reports.
     truth_track: camera::sim::TruthTrack,
     next_drop_log: Mono,
-    dropped_logged: u64,
+    /// Frames dropped before the worker since the last 10 s line, by reason.
+    recent_drops: Vec<(String, u64)>,
+    /// Frames the workers dropped (a frame waiting when a newer came), stopped ones' too:
+    /// a stopped worker's count used to leave the total, which then went down.
+    busy_retired: u64,
+    busy_logged: u64,
     /// The flight recorder (`daemon.record`).
     recorder: Option<record::Recorder>,
 }
@@ -121,7 +126,9 @@ impl Live {
             truth_track: Default::default(),
             sim_origin: std::cell::OnceCell::new(),
             next_drop_log: Mono::ZERO + Duration::from_secs(10),
-            dropped_logged: 0,
+            recent_drops: Vec::new(),
+            busy_retired: 0,
+            busy_logged: 0,
             recorder: None,
         }
     }
@@ -132,10 +139,51 @@ impl Live {
         }
     }
 
-    /// The dropped-frame count the daemon reports: before and in the worker.
+    /// The dropped-frame count the daemon reports: before and in the workers.
     fn dropped(&self) -> u64 {
-        self.dropped_before
-            + self.worker.as_ref().map(|(_, w)| w.dropped.load(Ordering::Relaxed)).unwrap_or(0)
+        self.dropped_before + self.busy()
+    }
+
+    /// Frames the workers dropped because their pipeline was busy.
+    fn busy(&self) -> u64 {
+        self.busy_retired + self.worker.as_ref().map(|(_, w)| w.dropped.load(Ordering::Relaxed)).unwrap_or(0)
+    }
+
+    /// A frame dropped before the worker, for `why`.
+    fn drop_before(&mut self, why: &str) {
+        self.dropped_before += 1;
+        match self.recent_drops.iter_mut().find(|(w, _)| w == why) {
+            Some((_, n)) => *n += 1,
+            None => self.recent_drops.push((why.to_string(), 1)),
+        }
+    }
+
+    /// Takes the worker out, keeping its drop count in the total.
+    fn take_worker(&mut self) -> Option<(PipelineKind, Worker)> {
+        let taken = self.worker.take();
+        if let Some((_, w)) = &taken {
+            self.busy_retired += w.dropped.load(Ordering::Relaxed);
+        }
+        taken
+    }
+
+    /// The drops since the last call: their count, and in words by reason ("3 autopilot
+    /// clock not synchronised yet, 2 ..."); None when there were none.
+    fn drops_said(&mut self) -> Option<(u64, String)> {
+        let busy = self.busy().saturating_sub(self.busy_logged);
+        self.busy_logged = self.busy();
+        let mut count = busy;
+        let mut parts = Vec::new();
+        for (why, n) in self.recent_drops.drain(..) {
+            count += n;
+            parts.push(format!("{n} {why}"));
+        }
+        if busy > 0 {
+            parts.push(format!(
+                "{busy} replaced by a newer frame while the pipeline was busy (slower than the camera)"
+            ));
+        }
+        (count > 0).then(|| (count, parts.join(", ")))
     }
 }
 
@@ -462,16 +510,16 @@ impl Shell {
                     link_garbage_bytes: skipped.garbage_bytes,
                     frames_dropped: self.live.dropped(),
                 };
-                let newly = stats.frames_dropped - self.live.dropped_logged;
-                // Dropped frames are logged every 10 s when there were any, not one line per frame.
+                // Dropped frames are logged every 10 s when there were any, not one line per
+                // frame, with their reasons: "the pipeline is slower than the camera, or
+                // telemetry is late" was said when the autopilot's clock was not known yet.
                 if now >= self.live.next_drop_log {
                     self.live.next_drop_log = now + Duration::from_secs(10);
-                    if newly > 0 {
+                    if let Some((newly, why)) = self.live.drops_said() {
                         tracing::warn!(
-                            "{newly} frames dropped in the last 10 s ({} in all): the pipeline is slower than the camera, or telemetry is late",
+                            "{newly} frames dropped in the last 10 s ({} in all): {why}",
                             stats.frames_dropped
                         );
-                        self.live.dropped_logged = stats.frames_dropped;
                     }
                 }
                 core.handle(Input::Stats { now, stats });
@@ -513,10 +561,16 @@ impl Shell {
         let event = match ev {
             WorkerEvent::Pipeline(e) => e,
             WorkerEvent::Stopped { files } => {
-                tracing::info!(
-                    "pipeline results: {}",
-                    files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
-                );
+                // A run that found nothing writes nothing: an empty list was a bare
+                // "pipeline results: " line.
+                if files.is_empty() {
+                    tracing::info!("pipeline stopped: no results to write");
+                } else {
+                    tracing::info!(
+                        "pipeline results: {}",
+                        files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>().join(", ")
+                    );
+                }
                 return;
             }
         };
@@ -526,7 +580,9 @@ impl Shell {
                 self.live.give_credit()
             }
             PipelineEvent::Panicked { frame: None, .. } => {}
-            PipelineEvent::Failed(_) => self.live.worker = None,
+            PipelineEvent::Failed(_) => {
+                self.live.take_worker();
+            }
             PipelineEvent::WriteFailed(_) | PipelineEvent::Note(_) => {}
         }
         core.handle(Input::Pipeline { now, event });
@@ -664,7 +720,7 @@ pub async fn run(
     notify(&[sd_notify::NotifyState::Stopping]);
     let Shell { dir, mut link, mut live, started: _, .. } = shell;
     live.ctx.stop.store(true, Ordering::Relaxed);
-    if let Some((k, w)) = live.worker.take() {
+    if let Some((k, w)) = live.take_worker() {
         match tokio::task::block_in_place(|| w.stop()) {
             Ok(()) => tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display()),
             Err(e) => tracing::warn!(
@@ -850,13 +906,13 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
                 return;
             }
             Err(e) => {
-                live.dropped_before += 1;
                 live.give_credit();
                 let why = if matches!(e, AlignError::Wait) {
                     format!("no telemetry within {MAX_ALIGN_WAIT_S} s of the capture")
                 } else {
                     e.to_string()
                 };
+                live.drop_before(&why);
                 if live.last_align_error.as_deref() != Some(why.as_str()) {
                     tracing::warn!(
                         "frame {} dropped: {why} (further drops for this reason are only counted)",
@@ -868,7 +924,7 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
             }
         };
         if now - c.capture_s > core.settings().daemon.max_frame_age_s && c.pose.is_none() {
-            live.dropped_before += 1;
+            live.drop_before("older than daemon.max_frame_age_s when the pipeline was free");
             live.give_credit();
             continue;
         }
@@ -932,7 +988,7 @@ fn snapshot(live: &Live) -> Result<Vec<PathBuf>, String> {
 }
 
 fn stop_worker(live: &mut Live) {
-    if let Some((_, w)) = live.worker.take() {
+    if let Some((_, w)) = live.take_worker() {
         // A failed write is already a warning from the worker and a WriteFailed event.
         let _ = tokio::task::block_in_place(|| w.stop());
     }
@@ -1023,6 +1079,48 @@ mod shell_tests {
         let mut settings = Settings::default();
         settings.daemon.pipeline = PipelineKind::None;
         start_with(settings)
+    }
+
+    /// The 10 s line on dropped frames says why they were dropped (it used to blame a slow
+    /// pipeline for frames dropped before the autopilot's clock was known), and a stopped
+    /// worker's drops stay in the total, which therefore never goes down (the line's count
+    /// was the total less the last one logged: after a pipeline reset it underflowed).
+    #[test]
+    fn dropped_frames_are_said_by_reason_and_a_stopped_workers_stay_counted() {
+        let (_camera_tx, camera_rx) = mpsc::channel(1);
+        let ctx = SourceContext {
+            started: std::time::Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: None,
+        };
+        let mut live = Live::new(PathBuf::from("results"), ctx, camera_rx, None);
+        assert_eq!(live.drops_said(), None);
+        live.drop_before("autopilot clock not synchronised yet");
+        live.drop_before("autopilot clock not synchronised yet");
+        live.drop_before("older than daemon.max_frame_age_s when the pipeline was free");
+        assert_eq!(
+            live.drops_said(),
+            Some((
+                3,
+                "2 autopilot clock not synchronised yet, 1 older than daemon.max_frame_age_s when the pipeline was free"
+                    .into()
+            ))
+        );
+        assert_eq!(live.drops_said(), None, "each drop is said once");
+        let factory: Factory = Box::new(|_: &Settings| Err("no pipeline in this test".to_string()));
+        live.worker = Some((
+            PipelineKind::Area,
+            Worker::start(factory, Settings::default(), 1, live.worker_tx.clone()),
+        ));
+        live.worker.as_ref().unwrap().1.dropped.fetch_add(4, Ordering::Relaxed);
+        assert_eq!(live.dropped(), 7);
+        let (n, why) = live.drops_said().unwrap();
+        assert_eq!(n, 4);
+        assert!(why.starts_with("4 replaced by a newer frame while the pipeline was busy"), "{why}");
+        drop(live.take_worker());
+        assert_eq!(live.dropped(), 7, "the stopped worker's drops stay counted");
+        assert_eq!(live.drops_said(), None, "and are not said again");
     }
 
     fn start_with(settings: Settings) -> Harness {

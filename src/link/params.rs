@@ -159,7 +159,9 @@ fn decode(def: &ParamDef, w: Wire) -> Result<f64, String> {
             if (-(1 << 23)..(1 << 23)).contains(&bits) {
                 bits as f64
             } else {
-                w.value as f64
+                // The shortest decimal here too: a float sent under an integer type was
+                // kept as 0.6000000238418579.
+                w.value.to_string().parse::<f64>().unwrap_or(f64::NAN)
             }
         }
         other => return Err(format!("type {other:?} is not supported; use REAL32 or INT32")),
@@ -451,6 +453,10 @@ mod tests {
         let (s4, _) =
             set(&s, "AREA_BAND_PX", Wire { value: 80.0, ty: MavParamType::MAV_PARAM_TYPE_INT32 }).unwrap();
         assert_eq!(s4.area.band_px, 80);
+        // A float under an integer type, as its shortest decimal.
+        let (s5, _) =
+            set(&s, "AREA_RATIO", Wire { value: 0.6, ty: MavParamType::MAV_PARAM_TYPE_INT32 }).unwrap();
+        assert_eq!(s5.area.ratio_test, 0.6);
         assert!(set(&s, "AREA_BAND_PX", real(80.5)).is_err());
         assert!(set(&s, "IND_LAND_EN", int(2)).is_err());
     }

@@ -70,6 +70,7 @@ impl ClientLines {
         }
     }
 }
+use super::address::host_port;
 use super::signing::{Signer, SAVE_INTERVAL_S};
 use super::LinkAddress;
 
@@ -333,7 +334,7 @@ impl Link {
             LinkAddress::UdpIn { host, port } => {
                 let socket = UdpSocket::bind((host.as_str(), *port)).await?;
                 let e = Endpoint::Udp { socket, fixed: None, peers: Peers::default() };
-                Ok((e, None, format!("listening on udp {host}:{port}")))
+                Ok((e, None, format!("listening on udp {}", host_port(host, *port))))
             }
             LinkAddress::UdpOut { host, port } => {
                 let peer = tokio::net::lookup_host((host.as_str(), *port))
@@ -358,11 +359,15 @@ impl Link {
                     }
                 })?;
                 tune(&s)?;
-                Ok((Endpoint::Single, Some(Box::new(s)), format!("connected to tcp {host}:{port}")))
+                Ok((
+                    Endpoint::Single,
+                    Some(Box::new(s)),
+                    format!("connected to tcp {}", host_port(host, *port)),
+                ))
             }
             LinkAddress::TcpIn { host, port } => {
                 let l = TcpListener::bind((host.as_str(), *port)).await?;
-                Ok((Endpoint::Listener(l), None, format!("listening on tcp {host}:{port}")))
+                Ok((Endpoint::Listener(l), None, format!("listening on tcp {}", host_port(host, *port))))
             }
             LinkAddress::Serial { device, baud } => {
                 use tokio_serial::SerialPortBuilderExt;

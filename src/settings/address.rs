@@ -75,8 +75,18 @@ impl LinkAddress {
                     Ok(port) if port > 0 => port,
                     _ => return Err(format!("`{s}`: port `{tail}` is not in 1..=65535")),
                 };
-                check_host(s, head, matches!(scheme, "udpin" | "tcpin"))?;
-                Ok(make(head.to_string(), port))
+                // An IPv6 address goes in brackets (`udpin:[::1]:14540`), as in a URL; it was
+                // refused as "not an IP address".
+                let host = match head.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
+                    Some(v6) if v6.parse::<std::net::Ipv6Addr>().is_ok() => v6,
+                    Some(_) => return Err(format!("`{s}`: `{head}` is not an IPv6 address in brackets")),
+                    None if head.contains(':') => {
+                        return Err(format!("`{s}`: an IPv6 address goes in brackets, as `[{head}]`"))
+                    }
+                    None => head,
+                };
+                check_host(s, host, matches!(scheme, "udpin" | "tcpin"))?;
+                Ok(make(host.to_string(), port))
             }
         }
     }
@@ -100,15 +110,24 @@ fn check_host(s: &str, host: &str, listening: bool) -> Result<(), String> {
     Ok(())
 }
 
+/// `host:port`, an IPv6 host in brackets.
+pub fn host_port(host: &str, port: u16) -> String {
+    if host.contains(':') {
+        format!("[{host}]:{port}")
+    } else {
+        format!("{host}:{port}")
+    }
+}
+
 impl fmt::Display for LinkAddress {
     /// The same syntax, which is also what the `mavlink` crate's `connect` accepts.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             LinkAddress::Serial { device, baud } => write!(f, "serial:{device}:{baud}"),
-            LinkAddress::UdpIn { host, port } => write!(f, "udpin:{host}:{port}"),
-            LinkAddress::UdpOut { host, port } => write!(f, "udpout:{host}:{port}"),
-            LinkAddress::TcpIn { host, port } => write!(f, "tcpin:{host}:{port}"),
-            LinkAddress::TcpOut { host, port } => write!(f, "tcpout:{host}:{port}"),
+            LinkAddress::UdpIn { host, port } => write!(f, "udpin:{}", host_port(host, *port)),
+            LinkAddress::UdpOut { host, port } => write!(f, "udpout:{}", host_port(host, *port)),
+            LinkAddress::TcpIn { host, port } => write!(f, "tcpin:{}", host_port(host, *port)),
+            LinkAddress::TcpOut { host, port } => write!(f, "tcpout:{}", host_port(host, *port)),
         }
     }
 }
@@ -125,6 +144,8 @@ mod tests {
             "udpout:127.0.0.1:14550",
             "tcpout:localhost:5760",
             "tcpin:0.0.0.0:5760",
+            "udpin:[::1]:14540",
+            "tcpout:[fe80::1]:5760",
         ] {
             let a = LinkAddress::parse(s).unwrap();
             assert_eq!(a.to_string(), s);
@@ -133,6 +154,18 @@ mod tests {
             LinkAddress::parse("serial:/dev/ttyAMA0:921600").unwrap(),
             LinkAddress::Serial { device: "/dev/ttyAMA0".into(), baud: 921600 }
         );
+    }
+
+    #[test]
+    fn an_ipv6_address_goes_in_brackets() {
+        assert_eq!(
+            LinkAddress::parse("tcpin:[::1]:5760").unwrap(),
+            LinkAddress::TcpIn { host: "::1".into(), port: 5760 }
+        );
+        let e = LinkAddress::parse("udpin:::1:14540").unwrap_err();
+        assert!(e.contains("goes in brackets, as `[::1]`"), "{e}");
+        let e = LinkAddress::parse("udpin:[nope]:14540").unwrap_err();
+        assert!(e.contains("`[nope]` is not an IPv6 address"), "{e}");
     }
 
     #[test]

@@ -256,6 +256,30 @@ fn flatten_file(
                 expected: format!("`{section}` is a section: write `[{section}]` and its keys below it"),
                 origin: origin.clone(),
             }),
+            // `foo = 1` above every section header: a key, not a section (it was called an
+            // unknown section).
+            (None, other) if !matches!(other, toml::Value::Table(_)) => {
+                let homes: Vec<_> = schema
+                    .iter()
+                    .filter(|(_, t)| t.as_table().is_some_and(|t| t.contains_key(section)))
+                    .map(|(name, _)| format!("[{name}]"))
+                    .collect();
+                let expected = if homes.is_empty() {
+                    let sections: Vec<_> = schema.keys().map(String::as_str).collect();
+                    format!(
+                        "a key outside any section, and no section has it; sections are {}",
+                        sections.join(", ")
+                    )
+                } else {
+                    format!("a key outside any section: write it below {}", homes.join(" or "))
+                };
+                problems.push(Problem {
+                    key: section.clone(),
+                    value: Some(render(other)),
+                    expected,
+                    origin: origin.clone(),
+                })
+            }
             (None, _) => {
                 let sections: Vec<_> = schema.keys().map(String::as_str).collect();
                 problems.push(Problem {
@@ -618,6 +642,8 @@ pub fn preflight(loaded: &Loaded, files: &FileChecks) -> Vec<Problem> {
                     ));
                 } else if m.is_file() && m.len() == 0 {
                     return Err(format!("{} is empty", p.display()));
+                } else if m.is_file() {
+                    crate::imaging::probe_video(p)?;
                 }
                 Ok(())
             })
@@ -693,7 +719,10 @@ fn unmakeable_dir(dir: &Path) -> Option<String> {
                     let uid = unsafe { libc::getuid() };
                     return Some(format!("{} is not writable by uid {uid} ({e})", p.display()));
                 }
-                return None;
+                // access() says yes to root on the kernel's own file systems, where no
+                // directory can be made: `config check` passed /proc/x and `run` refused it.
+                return kernel_fs(p)
+                    .map(|fs| format!("{} is on {fs}, where no directory can be made", p.display()));
             }
             Ok(_) => return Some(format!("{} is not a directory", p.display())),
             Err(e)
@@ -709,6 +738,22 @@ fn unmakeable_dir(dir: &Path) -> Option<String> {
             }
             Err(e) => return Some(format!("cannot read {}: {e}", p.display())),
         }
+    }
+}
+
+/// The name of the kernel file system `p` is on, if it is one of those that hold no
+/// directories of ours (proc, sysfs, cgroup, ...).
+fn kernel_fs(p: &Path) -> Option<&'static str> {
+    let fs = rustix::fs::statfs(p).ok()?;
+    // The magic numbers of linux/magic.h.
+    match fs.f_type as u64 {
+        0x9fa0 => Some("proc"),
+        0x6265_6572 => Some("sysfs"),
+        0x6367_7270 | 0x0027_e0eb => Some("cgroup"),
+        0x6462_6720 => Some("debugfs"),
+        0x7472_6163 => Some("tracefs"),
+        0x7363_6673 => Some("securityfs"),
+        _ => None,
     }
 }
 

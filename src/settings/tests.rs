@@ -116,6 +116,14 @@ fn wrong_type_and_unknown_section_are_refused() {
     let text: Vec<String> = p.iter().map(|p| p.to_string()).collect();
     assert!(text.iter().any(|m| m.contains("area.l_max") && m.contains("expected an integer")), "{text:?}");
     assert!(text.iter().any(|m| m.contains("aera") && m.contains("unknown section")), "{text:?}");
+    // A key above every section header is a key out of place, not a section.
+    let f = write_temp("l_max = 300\nfoo = 1\n[area]\nratio_test = 0.6\n");
+    let text: Vec<String> = problems(load_file(f.path())).iter().map(|p| p.to_string()).collect();
+    assert!(
+        text.iter().any(|m| m.contains("l_max") && m.contains("outside any section: write it below [area]")),
+        "{text:?}"
+    );
+    assert!(text.iter().any(|m| m.contains("foo") && m.contains("no section has it")), "{text:?}");
 }
 
 #[test]
@@ -385,7 +393,7 @@ fn photo_surveys_trust_aligned_poses_more_than_the_tags() {
 
 /// A `file` camera on something that gives no frames is refused before `run` starts (it
 /// used to start and idle with "camera failed" in its log): an empty folder, a folder of
-/// other files, a device (a camera set as a file), an empty file.
+/// other files, a device (a camera set as a file), an empty file, a file that is no video.
 #[test]
 fn a_file_camera_on_what_gives_no_frames_is_refused_before_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -414,6 +422,45 @@ fn a_file_camera_on_what_gives_no_frames_is_refused_before_run() {
     assert!(said.contains("is a device") && said.contains("camera.source = \"v4l2\""), "{said}");
     let said = check(&dir.path().join("empty.mp4")).expect("an empty file is refused");
     assert!(said.contains("empty.mp4 is empty"), "{said}");
-    // A folder with an image in it (by its extension, in any case) passes.
+    std::fs::write(dir.path().join("notes.mp4"), "flight notes").unwrap();
+    let said = check(&dir.path().join("notes.mp4")).expect("a file that is no video is refused");
+    assert!(said.contains("notes.mp4 is not a video OpenCV can read"), "{said}");
+    // A folder with an image in it (by its extension, in any case) passes, and so does a
+    // video OpenCV decodes.
     assert_eq!(check(&dir.path().join("frames")), None);
+    let video = dir.path().join("flight.avi");
+    {
+        use opencv::{core, prelude::*, videoio};
+        let fourcc = videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').unwrap();
+        let mut w =
+            videoio::VideoWriter::new(video.to_str().unwrap(), fourcc, 10.0, core::Size::new(64, 48), true)
+                .unwrap();
+        assert!(w.is_opened().unwrap(), "OpenCV writes MJPEG AVI");
+        let frame =
+            core::Mat::new_rows_cols_with_default(48, 64, core::CV_8UC3, core::Scalar::all(90.0)).unwrap();
+        for _ in 0..3 {
+            w.write(&frame).unwrap();
+        }
+    }
+    assert_eq!(check(&video), None);
+}
+
+/// The state directory is judged as `run` will meet it: a folder to make under a writable
+/// one passes; under a file, or on the kernel's own file systems (where access() says yes
+/// to root but nothing can be made), it is refused with the reason.
+#[test]
+fn a_state_directory_that_cannot_be_made_is_named_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    assert_eq!(unmakeable_dir(&dir.path().join("state/deeper")), None);
+    std::fs::write(dir.path().join("file"), "").unwrap();
+    let why = unmakeable_dir(&dir.path().join("file/state")).expect("under a file");
+    assert!(why.ends_with("file is not a directory"), "{why}");
+    if Path::new("/proc/self").exists() {
+        let why = unmakeable_dir(Path::new("/proc/forbidden/state")).expect("under /proc");
+        assert!(why.contains("/proc is on proc"), "{why}");
+    }
+    if Path::new("/sys/kernel").exists() {
+        let why = unmakeable_dir(Path::new("/sys/kernel/x")).expect("under /sys");
+        assert!(why.contains("on sysfs") || why.contains("not writable"), "{why}");
+    }
 }

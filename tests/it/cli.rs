@@ -76,6 +76,31 @@ fn config_check_checks_the_file_it_is_given() {
     }
 }
 
+/// A V4L2 camera that is not there, or not a device, is noted by `config check` as a
+/// serial device is (`run` retries the camera); a present one is not.
+#[test]
+fn config_check_notes_a_camera_device_that_is_missing_or_not_a_device() {
+    let dir = tempfile::tempdir().unwrap();
+    let note = |device: &str| {
+        let f = temp_config(&format!(
+            "[daemon]\npipeline = \"area\"\n[area]\nsegmenter = \"water\"\n[camera]\nsource = \"v4l2\"\ndevice = \"{device}\"\n"
+        ));
+        let out = mavloc().args(["config", "check"]).arg(f.path()).assert().success();
+        String::from_utf8_lossy(&out.get_output().stdout).to_string()
+    };
+    let missing = dir.path().join("video7");
+    let said = note(&missing.display().to_string());
+    assert!(
+        said.contains("note: camera.device:") && said.contains("does not exist now (unplugged?"),
+        "{said}"
+    );
+    let file = dir.path().join("not-a-camera");
+    std::fs::write(&file, "").unwrap();
+    assert!(note(&file.display().to_string()).contains("is not a video device"));
+    let said = note("/dev/null");
+    assert!(said.contains("valid") && !said.contains("note:"), "{said}");
+}
+
 /// A serial device that is not there, or not a device, is noted by `config check` (the
 /// configuration stays valid: `run` waits for the device); a present one is not.
 #[test]
@@ -878,6 +903,30 @@ fn area_results_are_replaced_as_a_set_and_an_interrupted_run_leaves_the_last_one
     let err = String::from_utf8_lossy(&a.get_output().stderr).to_string();
     assert!(err.contains("not mavloc results"), "{err}");
     assert_eq!(names_in(&other), ["a.txt"]);
+}
+
+/// `--frames-from` a dataset with fewer frames than the render asks for says so (it said
+/// the frame was "dropped when it was rendered", which nothing was).
+#[test]
+fn frames_from_a_shorter_dataset_says_where_it_ends() {
+    let dir = tempfile::tempdir().unwrap();
+    let short = dir.path().join("short");
+    let render = ["sim", "render", "--scenario", "coastline", "--width", "160", "--height", "90"];
+    stdout_of(mavloc().args(render).args(["--frames", "2", "--out"]).arg(&short));
+    let out = mavloc()
+        .args(render)
+        .args(["--frames", "4", "--gimbal-sd-deg", "1", "--frames-from"])
+        .arg(&short)
+        .arg("--out")
+        .arg(dir.path().join("longer"))
+        .assert()
+        .failure();
+    let said = String::from_utf8_lossy(&out.get_output().stderr).to_string();
+    assert!(
+        said.contains("it ends at frame 1, and this render needs frame 2") && said.contains("--frames 2"),
+        "{said}"
+    );
+    assert!(!said.contains("dropped when it was rendered"), "{said}");
 }
 
 /// Ctrl-C stops `mavloc sim render` after the frame in hand: the staging folder with the

@@ -6,7 +6,7 @@
 //!   vehicle whose `MAV_SYS_ID` is not `mavlink.autopilot_system_id`;
 //! * frames whose signature does not check: another signing key than the autopilot's;
 //! * unsigned frames dropped because signing is on and unsigned telemetry is refused;
-//! * bytes with no MAVLink frame in them (or frames that fail their CRC): a baud rate
+//! * bytes with no MAVLink frame in them (or frames that fail their checks): a baud rate
 //!   other than the autopilot's (PX4's `SER_TEL2_BAUD`), or a port that speaks something
 //!   else;
 //! * only the ground station, or only other components of the vehicle, or nothing at all:
@@ -192,7 +192,7 @@ impl Waiting {
             ),
             Evidence::Junk => {
                 let what = if bad_frames > 0 {
-                    format!("{junk} bytes and {bad_frames} frames that fail their CRC")
+                    format!("{junk} bytes and {bad_frames} frames that fail their checks (CRC, length or message id)")
                 } else {
                     format!("{junk} bytes")
                 };
@@ -351,7 +351,11 @@ mod tests {
         let mut w = Waiting::default();
         let bad_crc = ShellStats { link_up: true, link_bad_frames: 12, ..Default::default() };
         let (log, _) = w.on_stats(at(10), &bad_crc, SERIAL, 1, 255).unwrap();
-        assert!(log.contains("12 frames that fail their CRC") && log.contains("921600 baud"), "{log}");
+        assert!(
+            log.contains("12 frames that fail their checks (CRC, length or message id)")
+                && log.contains("921600 baud"),
+            "{log}"
+        );
         // Silence over udp names its port.
         let mut w = Waiting::default();
         let (log, _) = w.on_stats(at(10), &up(0), UDP, 1, 255).unwrap();
