@@ -83,13 +83,21 @@ impl StagedDir {
                     ));
                 }
                 if e.path().join("summary.json").is_file() {
-                    let kept = parent.join(format!("{name}.interrupted-{pid}"));
+                    // Complete results whose swap failed (a run that said so and kept them
+                    // here) are not an interrupted run's: they were named as one.
+                    let complete = fs::read_to_string(e.path().join("summary.json"))
+                        .ok()
+                        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                        .is_some_and(|v| v.get("complete") == Some(&serde_json::Value::Bool(true)));
+                    let (kind, what) = if complete {
+                        ("unswapped", "the complete results of a run that could not put them in place")
+                    } else {
+                        ("interrupted", "the results an interrupted run left")
+                    };
+                    let kept = parent.join(format!("{name}.{kind}-{pid}"));
                     let _ = fs::remove_dir_all(&kept);
                     if fs::rename(e.path(), &kept).is_ok() {
-                        eprintln!(
-                            "mavloc: the results an interrupted run left are kept in {}",
-                            kept.display()
-                        );
+                        eprintln!("mavloc: {what} are kept in {}", kept.display());
                         continue;
                     }
                 }
@@ -427,9 +435,13 @@ mod tests {
         fs::create_dir(&dead).unwrap();
         fs::write(dead.join("summary.json"), "{}").unwrap();
         fs::create_dir(root.path().join(".d.partial-99999998")).unwrap();
+        // A finished set whose swap failed is kept as such, not as an interrupted run's.
+        let unswapped = root.path().join(".d.partial-99999997");
+        fs::create_dir(&unswapped).unwrap();
+        fs::write(unswapped.join("summary.json"), r#"{"complete": true, "frames": 3}"#).unwrap();
         let s = StagedDir::begin(&out, false).unwrap();
         s.commit().unwrap();
-        assert_eq!(names(root.path()), ["d", "d.interrupted-99999999"]);
+        assert_eq!(names(root.path()), ["d", "d.interrupted-99999999", "d.unswapped-99999997"]);
         assert!(root.path().join("d.interrupted-99999999/summary.json").is_file());
     }
 

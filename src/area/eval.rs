@@ -5,12 +5,22 @@
 //! landmark's height above the true surface at its north and east ([`AreaEvaluation::with_surface`]).
 //! The distance to the border mixes where a landmark lies in the band beside the border
 //! (up to the band's width, on a correct landmark) with its error; the height is its error
-//! alone where the ground is level, and shows a map that floats as a whole.
+//! alone where the ground is level, and shows a map that floats as a whole. With the run's
+//! sightings (`trace.csv`) and a rendered dataset's true poses, each landmark is also set
+//! against the point its own sightings fix from the true poses
+//! ([`AreaEvaluation::with_true_rays`]): its error alone, wherever in the band it lies.
+
+use std::collections::HashMap;
 
 use serde::Serialize;
 
+use super::rays::{self, Ray};
 use crate::geometry::Vec3;
 use mavloc_data::results::LandmarkRecord;
+
+/// A landmark is set against its true-pose fix only where the true rays fix the point to
+/// this SD (m) with a pixel of noise: rays with little parallax fix nothing to compare with.
+pub const TRUE_FIX_MAX_SD_M: f64 = 0.25;
 
 /// The seed's table, and more.
 #[derive(Clone, Debug, Serialize)]
@@ -32,6 +42,16 @@ pub struct AreaEvaluation {
     /// Median of the absolute heights above the true surface, m.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub height_abs_median_m: Option<f64>,
+    /// Landmarks set against the point their sightings fix from the true poses, and
+    /// their distance from it (mean, median, 95th percentile), m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_fix_landmarks: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_fix_mean_m: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_fix_median_m: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_fix_p95_m: Option<f64>,
     #[serde(skip)]
     pub distances: Vec<f64>,
 }
@@ -84,6 +104,10 @@ pub fn evaluate(
         frames_per_s,
         height_median_m: None,
         height_abs_median_m: None,
+        true_fix_landmarks: None,
+        true_fix_mean_m: None,
+        true_fix_median_m: None,
+        true_fix_p95_m: None,
         distances,
     }
 }
@@ -102,6 +126,37 @@ impl AreaEvaluation {
             let abs: Vec<f64> = h.iter().map(|x| x.abs()).collect();
             self.height_median_m = Some(stats(&h).1);
             self.height_abs_median_m = Some(stats(&abs).1);
+        }
+        self
+    }
+
+    /// With each landmark's distance from the point its own sightings fix when cast from
+    /// the true poses (`rays`, by landmark id; least squares with `pixel_rad` of bearing
+    /// noise, [`rays::triangulate`]). The distance to the border counts a correct landmark
+    /// 2 m into the band as 2 m off; this does not. Landmarks whose true rays fix them no
+    /// better than [`TRUE_FIX_MAX_SD_M`] are left out.
+    pub fn with_true_rays(
+        mut self,
+        landmarks: &[LandmarkRecord],
+        rays: &HashMap<u64, Vec<Ray>>,
+        pixel_rad: f64,
+    ) -> Self {
+        let errors: Vec<f64> = landmarks
+            .iter()
+            .filter_map(|l| {
+                let r = rays.get(&l.id)?;
+                let fix = rays::triangulate(r, &l.position, pixel_rad, &[0.0; 3])?;
+                (fix.sigma_max <= TRUE_FIX_MAX_SD_M).then(|| (l.position - fix.position).norm())
+            })
+            .collect();
+        self.true_fix_landmarks = Some(errors.len());
+        if !errors.is_empty() {
+            let (mean, median, _) = stats(&errors);
+            let mut sorted = errors.clone();
+            sorted.sort_by(f64::total_cmp);
+            self.true_fix_mean_m = Some(mean);
+            self.true_fix_median_m = Some(median);
+            self.true_fix_p95_m = Some(sorted[((sorted.len() - 1) as f64 * 0.95).round() as usize]);
         }
         self
     }
@@ -131,6 +186,17 @@ impl std::fmt::Display for AreaEvaluation {
         }
         if let (Some(h), Some(a)) = (self.height_median_m, self.height_abs_median_m) {
             writeln!(f, "height above the true surface: median {h:+.2} m, median of its size {a:.2} m")?;
+        }
+        match (self.true_fix_landmarks, self.true_fix_mean_m, self.true_fix_median_m, self.true_fix_p95_m) {
+            (Some(n), Some(mean), Some(median), Some(p95)) => writeln!(
+                f,
+                "error against the true poses ({n} of {} landmarks, each against the point its sightings fix from the true poses): mean {mean:.2} m, median {median:.2} m, 95th percentile {p95:.2} m",
+                self.landmarks
+            )?,
+            (Some(_), ..) => {
+                writeln!(f, "error against the true poses: no landmark's sightings fix it from the true poses")?
+            }
+            _ => {}
         }
         writeln!(f, "speed: {:.1} frames/s", self.frames_per_s)
     }
@@ -178,6 +244,39 @@ mod tests {
         assert!((e.height_median_m.unwrap() - 1.0).abs() < 1e-12, "{:?}", e.height_median_m);
         assert!((e.height_abs_median_m.unwrap() - 2.0).abs() < 1e-12, "{:?}", e.height_abs_median_m);
         assert!(e.to_string().contains("median +1.00 m, median of its size 2.00 m"), "{e}");
+    }
+
+    /// A landmark 2 m into the band but exactly where its true rays meet has no error,
+    /// though it is 2 m from the border; one 0.3 m off its rays' point has 0.3 m; one whose
+    /// true rays are nearly parallel (no fix to judge by) is left out.
+    #[test]
+    fn the_error_against_the_true_poses_is_where_the_true_rays_meet() {
+        let truth = vec![vec![Vec3::new(0.0, 0.0, 0.0), Vec3::new(100.0, 0.0, 0.0)]];
+        let on = Vec3::new(10.0, 2.0, 0.0);
+        let off_point = Vec3::new(20.0, 2.0, 0.0);
+        let far = Vec3::new(30.0, 2.0, 0.0);
+        let ray = |from: Vec3, to: &Vec3| Ray { origin: from, dir: (to - from).normalize() };
+        let cams =
+            [Vec3::new(-20.0, -30.0, -40.0), Vec3::new(40.0, -30.0, -40.0), Vec3::new(10.0, 30.0, -40.0)];
+        let mut rays = HashMap::new();
+        rays.insert(0, cams.iter().map(|c| ray(*c, &on)).collect::<Vec<_>>());
+        rays.insert(1, cams.iter().map(|c| ray(*c, &off_point)).collect());
+        // Two rays from nearly one place: parallel to within a hair.
+        rays.insert(
+            2,
+            vec![ray(Vec3::new(30.0, -30.0, -40.0), &far), ray(Vec3::new(30.01, -30.0, -40.0), &far)],
+        );
+        let mut l = [lm(on), lm(off_point + Vec3::new(0.0, 0.3, 0.0)), lm(far)];
+        for (i, x) in l.iter_mut().enumerate() {
+            x.id = i as u64;
+        }
+        let e = evaluate(&l, &truth, &[], 1.0);
+        assert!(e.true_fix_landmarks.is_none() && !e.to_string().contains("true poses"));
+        let e = e.with_true_rays(&l, &rays, 0.001);
+        assert!((e.mean_m - 2.1).abs() < 1e-9, "2 m from the border on average: {}", e.mean_m);
+        assert_eq!(e.true_fix_landmarks, Some(2), "the parallel pair fixes nothing");
+        assert!((e.true_fix_mean_m.unwrap() - 0.15).abs() < 1e-6, "{:?}", e.true_fix_mean_m);
+        assert!(e.to_string().contains("error against the true poses (2 of 3 landmarks"), "{e}");
     }
 
     #[test]

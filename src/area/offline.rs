@@ -165,6 +165,10 @@ pub struct RunSummary {
     /// Why the first skipped frame was skipped (file and reason).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_skip_reason: Option<String>,
+    /// The factor the frames were scaled down by (`area.downscale`): `trace.csv`'s pixels
+    /// are at that scale.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub downscale: Option<u32>,
     pub complete: bool,
     /// The dataset's telemetry file's CRC-32 (hex): `mavloc eval` refuses to measure the
     /// result against another dataset.
@@ -266,6 +270,16 @@ impl Row for TraceRow {
     const COLUMNS: &'static str =
         "frame,landmark,u,v,meas_yaw,meas_pitch,pred_yaw,pred_pitch,mahalanobis,accepted,\
                                    north,east,down,p_nn,p_ne,p_nd,p_ee,p_ed,p_dd";
+}
+
+/// The sightings a run's `trace.csv` holds: frame, landmark, pixel (at the run's scale,
+/// `RunSummary::downscale`), and whether the update was accepted.
+pub fn read_trace_sightings(path: &Path) -> Result<Vec<(u64, u64, crate::geometry::Pixel, bool)>, String> {
+    let rows = mavloc_data::table::read::<TraceRow>(path).map_err(|e| e.to_string())?;
+    Ok(rows
+        .iter()
+        .map(|r| (r.frame, r.landmark, crate::geometry::Pixel::new(r.u, r.v), r.accepted))
+        .collect())
 }
 
 impl From<&super::library::TraceEntry> for TraceRow {
@@ -508,6 +522,7 @@ pub fn run_observed(
     let mut summary = RunSummary {
         method: method.into(),
         dataset_crc32: mavloc_data::dataset::telemetry_crc32(&ds.dir),
+        downscale: Some(s.area.downscale.max(1)),
         ..RunSummary::default()
     };
     let mut timing = StageTiming::default();

@@ -51,14 +51,27 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
     let border = std::fs::read_to_string(result.join("border.csv"))
         .map(|t| crate::data::results::parse_border_csv(&t))
         .unwrap_or_default();
-    let fps = std::fs::read_to_string(result.join("summary.json"))
+    let summary = std::fs::read_to_string(result.join("summary.json"))
         .ok()
-        .and_then(|t| serde_json::from_str::<crate::area::offline::RunSummary>(&t).ok())
-        .map_or(f64::NAN, |s| s.frames_per_s);
+        .and_then(|t| serde_json::from_str::<crate::area::offline::RunSummary>(&t).ok());
+    let fps = summary.as_ref().map_or(f64::NAN, |s| s.frames_per_s);
     let mut e = crate::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
-    // A rendered dataset carries its scenario, so its ground is known everywhere.
+    // A rendered dataset carries its scenario, so its ground is known everywhere, and its
+    // `true` poses are the truth.
     if let Some(surface) = crate::simulated::surface::true_surface(dataset).map_err(anyhow::Error::msg)? {
         e = e.with_surface(&landmarks, surface);
+        let trace = result.join("trace.csv");
+        match summary.and_then(|s| s.downscale) {
+            Some(downscale) if trace.is_file() => {
+                let (rays, pixel_rad) = true_rays(&ds, &trace, downscale)?;
+                e = e.with_true_rays(&landmarks, &rays, pixel_rad);
+            }
+            // Results of a run before its summary said its scale: the pixels cannot be placed.
+            None if trace.is_file() => {
+                eprintln!("mavloc eval area: trace.csv is there, but summary.json does not say the frames' scale (area.downscale; results of an older mavloc): no error against the true poses")
+            }
+            _ => {}
+        }
     }
     let title = format!("{} vs {}", result.display(), dataset.display());
     let plots = [result.join("histogram.png"), result.join("views.png")];
@@ -78,6 +91,28 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Each landmark's accepted sightings in `trace.csv` cast from the dataset's true poses
+/// (`downscale`: the scale of the trace's pixels), by landmark id, and a pixel's angle.
+fn true_rays(
+    ds: &crate::data::Dataset,
+    trace: &Path,
+    downscale: u32,
+) -> anyhow::Result<(std::collections::HashMap<u64, Vec<crate::area::rays::Ray>>, f64)> {
+    let k = ds.camera.intrinsics().downscaled(downscale);
+    let poses: std::collections::HashMap<u64, crate::geometry::CameraPose> =
+        ds.records.iter().map(|r| (r.frame, ds.camera_pose(&r.truth, [0.0; 3]))).collect();
+    let mut rays: std::collections::HashMap<u64, Vec<crate::area::rays::Ray>> = Default::default();
+    for (frame, landmark, px, accepted) in
+        crate::area::offline::read_trace_sightings(trace).map_err(anyhow::Error::msg)?
+    {
+        if let (true, Some(pose)) = (accepted, poses.get(&frame)) {
+            let dir = pose.direction(&k, px);
+            rays.entry(landmark).or_default().push(crate::area::rays::Ray { origin: pose.position, dir });
+        }
+    }
+    Ok((rays, 1.0 / k.fx))
 }
 
 /// `mavloc eval indoor`: errors against ground truth, and the plot.
