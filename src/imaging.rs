@@ -46,17 +46,26 @@ pub fn image_files(dir: &std::path::Path) -> std::io::Result<Vec<std::path::Path
 /// will. A file of something else (notes named `.mp4`) passed the start checks, and the
 /// daemon then idled with no camera (outside audit).
 pub fn probe_video(path: &std::path::Path) -> Result<(), String> {
-    use opencv::videoio;
+    use opencv::{core, videoio};
     let not_video = || format!("{} is not a video OpenCV can read", path.display());
     let name = path.to_str().ok_or_else(not_video)?;
-    let mut cap = videoio::VideoCapture::from_file(name, videoio::CAP_ANY).map_err(|_| not_video())?;
-    if !cap.is_opened().unwrap_or(false) {
-        return Err(not_video());
+    // The verdict is said in words: OpenCV's backends each logging why they could not open
+    // the file would come before it, raw, as the checks run before the log is set up.
+    let before = core::set_log_level(core::LogLevel::LOG_LEVEL_SILENT).ok();
+    let frame = videoio::VideoCapture::from_file(name, videoio::CAP_ANY).ok().and_then(|mut cap| {
+        if !cap.is_opened().unwrap_or(false) {
+            return None;
+        }
+        let mut frame = Mat::default();
+        Some(matches!(cap.read(&mut frame), Ok(true) if !frame.empty()))
+    });
+    if let Some(level) = before {
+        let _ = core::set_log_level(level);
     }
-    let mut frame = Mat::default();
-    match cap.read(&mut frame) {
-        Ok(true) if !frame.empty() => Ok(()),
-        _ => Err(format!("{}: OpenCV opens it but decodes no frame from it", path.display())),
+    match frame {
+        None => Err(not_video()),
+        Some(false) => Err(format!("{}: OpenCV opens it but decodes no frame from it", path.display())),
+        Some(true) => Ok(()),
     }
 }
 

@@ -579,18 +579,48 @@ fn a_missing_configuration_file_is_named_once() {
     assert_eq!(err.matches("No such file").count(), 1, "{err}");
 }
 
-/// OpenCV's own log lines (here its video backends failing on a file that is no video)
-/// reach the log through `tracing`, target `opencv`, not as raw `[ WARN:0@...]` lines.
+/// The native library lines OpenCV's decoders write to fd 2 (here libjpeg's on JPEG frames
+/// with stray bytes before their end, which a `file` camera still reads) reach the log
+/// through `tracing`, target `opencv`, not as raw lines; and a file that is no video is
+/// refused before `run` starts without OpenCV's backends' raw `[ WARN:0@...]` lines.
 #[test]
 fn opencv_log_lines_go_through_tracing() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("bad.mp4"), b"not a video").unwrap();
+    let bad = mavloc()
+        .args(["config", "check", "--set", "camera.source=file", "--set", "area.segmenter=water"])
+        .arg("--set")
+        .arg(format!("camera.path={}", dir.path().join("bad.mp4").display()))
+        .arg(temp_config("").path())
+        .assert()
+        .code(78);
+    let err = String::from_utf8_lossy(&bad.get_output().stderr).to_string();
+    assert!(err.contains("bad.mp4 is not a video OpenCV can read"), "{err}");
+    assert!(!err.lines().any(|l| l.starts_with("[ WARN:")), "{err}");
+    // Frames whose scan is followed by stray bytes: libjpeg decodes them and warns.
+    let frames = dir.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    let img = opencv::core::Mat::new_rows_cols_with_default(
+        48,
+        64,
+        opencv::core::CV_8UC3,
+        opencv::core::Scalar::all(120.0),
+    )
+    .unwrap();
+    let mut jpeg = opencv::core::Vector::<u8>::new();
+    opencv::imgcodecs::imencode(".jpg", &img, &mut jpeg, &opencv::core::Vector::new()).unwrap();
+    let mut bytes: Vec<u8> = jpeg.iter().collect();
+    let end = bytes.len() - 2;
+    bytes.splice(end..end, [0x12u8, 0x34, 0x56, 0x78]);
+    for i in 0..30 {
+        std::fs::write(frames.join(format!("{i:04}.jpg")), &bytes).unwrap();
+    }
     let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let config = dir.path().join("mavloc.toml");
     std::fs::write(
         &config,
         format!(
-            "[camera]\nsource = \"file\"\npath = \"bad.mp4\"\n[area]\nsegmenter = \"water\"\n[mavlink]\nconnection = \"udpin:127.0.0.1:{port}\"\n\
+            "[camera]\nsource = \"file\"\npath = \"frames\"\nwidth = 64\nheight = 48\n[area]\nsegmenter = \"water\"\n[mavlink]\nconnection = \"udpin:127.0.0.1:{port}\"\n\
              [daemon]\nstate_dir = \"{}\"\n",
             dir.path().join("state").display(),
         ),
@@ -616,8 +646,8 @@ fn opencv_log_lines_go_through_tracing() {
     let _ = child.kill();
     let out = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("WARN opencv:"), "{err}");
-    assert!(!err.lines().any(|l| l.starts_with("[ WARN:")), "{err}");
+    assert!(err.contains("WARN opencv: image decoder: Corrupt JPEG data"), "{err}");
+    assert!(!err.lines().any(|l| l.starts_with("Corrupt JPEG") || l.starts_with("[ WARN:")), "{err}");
 }
 
 /// The README's parameter table is the one the code generates (`mavloc params doc`).
