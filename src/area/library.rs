@@ -680,19 +680,27 @@ mod tests {
         assert!(results.iter().all(|r| !tracked.contains(&r.id)), "{results:?} vs {tracked:?}");
     }
 
+    /// A 960x540 camera with a 90 deg view, straight down from 40 m over the origin.
+    fn nadir_camera_40m() -> (Intrinsics, CameraPose) {
+        use crate::geometry::{GimbalAngles, GimbalChain, Mount};
+        let k = Intrinsics::from_hfov(960, 540, 90f64.to_radians());
+        let down = GimbalAngles { yaw: 0.0, pitch: -90f64.to_radians(), roll: 0.0 };
+        (
+            k,
+            CameraPose::from_gimbal(
+                Vec3::new(0.0, 0.0, -40.0),
+                GimbalChain::YawPitchRoll,
+                down,
+                Mount::Earth,
+            ),
+        )
+    }
+
     /// SIFT's twin keypoints (one place, two orientations) make one landmark holding both
     /// descriptors, and a twin of a feature matched this frame makes none.
     #[test]
     fn features_at_one_point_make_one_landmark_and_a_matched_point_none() {
-        use crate::geometry::{GimbalAngles, GimbalChain, Mount};
-        let k = Intrinsics::from_hfov(960, 540, 90f64.to_radians());
-        let down = GimbalAngles { yaw: 0.0, pitch: -90f64.to_radians(), roll: 0.0 };
-        let pose = CameraPose::from_gimbal(
-            Vec3::new(0.0, 0.0, -40.0),
-            GimbalChain::YawPitchRoll,
-            down,
-            Mount::Earth,
-        );
+        let (k, pose) = nadir_camera_40m();
         // SIFT's twins: two keypoints at one place with unlike descriptors (two
         // orientations), a third 0.4 px away, and two points elsewhere, one of them
         // twinned with a feature this frame matched to a landmark already.
@@ -728,15 +736,7 @@ mod tests {
     /// looks only inside the landmark's gate and takes its own feature.
     #[test]
     fn guided_matching_finds_a_landmark_among_look_alikes_where_the_global_test_refuses() {
-        use crate::geometry::{GimbalAngles, GimbalChain, Mount};
-        let k = Intrinsics::from_hfov(960, 540, 90f64.to_radians());
-        let down = GimbalAngles { yaw: 0.0, pitch: -90f64.to_radians(), roll: 0.0 };
-        let pose = CameraPose::from_gimbal(
-            Vec3::new(0.0, 0.0, -40.0),
-            GimbalChain::YawPitchRoll,
-            down,
-            Mount::Earth,
-        );
+        let (k, pose) = nadir_camera_40m();
         let truth = Vec3::new(3.0, -2.0, 0.0);
         let own = pose.project(&k, &truth).unwrap();
         // The landmark's descriptor, and the frame's copies of it (each a little off).

@@ -1075,6 +1075,16 @@ mod shell_tests {
         _dir: tempfile::TempDir,
     }
 
+    /// A frame sources' context for a shell under test: no credits, not stopped.
+    fn source_context() -> SourceContext {
+        SourceContext {
+            started: std::time::Instant::now(),
+            latest_pose: Arc::new(Mutex::new(None)),
+            stop: Arc::new(AtomicBool::new(false)),
+            credits: None,
+        }
+    }
+
     fn start() -> Harness {
         let mut settings = Settings::default();
         settings.daemon.pipeline = PipelineKind::None;
@@ -1088,12 +1098,7 @@ mod shell_tests {
     #[test]
     fn dropped_frames_are_said_by_reason_and_a_stopped_workers_stay_counted() {
         let (_camera_tx, camera_rx) = mpsc::channel(1);
-        let ctx = SourceContext {
-            started: std::time::Instant::now(),
-            latest_pose: Arc::new(Mutex::new(None)),
-            stop: Arc::new(AtomicBool::new(false)),
-            credits: None,
-        };
+        let ctx = source_context();
         let mut live = Live::new(PathBuf::from("results"), ctx, camera_rx, None);
         assert_eq!(live.drops_said(), None);
         live.drop_before("autopilot clock not synchronised yet");
@@ -1134,12 +1139,7 @@ mod shell_tests {
             task: tokio::spawn(async {}),
         };
         let (_camera_tx, camera_rx) = mpsc::channel(1);
-        let ctx = SourceContext {
-            started: std::time::Instant::now(),
-            latest_pose: Arc::new(Mutex::new(None)),
-            stop: Arc::new(AtomicBool::new(false)),
-            credits: None,
-        };
+        let ctx = source_context();
         let latest_pose = ctx.latest_pose.clone();
         let live = Live::new(dir.path().join("results"), ctx, camera_rx, None);
         let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
