@@ -431,6 +431,19 @@ pub enum AlignError {
     Gimbal(Missing),
 }
 
+impl AlignError {
+    /// What went wrong without the numbers of this frame, to count drops by: the
+    /// `Display` text carries times that change with every frame.
+    pub fn kind(&self) -> String {
+        let missing = |m: &Missing| format!("{m:?}").split([' ', '(', '{']).next().unwrap_or("").to_string();
+        match self {
+            AlignError::NoClock | AlignError::Wait => self.to_string(),
+            AlignError::Vehicle(m) => format!("no vehicle pose at the capture time ({})", missing(m)),
+            AlignError::Gimbal(m) => format!("no gimbal attitude at the capture time ({})", missing(m)),
+        }
+    }
+}
+
 impl std::fmt::Display for AlignError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -587,6 +600,23 @@ impl Aligner {
 
 #[cfg(test)]
 mod tests {
+    /// Drops are counted by kind: two frames too old for the history, at different times,
+    /// are one kind, though their messages differ by the times in them.
+    #[test]
+    fn an_alignment_errors_kind_leaves_out_this_frames_numbers() {
+        use super::{AlignError, Missing};
+        let a = AlignError::Vehicle(Missing::TooOld { oldest: 1712.34 });
+        let b = AlignError::Vehicle(Missing::TooOld { oldest: 1713.01 });
+        assert_ne!(a.to_string(), b.to_string());
+        assert_eq!(a.kind(), b.kind());
+        assert_eq!(a.kind(), "no vehicle pose at the capture time (TooOld)");
+        assert_eq!(
+            AlignError::Gimbal(Missing::Empty).kind(),
+            "no gimbal attitude at the capture time (Empty)"
+        );
+        assert_ne!(a.kind(), AlignError::Vehicle(Missing::Gap { gap_s: 0.6 }).kind());
+    }
+
     use super::*;
     use proptest::prelude::*;
     use rand::{Rng, SeedableRng};

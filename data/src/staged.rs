@@ -90,7 +90,7 @@ impl StagedDir {
                         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
                         .is_some_and(|v| v.get("complete") == Some(&serde_json::Value::Bool(true)));
                     let (kind, what) = if complete {
-                        ("unswapped", "the complete results of a run that could not put them in place")
+                        ("unswapped", "complete results left beside (a run's that could not put them in place, or those it replaced, if it ended as it removed them)")
                     } else {
                         ("interrupted", "the results an interrupted run left")
                     };

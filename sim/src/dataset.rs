@@ -105,7 +105,7 @@ impl FramesFrom {
             let last = self.ds.records.last().map_or(0, |r| r.frame);
             if i as u64 > last {
                 format!(
-                    "--frames-from {dir}: it ends at frame {last}, and this render needs frame {i}: render no more frames than it holds (--frames {}), or render the frames anew",
+                    "--frames-from {dir}: it ends at frame {last} (rendered with fewer frames, or its last ones dropped), and this render needs frame {i}: render no more frames than it holds (--frames {}), or render the frames anew",
                     last + 1
                 )
             } else {

@@ -7,8 +7,10 @@
 //! (up to the band's width, on a correct landmark) with its error; the height is its error
 //! alone where the ground is level, and shows a map that floats as a whole. With the run's
 //! sightings (`trace.csv`) and a rendered dataset's true poses, each landmark is also set
-//! against the point its own sightings fix from the true poses
-//! ([`AreaEvaluation::with_true_rays`]): its error alone, wherever in the band it lies.
+//! against the point its own traced sightings fix from the true poses
+//! ([`AreaEvaluation::with_true_rays`]): its error, wherever in the band it lies, as far
+//! as those sightings are right (a landmark made of false matches is set against where
+//! those false rays meet; a landmark's first sighting is not traced).
 
 use std::collections::HashMap;
 

@@ -912,7 +912,7 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
                 } else {
                     e.to_string()
                 };
-                live.drop_before(&why);
+                live.drop_before(&if matches!(e, AlignError::Wait) { why.clone() } else { e.kind() });
                 if live.last_align_error.as_deref() != Some(why.as_str()) {
                     tracing::warn!(
                         "frame {} dropped: {why} (further drops for this reason are only counted)",

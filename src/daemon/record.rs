@@ -354,6 +354,9 @@ struct Writer {
     /// The recording's origin; `None`: the placeholder, positions written as given.
     origin: Option<Geodetic>,
     first_capture_s: f64,
+    /// The last `t` written: a dataset's time never goes back (`Dataset::open` refuses it),
+    /// and a camera's stamps can, a driver's stamp after a grab time (`camera::video`).
+    last_t: f64,
     /// The last live frame number written and its number in the recording.
     last: Option<(u64, u64)>,
     /// Lines of frames whose images are written but not yet synced, and those images.
@@ -430,6 +433,7 @@ impl Writer {
             chain: spec.chain,
             origin: first.origin,
             first_capture_s: first.capture_s,
+            last_t: f64::NEG_INFINITY,
             last: None,
             pending: String::new(),
             pending_files: Vec::new(),
@@ -463,9 +467,10 @@ impl Writer {
                 }
                 _ => p,
             });
+        self.last_t = self.last_t.max(item.capture_s - self.first_capture_s);
         let record = TelemetryRecord {
             frame: n,
-            t: item.capture_s - self.first_capture_s,
+            t: self.last_t,
             truth: pose,
             measured: pose,
             appearance: None,
@@ -664,6 +669,26 @@ mod tests {
             .filter(|n| n.starts_with('.'))
             .collect();
         assert!(hidden.is_empty(), "{hidden:?}");
+    }
+
+    /// A capture stamp that steps back (a V4L2 driver's stamp after a grab time, after a
+    /// stall) is written as the time before it: a dataset's time never goes back, and one
+    /// such line made the whole recording unreadable.
+    #[test]
+    fn a_capture_stamp_that_steps_back_keeps_the_recording_readable() {
+        let dir = tempfile::tempdir().unwrap();
+        let rec_dir = dir.path().join("run-1");
+        let r = Recorder::start(spec(&rec_dir, RecordFormat::Png));
+        let origin = Some(Geodetic::new(57.0, 10.0, 12.0));
+        let mut back = frame(3, origin);
+        back.capture_s = 100.2; // frame 2 was captured at 100.5
+        for f in [frame(1, origin), frame(2, origin), back, frame(4, origin)] {
+            r.offer(&f, [0.0; 3]);
+        }
+        r.stop();
+        let ds = mavloc_data::Dataset::open(&rec_dir).expect("the recording opens");
+        let t: Vec<f64> = ds.records.iter().map(|r| r.t).collect();
+        assert_eq!(t, [0.0, 0.25, 0.25, 0.75]);
     }
 
     /// A lossless replay (`camera.realtime = false`) records every frame however slow the

@@ -721,8 +721,12 @@ fn unmakeable_dir(dir: &Path) -> Option<String> {
                 }
                 // access() says yes to root on the kernel's own file systems, where no
                 // directory can be made: `config check` passed /proc/x and `run` refused it.
-                return kernel_fs(p)
-                    .map(|fs| format!("{} is on {fs}, where no directory can be made", p.display()));
+                return kernel_fs(p).map(|fs| {
+                    format!(
+                        "{} is on {fs}, a kernel file system where mavloc cannot keep its state",
+                        p.display()
+                    )
+                });
             }
             Ok(_) => return Some(format!("{} is not a directory", p.display())),
             Err(e)

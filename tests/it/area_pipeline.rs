@@ -98,15 +98,19 @@ fn cliff_short_flight_is_accurate_where_the_ground_plane_fails() {
 }
 
 /// `--trace` writes every landmark update; with it, `mavloc eval area` on a rendered
-/// dataset sets the landmarks against the point their sightings fix from the true poses.
-/// (The 240-frame flight the short-flight test renders: 30 frames converge no landmark.)
+/// dataset sets the landmarks against the point their sightings fix from the true poses,
+/// at the pixels' scale (here half size: taken at full size, the same rays missed by 27 m
+/// on average against 0.54 m). The 240-frame flight the short-flight test renders (30
+/// frames converge no landmark).
 #[test]
 fn trace_records_every_update() {
     let dir = tempfile::tempdir().unwrap();
     let ds = render("coastline", 240);
     let out = dir.path().join("traced");
     let opts = traced(&ds, &out);
-    run(&opts, &settings(), |_, _| {}).unwrap();
+    let mut s = settings();
+    s.area.downscale = 2;
+    run(&opts, &s, |_, _| {}).unwrap();
     let trace = std::fs::read_to_string(out.join("trace.csv")).unwrap();
     let rows: Vec<&str> = trace.lines().skip(1).collect();
     assert!(rows.len() > 100, "{} updates traced", rows.len());
@@ -115,7 +119,7 @@ fn trace_records_every_update() {
     // (the rendered dataset's `true` poses), at the trace's scale (summary.json's downscale).
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
-    assert_eq!(summary["downscale"], serde_json::json!(settings().area.downscale));
+    assert_eq!(summary["downscale"], serde_json::json!(2));
     let eval = std::process::Command::new(crate::fixtures::BIN)
         .args(["eval", "area", "--json", "--dataset"])
         .arg(&ds)
@@ -128,9 +132,9 @@ fn trace_records_every_update() {
     let e: serde_json::Value = serde_json::from_slice(&eval.stdout).unwrap();
     let (n, all) = (e["true_fix_landmarks"].as_u64().unwrap(), e["landmarks"].as_u64().unwrap());
     assert!(n > 0 && 2 * n >= all, "{n} of {all} landmarks set against the true poses");
-    // The seed's noise (0.5 deg, 0.5/0.5/2 m) over 30 frames, filters alone: a metre or two.
+    // The seed's noise (0.5 deg, 0.5/0.5/2 m), filters alone: about half a metre.
     let mean = e["true_fix_mean_m"].as_f64().unwrap();
-    assert!(mean > 0.0 && mean < 5.0, "{mean}");
+    assert!(mean > 0.0 && mean < 2.0, "{mean}");
 }
 
 /// The UKF pipeline over `ds` into `out` with `s`: its landmarks against the ground

@@ -229,8 +229,9 @@ impl Waiting {
                     ),
                     (None, Some(LinkAddress::UdpIn { host, port })) => (
                         format!(
-                            "no autopilot after {waited} s: {what} on udp {host}:{port}: is the autopilot or \
-                             mavlink-router sending there (PX4 SITL's onboard link: 14540)?"
+                            "no autopilot after {waited} s: {what} on udp {}: is the autopilot or \
+                             mavlink-router sending there (PX4 SITL's onboard link: 14540)?",
+                            crate::settings::address::host_port(host, *port)
                         ),
                         "no autopilot: nothing from it heard",
                     ),
