@@ -953,7 +953,9 @@ fn frames_from_a_shorter_dataset_says_where_it_ends() {
         .failure();
     let said = String::from_utf8_lossy(&out.get_output().stderr).to_string();
     assert!(
-        said.contains("it ends at frame 1, and this render needs frame 2") && said.contains("--frames 2"),
+        said.contains("it ends at frame 1 (rendered with fewer frames")
+            && said.contains("needs frame 2")
+            && said.contains("--frames 2"),
         "{said}"
     );
     assert!(!said.contains("dropped when it was rendered"), "{said}");
