@@ -257,6 +257,18 @@ pub enum Missing {
     Gap { gap_s: f64 },
 }
 
+impl Missing {
+    /// The case, without its numbers.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Missing::Empty => "Empty",
+            Missing::Ahead { .. } => "Ahead",
+            Missing::TooOld { .. } => "TooOld",
+            Missing::Gap { .. } => "Gap",
+        }
+    }
+}
+
 impl<T: Interpolate> History<T> {
     pub fn new(span_s: f64) -> History<T> {
         History { samples: VecDeque::new(), span_s }
@@ -435,11 +447,10 @@ impl AlignError {
     /// What went wrong without the numbers of this frame, to count drops by: the
     /// `Display` text carries times that change with every frame.
     pub fn kind(&self) -> String {
-        let missing = |m: &Missing| format!("{m:?}").split([' ', '(', '{']).next().unwrap_or("").to_string();
         match self {
             AlignError::NoClock | AlignError::Wait => self.to_string(),
-            AlignError::Vehicle(m) => format!("no vehicle pose at the capture time ({})", missing(m)),
-            AlignError::Gimbal(m) => format!("no gimbal attitude at the capture time ({})", missing(m)),
+            AlignError::Vehicle(m) => format!("no vehicle pose at the capture time ({})", m.name()),
+            AlignError::Gimbal(m) => format!("no gimbal attitude at the capture time ({})", m.name()),
         }
     }
 }

@@ -912,13 +912,16 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
                 } else {
                     e.to_string()
                 };
-                live.drop_before(&if matches!(e, AlignError::Wait) { why.clone() } else { e.kind() });
-                if live.last_align_error.as_deref() != Some(why.as_str()) {
+                // Said and counted by its kind: the full text carries this frame's times, so
+                // "further drops for this reason" were said again for every frame too old.
+                let kind = if matches!(e, AlignError::Wait) { why.clone() } else { e.kind() };
+                live.drop_before(&kind);
+                if live.last_align_error.as_deref() != Some(kind.as_str()) {
                     tracing::warn!(
                         "frame {} dropped: {why} (further drops for this reason are only counted)",
                         c.index
                     );
-                    live.last_align_error = Some(why);
+                    live.last_align_error = Some(kind);
                 }
                 continue;
             }
