@@ -748,17 +748,19 @@ fn unmakeable_dir(dir: &Path) -> Option<String> {
 /// The name of the kernel file system `p` is on, if it is one of those that hold no
 /// directories of ours (proc, sysfs, cgroup, ...).
 fn kernel_fs(p: &Path) -> Option<&'static str> {
-    let fs = rustix::fs::statfs(p).ok()?;
-    // The magic numbers of linux/magic.h.
-    match fs.f_type as u64 {
-        0x9fa0 => Some("proc"),
-        0x6265_6572 => Some("sysfs"),
-        0x6367_7270 | 0x0027_e0eb => Some("cgroup"),
-        0x6462_6720 => Some("debugfs"),
-        0x7472_6163 => Some("tracefs"),
-        0x7363_6673 => Some("securityfs"),
-        _ => None,
-    }
+    let kind = rustix::fs::statfs(p).ok()?.f_type as u64;
+    // linux/magic.h's numbers, as libc has them (their type differs by target).
+    [
+        (libc::PROC_SUPER_MAGIC as u64, "proc"),
+        (libc::SYSFS_MAGIC as u64, "sysfs"),
+        (libc::CGROUP2_SUPER_MAGIC as u64, "cgroup"),
+        (libc::CGROUP_SUPER_MAGIC as u64, "cgroup"),
+        (libc::DEBUGFS_MAGIC as u64, "debugfs"),
+        (libc::TRACEFS_MAGIC as u64, "tracefs"),
+        (libc::SECURITYFS_MAGIC as u64, "securityfs"),
+    ]
+    .into_iter()
+    .find_map(|(magic, name)| (magic == kind).then_some(name))
 }
 
 /// Range and consistency checks on merged settings.
