@@ -143,7 +143,7 @@ impl AreaEvaluation {
         rays: &HashMap<u64, Vec<Ray>>,
         pixel_rad: f64,
     ) -> Self {
-        let errors: Vec<f64> = landmarks
+        let mut errors: Vec<f64> = landmarks
             .iter()
             .filter_map(|l| {
                 let r = rays.get(&l.id)?;
@@ -153,12 +153,11 @@ impl AreaEvaluation {
             .collect();
         self.true_fix_landmarks = Some(errors.len());
         if !errors.is_empty() {
-            let (mean, median, _) = stats(&errors);
-            let mut sorted = errors.clone();
-            sorted.sort_by(f64::total_cmp);
-            self.true_fix_mean_m = Some(mean);
-            self.true_fix_median_m = Some(median);
-            self.true_fix_p95_m = Some(sorted[((sorted.len() - 1) as f64 * 0.95).round() as usize]);
+            errors.sort_by(f64::total_cmp);
+            let n = errors.len();
+            self.true_fix_mean_m = Some(errors.iter().sum::<f64>() / n as f64);
+            self.true_fix_median_m = Some(errors[n / 2]);
+            self.true_fix_p95_m = Some(errors[((n - 1) as f64 * 0.95).round() as usize]);
         }
         self
     }
