@@ -63,7 +63,15 @@ pub fn run(command: ConfigCommand, global: Global) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         ConfigCommand::Show => {
-            let mut loaded = global.load()?;
+            let mut loaded = match global.load() {
+                Ok(l) => l,
+                Err(e) => {
+                    use std::io::Write;
+                    let _ = writeln!(crate::logging::stderr(), "mavloc: {e:#}");
+                    // As `config check` and `run` exit on the same configuration.
+                    return Ok(ExitCode::from(crate::daemon::EXIT_UNUSABLE));
+                }
+            };
             let (path, tuned) = super::params::tuned_layer(&mut loaded);
             print!("{}", settings::render_effective(&loaded));
             for t in tuned {

@@ -722,7 +722,8 @@ pub async fn run(
     live.ctx.stop.store(true, Ordering::Relaxed);
     if let Some((k, w)) = live.take_worker() {
         match tokio::task::block_in_place(|| w.stop()) {
-            Ok(()) => tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display()),
+            Ok(0) => tracing::info!("{k:?} pipeline stopped with no new results"),
+            Ok(_) => tracing::info!("{k:?} pipeline stopped; results in {}", live.results.display()),
             Err(e) => tracing::warn!(
                 "{k:?} pipeline stopped without its final results ({e}); {} holds the last complete set",
                 live.results.display()

@@ -106,7 +106,7 @@ pub struct Worker {
     thread: Option<std::thread::JoinHandle<()>>,
     pub dropped: Arc<std::sync::atomic::AtomicU64>,
     /// How the stop went, once the worker handled it: the final write's outcome.
-    stopped: Arc<Mutex<Option<Result<(), String>>>>,
+    stopped: Arc<Mutex<Option<Result<usize, String>>>>,
 }
 
 impl Worker {
@@ -150,9 +150,10 @@ impl Worker {
         cv.notify_one();
     }
 
-    /// Stops the worker after its current frame and waits for it to write its results;
-    /// an error says why they could not be (the last complete set stays current).
-    pub fn stop(mut self) -> Result<(), String> {
+    /// Stops the worker after its current frame and waits for it to write its results: how
+    /// many files it wrote (none when it had nothing worth a set, as an area run with no
+    /// landmark); an error says why they could not be (the last complete set stays current).
+    pub fn stop(mut self) -> Result<usize, String> {
         self.request(Request::Stop);
         if let Some(t) = self.thread.take() {
             // `finish` runs outside the per-frame panic guard: a panic there is a failed stop.
@@ -187,7 +188,7 @@ fn run(
     mut settings: Settings,
     shared: Arc<(Mutex<Mailbox>, Condvar)>,
     events: tokio::sync::mpsc::Sender<Event>,
-    stopped: Arc<Mutex<Option<Result<(), String>>>>,
+    stopped: Arc<Mutex<Option<Result<usize, String>>>>,
 ) {
     let build = |s: &Settings| match catch_unwind(AssertUnwindSafe(|| factory(s))) {
         Ok(r) => r,
@@ -256,7 +257,7 @@ fn run(
                 Request::Stop => {
                     let finished = pipeline.finish();
                     *stopped.lock().unwrap_or_else(|p| p.into_inner()) =
-                        Some(finished.as_ref().map(|_| ()).map_err(|e| e.to_string()));
+                        Some(finished.as_ref().map(Vec::len).map_err(|e| e.to_string()));
                     let files = finished.unwrap_or_else(|e| {
                         // Logged here too: at shutdown nobody reads the event.
                         let line = format!("cannot write the pipeline's results at stop: {e}");
@@ -416,6 +417,32 @@ mod tests {
         let factory: Factory = Box::new(|_| Err("no camera intrinsics".into()));
         let e = Worker::start(factory, Settings::default(), 1, tx).stop().unwrap_err();
         assert!(e.contains("had ended before"), "{e}");
+    }
+
+    /// Writes the files it is given at its stop.
+    struct Writes(Vec<PathBuf>);
+
+    impl LivePipeline for Writes {
+        fn process(&mut self, _: &LiveFrame) -> Report {
+            Report::default()
+        }
+        fn apply(&mut self, _: &Settings) {}
+        fn write_results(&self) -> std::io::Result<Vec<PathBuf>> {
+            Ok(self.0.clone())
+        }
+    }
+
+    /// The stop says how many files the final set has, so the daemon's last line says
+    /// "results in …" only when there are some (an area run with no landmark writes none).
+    #[test]
+    fn a_stop_counts_the_files_of_the_final_set() {
+        for files in [vec![], vec![PathBuf::from("a.csv"), PathBuf::from("summary.json")]] {
+            let n = files.len();
+            let (tx, _rx) = tokio::sync::mpsc::channel(64);
+            let factory: Factory =
+                Box::new(move |_| Ok(Box::new(Writes(files.clone())) as Box<dyn LivePipeline>));
+            assert_eq!(Worker::start(factory, Settings::default(), 1, tx).stop(), Ok(n));
+        }
     }
 
     /// Holds each frame until the test lets it go.
