@@ -317,7 +317,7 @@ pub struct AreaArgs {
     /// default: `area.method` of the configuration.
     #[arg(long, value_parser = ["ukf", "ground-plane"])]
     pub method: Option<String>,
-    /// Write every landmark update to trace.csv (seed fig. 6.2).
+    /// Write every landmark update, and each landmark's first sighting, to trace.csv (seed fig. 6.2).
     #[arg(long)]
     pub trace: bool,
     /// Process at most this many frames.

@@ -264,13 +264,18 @@ pub mod fixed {
     }
     decimals!(dp2: 2, dp3: 3, dp4: 4, dp5: 5, dp6: 6, dp9: 9);
 
-    /// `{:.2}`, or an empty field for `None`.
-    pub fn opt_dp2<S: Serializer>(v: &Option<f64>, s: S) -> Result<S::Ok, S::Error> {
-        match v {
-            Some(v) => dp2(v, s),
-            None => s.serialize_str(""),
-        }
+    macro_rules! optional {
+        ($($name:ident: $inner:ident),*) => {$(
+            #[doc = concat!("[`", stringify!($inner), "`], or an empty field for `None`.")]
+            pub fn $name<S: Serializer>(v: &Option<f64>, s: S) -> Result<S::Ok, S::Error> {
+                match v {
+                    Some(v) => $inner(v, s),
+                    None => s.serialize_str(""),
+                }
+            }
+        )*};
     }
+    optional!(opt_dp2: dp2, opt_dp4: dp4, opt_dp6: dp6);
 
     /// `{:.4}`, or an empty field for NaN (a value nobody knows: the ground-plane
     /// baseline's sigma). A spreadsheet or QGIS reads an empty field as missing, where

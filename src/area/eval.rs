@@ -10,7 +10,8 @@
 //! against the point its own traced sightings fix from the true poses
 //! ([`AreaEvaluation::with_true_rays`]): its error, wherever in the band it lies, as far
 //! as those sightings are right (a landmark made of false matches is set against where
-//! those false rays meet; a landmark's first sighting is not traced).
+//! those false rays meet; since session 46 the trace holds each landmark's first sighting
+//! too, so a landmark seen in two photos counts).
 
 use std::collections::HashMap;
 

@@ -10,7 +10,7 @@ use opencv::prelude::*;
 use super::features::Features;
 use super::rays::{self, Ray, Rays};
 use crate::filter::{BearingModel, MeasurementModel, Ukf, UkfParams};
-use crate::geometry::{CameraPose, Intrinsics, Pixel, Vec3};
+use crate::geometry::{Bearing, CameraPose, Intrinsics, Pixel, Vec3};
 use crate::settings::AreaMatching;
 use mavloc_data::results::LandmarkRecord;
 
@@ -262,12 +262,15 @@ pub struct TraceEntry {
     pub pixel: Pixel,
     /// Measured bearing (yaw, pitch), radians.
     pub measurement: [f64; 2],
-    /// Predicted bearing before the update.
-    pub prediction: [f64; 2],
-    /// Mahalanobis distance of the innovation (eq. 5.11).
-    pub mahalanobis: f64,
+    /// Predicted bearing before the update; `None` for the sighting that created the
+    /// landmark (nothing predicted it).
+    pub prediction: Option<[f64; 2]>,
+    /// Mahalanobis distance of the innovation (eq. 5.11); `None` at creation.
+    pub mahalanobis: Option<f64>,
+    /// Whether the sighting was taken (always, for the one that created the landmark).
     pub accepted: bool,
-    /// State mean and covariance after the step (unchanged when refused).
+    /// State mean and covariance after the step (unchanged when refused; the initial
+    /// estimate at creation).
     pub mean: [f64; 3],
     /// Covariance entries nn, ne, nd, ee, ed, dd.
     pub covariance: [f64; 6],
@@ -387,8 +390,8 @@ impl Library {
                     landmark: landmark.id,
                     pixel: px,
                     measurement: local(&z),
-                    prediction: local(&pred.z),
-                    mahalanobis: d,
+                    prediction: Some(local(&pred.z)),
+                    mahalanobis: Some(d),
                     accepted,
                     mean: [m.x, m.y, m.z],
                     covariance: [p[(0, 0)], p[(0, 1)], p[(0, 2)], p[(1, 1)], p[(1, 2)], p[(2, 2)]],
@@ -567,7 +570,8 @@ impl Library {
     /// ray (where the ground-plane guess is uncertain) and narrow across it (where the
     /// bearing pins it down), so the filter converges from a wrong ground height. Features
     /// at one point ([`SAME_POINT_PX`]) make one landmark, which keeps each one's
-    /// descriptor; a point a landmark was matched at this frame makes none.
+    /// descriptor; a point a landmark was matched at this frame makes none. With `created`,
+    /// each new landmark's first sighting is recorded there as a trace entry.
     pub fn add(
         &mut self,
         frame: u64,
@@ -575,7 +579,7 @@ impl Library {
         used: &[bool],
         pose: &CameraPose,
         k: &Intrinsics,
-        mut created: Option<&mut Vec<(u64, Pixel)>>,
+        mut created: Option<&mut Vec<TraceEntry>>,
     ) -> usize {
         let room = self.params.l_max.saturating_sub(self.landmarks.len());
         if room == 0 {
@@ -645,10 +649,22 @@ impl Library {
                     }
                 }
             }
-            self.push(landmark);
             if let Some(c) = created.as_deref_mut() {
-                c.push((self.next_id - 1, px));
+                let p = landmark.ukf.covariance();
+                let b = Bearing::from_direction(&d).unwrap_or(Bearing { yaw: 0.0, pitch: 0.0 });
+                c.push(TraceEntry {
+                    frame,
+                    landmark: self.next_id,
+                    pixel: px,
+                    measurement: [b.yaw, b.pitch],
+                    prediction: None,
+                    mahalanobis: None,
+                    accepted: true,
+                    mean: [ground.x, ground.y, ground.z],
+                    covariance: [p[(0, 0)], p[(0, 1)], p[(0, 2)], p[(1, 1)], p[(1, 2)], p[(2, 2)]],
+                });
             }
+            self.push(landmark);
             added += 1;
         }
         added
@@ -724,7 +740,7 @@ mod tests {
         let mut created = Vec::new();
         let added = lib.add(0, &features, &used, &pose, &k, Some(&mut created));
         assert_eq!(added, 2, "one landmark at (300, 200), one at (600, 300): {created:?}");
-        let at = |u: f64| created.iter().filter(|(_, p)| (p.u - u).abs() < 1.0).count();
+        let at = |u: f64| created.iter().filter(|t| (t.pixel.u - u).abs() < 1.0).count();
         assert_eq!((at(300.0), at(600.0), at(700.0)), (1, 1, 0), "{created:?}");
         let first = lib.landmarks.iter().find(|l| l.descriptor_count() == 3);
         assert!(first.is_some(), "the point's landmark keeps all three descriptors");

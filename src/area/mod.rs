@@ -74,7 +74,8 @@ pub struct FrameReport {
     pub converged: Vec<LandmarkRecord>,
     /// Library size after the frame.
     pub landmarks: usize,
-    /// Per-update history, when tracing is on.
+    /// Per-update history, when tracing is on: every match's update (gated ones too),
+    /// then each landmark created here with its first sighting.
     pub trace: Vec<TraceEntry>,
     /// When tracing is on: where each landmark was seen in this frame, `(landmark,
     /// pixel)`: the landmarks created here and every match, gated ones included (the
@@ -190,13 +191,11 @@ impl AreaPipeline {
         let (purged, converged) = self.library.purge(input.index);
         report.purged = purged;
         report.converged = converged;
-        let created = if self.trace { Some(&mut report.sightings) } else { None };
+        let created = if self.trace { Some(&mut report.trace) } else { None };
         report.added = self.library.add(input.index, &features, &used, &input.pose, &self.k, created);
-        report.accepted_sightings = report.sightings.clone();
-        report
-            .accepted_sightings
-            .extend(report.trace.iter().filter(|t| t.accepted).map(|t| (t.landmark, t.pixel)));
-        report.sightings.extend(report.trace.iter().map(|t| (t.landmark, t.pixel)));
+        report.accepted_sightings =
+            report.trace.iter().filter(|t| t.accepted).map(|t| (t.landmark, t.pixel)).collect();
+        report.sightings = report.trace.iter().map(|t| (t.landmark, t.pixel)).collect();
         report.landmarks = self.library.landmarks.len();
         report.timing =
             StageTiming { band: t1 - t0, sift: t2 - t1, match_estimate: t3 - t2, purge_add: t3.elapsed() };

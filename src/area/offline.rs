@@ -224,7 +224,9 @@ pub fn write_results(
 }
 
 /// One row of `trace.csv`: a landmark update (seed fig. 6.2): the sighting, measured and
-/// predicted bearing, gate distance and verdict, and the estimate after the update.
+/// predicted bearing, gate distance and verdict, and the estimate after the update; or a
+/// landmark's first sighting, with no prediction or gate distance and its initial estimate
+/// (so every ray a landmark was built from is in the file).
 #[derive(Serialize, Deserialize)]
 struct TraceRow {
     frame: u64,
@@ -237,12 +239,13 @@ struct TraceRow {
     meas_yaw: f64,
     #[serde(serialize_with = "fixed::dp6")]
     meas_pitch: f64,
-    #[serde(serialize_with = "fixed::dp6")]
-    pred_yaw: f64,
-    #[serde(serialize_with = "fixed::dp6")]
-    pred_pitch: f64,
-    #[serde(serialize_with = "fixed::dp4")]
-    mahalanobis: f64,
+    /// Empty on the row of a landmark's first sighting, which created it.
+    #[serde(serialize_with = "fixed::opt_dp6")]
+    pred_yaw: Option<f64>,
+    #[serde(serialize_with = "fixed::opt_dp6")]
+    pred_pitch: Option<f64>,
+    #[serde(serialize_with = "fixed::opt_dp4")]
+    mahalanobis: Option<f64>,
     #[serde(serialize_with = "fixed::bool01", deserialize_with = "fixed::de_bool01")]
     accepted: bool,
     #[serde(serialize_with = "fixed::dp4")]
@@ -292,8 +295,8 @@ impl From<&super::library::TraceEntry> for TraceRow {
             v: t.pixel.v,
             meas_yaw: t.measurement[0],
             meas_pitch: t.measurement[1],
-            pred_yaw: t.prediction[0],
-            pred_pitch: t.prediction[1],
+            pred_yaw: t.prediction.map(|p| p[0]),
+            pred_pitch: t.prediction.map(|p| p[1]),
             mahalanobis: t.mahalanobis,
             accepted: t.accepted,
             north: t.mean[0],

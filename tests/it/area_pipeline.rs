@@ -115,6 +115,37 @@ fn trace_records_every_update() {
     let rows: Vec<&str> = trace.lines().skip(1).collect();
     assert!(rows.len() > 100, "{} updates traced", rows.len());
     assert!(rows.iter().all(|r| r.split(',').count() == 19));
+    // Each landmark's first sighting is a row too, with no prediction or gate distance:
+    // one per landmark, before its updates, at the frame landmarks.csv says it began.
+    let mut first: std::collections::HashMap<&str, (usize, u64)> = Default::default();
+    for (i, r) in rows.iter().enumerate() {
+        let f: Vec<&str> = r.split(',').collect();
+        if f[6].is_empty() {
+            assert!(f[7].is_empty() && f[8].is_empty() && f[9] == "1", "{r}");
+            assert!(
+                first.insert(f[1], (i, f[0].parse().unwrap())).is_none(),
+                "landmark {} created twice",
+                f[1]
+            );
+        }
+    }
+    for (i, r) in rows.iter().enumerate() {
+        let id = r.split(',').nth(1).unwrap();
+        let created = first.get(id).unwrap_or_else(|| panic!("landmark {id} updated, never created: {r}"));
+        assert!(created.0 <= i, "landmark {id} updated before it was created");
+    }
+    let landmarks =
+        parse_landmarks_csv(&std::fs::read_to_string(out.join("landmarks.csv")).unwrap(), "landmarks.csv")
+            .unwrap();
+    assert!(!landmarks.is_empty());
+    for l in &landmarks {
+        assert_eq!(
+            first.get(l.id.to_string().as_str()).map(|c| c.1),
+            Some(l.first_frame),
+            "landmark {}",
+            l.id
+        );
+    }
     // `mavloc eval area` sets the traced landmarks against the true poses' fix of them
     // (the rendered dataset's `true` poses), at the trace's scale (summary.json's downscale).
     let summary: serde_json::Value =
