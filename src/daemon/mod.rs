@@ -620,8 +620,12 @@ pub async fn run(
 
     // 2. Tuned parameters.
     let (store, notes) = ParamStore::open(&dir.join("params.json"), &mut settings, &pinned);
-    for n in notes {
-        tracing::info!("{n}");
+    for (level, n) in notes {
+        if level == tracing::Level::WARN {
+            tracing::warn!("{n}");
+        } else {
+            tracing::info!("{n}");
+        }
     }
 
     // 3. Signing.

@@ -154,9 +154,12 @@ fn decode(def: &ParamDef, w: Wire) -> Result<f64, String> {
         | MavParamType::MAV_PARAM_TYPE_INT8
         | MavParamType::MAV_PARAM_TYPE_UINT8 => {
             // Byte-wise (PX4) if the bits read as a small integer, else a C cast (ArduPilot
-            // style): a real float of an integer never has a tiny bit pattern.
+            // style): a real float of an integer never has a tiny bit pattern. For an
+            // integer parameter every pattern below 1.0f's is byte-wise: as a float it is a
+            // fraction, never a C-cast integer (AREA_ADJ_FIRST's 9000000 is 2^23 and more).
             let bits = w.value.to_bits() as i32;
-            if (-(1 << 23)..(1 << 23)).contains(&bits) {
+            let below_one = (0..0x3F80_0000).contains(&bits);
+            if (-(1 << 23)..(1 << 23)).contains(&bits) || (def.kind != Float && below_one) {
                 bits as f64
             } else {
                 // The shortest decimal here too: a float sent under an integer type was
@@ -216,6 +219,16 @@ pub fn set(settings: &Settings, name: &str, w: Wire) -> Result<(Settings, f64), 
             )));
         }
         return Err(refuse(p.expected.clone()));
+    }
+    // A pipeline that cannot start is refused here, not taken and then failed: taken, it
+    // stopped the running one, was saved, and left the next start with no pipeline.
+    if def.key == "daemon.pipeline"
+        && new.daemon.pipeline == settings::PipelineKind::Indoor
+        && new.indoor.model.is_empty()
+    {
+        return Err(refuse(format!(
+            "{x} (indoor) needs a floor model and indoor.model is not set (`mavloc indoor train`)"
+        )));
     }
     Ok((new, x))
 }
@@ -327,7 +340,7 @@ impl ParamStore {
         path: &Path,
         settings: &mut Settings,
         pinned: &BTreeSet<String>,
-    ) -> (ParamStore, Vec<String>) {
+    ) -> (ParamStore, Vec<(tracing::Level, String)>) {
         let mut notes = Vec::new();
         let mut store = ParamStore { path: Some(path.to_path_buf()), tuned: BTreeMap::new() };
         let map = match read_tuned(path) {
@@ -338,9 +351,12 @@ impl ParamStore {
                 return (store, notes);
             }
             Err(Unreadable::Io(e)) => {
-                notes.push(format!(
-                    "{}: cannot read tuned parameters ({e}); using the configuration",
-                    path.display()
+                notes.push((
+                    tracing::Level::WARN,
+                    format!(
+                        "{}: cannot read tuned parameters ({e}); using the configuration",
+                        path.display()
+                    ),
                 ));
                 return (store, notes);
             }
@@ -348,18 +364,25 @@ impl ParamStore {
         for t in apply_tuned(settings, &map, pinned) {
             match t {
                 Tuned::Applied { name, value, .. } => {
-                    notes.push(format!("{name} = {value} (tuned over MAVLink, from {})", path.display()));
-                    store.tuned.insert(name, value);
-                }
-                Tuned::Pinned { name, key, value } => {
-                    notes.push(format!(
-                        "{name} = {value} tuned over MAVLink is not used this run: --set {key} wins (kept in {})",
-                        path.display()
+                    notes.push((
+                        tracing::Level::INFO,
+                        format!("{name} = {value} (tuned over MAVLink, from {})", path.display()),
                     ));
                     store.tuned.insert(name, value);
                 }
+                Tuned::Pinned { name, key, value } => {
+                    notes.push((
+                        tracing::Level::INFO,
+                        format!(
+                            "{name} = {value} tuned over MAVLink is not used this run: --set {key} wins (kept in {})",
+                            path.display()
+                        ),
+                    ));
+                    store.tuned.insert(name, value);
+                }
+                // Said as a warning: a value the ground set is not in force.
                 Tuned::Dropped { name, why } => {
-                    notes.push(format!("{}: {name}: {why}; dropped", path.display()))
+                    notes.push((tracing::Level::WARN, format!("{}: {name}: {why}; dropped", path.display())))
                 }
             }
         }
@@ -446,9 +469,19 @@ mod tests {
         let e = set(&low, "AREA_L_MAX", ten).unwrap_err().to_string();
         assert!(e.starts_with("AREA_L_MAX: 10 would leave area.turnover (AREA_TURNOVER) = 20"), "{e}");
         assert!(matches!(set(&s, "NOPE", real(1.0)), Err(SetError::Unknown(_))));
-        let (s3, _) = set(&s, "LOC_PIPELINE", int(2)).unwrap();
+        // The indoor pipeline with no floor model would not start: refused, not taken.
+        let e = set(&s, "LOC_PIPELINE", int(2)).unwrap_err().to_string();
+        assert!(e.contains("indoor.model is not set"), "{e}");
+        let mut with_model = s.clone();
+        with_model.indoor.model = "floor.model".into();
+        let (s3, _) = set(&with_model, "LOC_PIPELINE", int(2)).unwrap();
         assert_eq!(s3.daemon.pipeline, settings::PipelineKind::Indoor);
         assert!(set(&s, "LOC_PIPELINE", int(7)).unwrap_err().to_string().contains("0=none"));
+        // Byte-wise integers of 2^23 and more (AREA_ADJ_FIRST's range reaches 10^7).
+        for n in [9_000_000, 10_000_000] {
+            let (big, x) = set(&s, "AREA_ADJ_FIRST", int(n)).unwrap();
+            assert_eq!((big.area.adjust_first_frames, x), (n as u32, n as f64));
+        }
         // A C-cast integer (ArduPilot style) is read too.
         let (s4, _) =
             set(&s, "AREA_BAND_PX", Wire { value: 80.0, ty: MavParamType::MAV_PARAM_TYPE_INT32 }).unwrap();
@@ -494,8 +527,8 @@ mod tests {
         let (_, notes) = ParamStore::open(&path, &mut s, &BTreeSet::new());
         assert_eq!(s.area.band_px, 77);
         assert_eq!(s.area.ratio_test, Settings::default().area.ratio_test);
-        assert!(notes.iter().any(|n| n.contains("GONE_PARAM")));
-        assert!(notes.iter().any(|n| n.contains("AREA_RATIO")));
+        let warned = |p: &str| notes.iter().any(|(l, n)| *l == tracing::Level::WARN && n.contains(p));
+        assert!(warned("GONE_PARAM") && warned("AREA_RATIO"), "{notes:?}");
     }
 
     #[test]
@@ -538,7 +571,7 @@ mod tests {
         let (store, notes) = ParamStore::open(&path, &mut s, &pinned);
         assert_eq!(s.indoor.landing_radius_m, 2.0, "--set wins");
         assert!((s.area.ratio_test - 0.7).abs() < 1e-6, "the tuned value beats the file's");
-        assert!(notes.iter().any(|n| n.contains("--set indoor.landing_radius_m wins")), "{notes:?}");
+        assert!(notes.iter().any(|(_, n)| n.contains("--set indoor.landing_radius_m wins")), "{notes:?}");
         // The pinned value stays in the store, so the next save does not lose it.
         assert_eq!(store.into_tuned().get("IND_LAND_R"), Some(&1.0));
     }

@@ -1315,7 +1315,8 @@ impl Core {
         }
         match param_table::set(&self.settings, name, w) {
             Ok((new, value)) => {
-                let pipeline_changed = new.daemon.pipeline != self.settings.daemon.pipeline;
+                let was = self.settings.daemon.pipeline;
+                let pipeline_changed = new.daemon.pipeline != was;
                 self.settings = new;
                 self.telemetry.reconfigure(&self.settings);
                 self.tuned.insert(name.to_string(), value);
@@ -1324,9 +1325,13 @@ impl Core {
                 self.actions.push_back(Action::SaveParams { token, json });
                 tracing::info!("parameter {name} = {value} (PARAM_SET from system {})", f.header.system_id);
                 self.actions.push_back(Action::Worker(WorkerRequest::Apply(Box::new(self.settings.clone()))));
-                if pipeline_changed
-                    && matches!(self.pipeline, PipelineState::Running(_) | PipelineState::Starting(_))
-                {
+                // The pipeline set takes over from one running, starting or failed, and
+                // from none (LOC_PIPELINE 0 stopped it); one stopped by command stays so.
+                let takes_over = match self.pipeline {
+                    PipelineState::Running(_) | PipelineState::Starting(_) | PipelineState::Failed(_) => true,
+                    PipelineState::Stopped => was == PipelineKind::None,
+                };
+                if pipeline_changed && takes_over {
                     match self.settings.daemon.pipeline {
                         PipelineKind::None => self.stop_pipeline(),
                         k => self.start_pipeline(k, None),

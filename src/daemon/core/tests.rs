@@ -541,6 +541,69 @@ fn a_pipeline_that_cannot_start_is_denied_and_failed() {
     assert!(sim.statustexts().concat().contains("does not exist"));
 }
 
+/// `LOC_PIPELINE` set from the ground: a pipeline that cannot start (indoor, no floor
+/// model) is refused with the unchanged value and the running one goes on; one that failed
+/// to start (its model unreadable) is replaced by the next value set, and LOC_PIPELINE 0
+/// is undone by setting a pipeline again (an outside trial: `Failed(Indoor)` stayed so
+/// whatever was set, and 0 -> 1 stayed `Stopped`).
+#[test]
+fn the_pipeline_parameter_refuses_what_cannot_start_and_recovers_from_a_failed_start() {
+    let set = |v: i32| {
+        MavMessage::PARAM_SET(PARAM_SET_DATA {
+            param_value: f32::from_bits(v as u32),
+            target_system: 1,
+            target_component: 191,
+            param_id: "LOC_PIPELINE".into(),
+            param_type: MavParamType::MAV_PARAM_TYPE_INT32,
+        })
+    };
+    let answered = |sim: &Sim| {
+        sim.sent.iter().rev().find_map(|(_, m)| match m {
+            MavMessage::PARAM_VALUE(p) if p.param_id.to_str().unwrap_or_default() == "LOC_PIPELINE" => {
+                Some(p.param_value.to_bits() as i32)
+            }
+            _ => None,
+        })
+    };
+    let mut s = settings();
+    s.daemon.pipeline = PipelineKind::Area;
+    let mut sim = Sim::new(s.clone());
+    sim.run_until(secs(1));
+    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area));
+    sim.gcs_sends(set(2));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(answered(&sim), Some(1), "the unchanged value back");
+    assert!(sim.statustexts().concat().contains("indoor.model is not set"), "{:?}", sim.statustexts());
+    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area), "the area one goes on");
+
+    // A model named but unusable: taken, the start fails; setting area again starts it.
+    s.indoor.model = "/nonexistent.model".into();
+    let mut sim = Sim::new(s);
+    sim.run_until(secs(1));
+    sim.start_result = Err("model /nonexistent.model does not exist".into());
+    sim.gcs_sends(set(2));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(sim.core.pipeline(), PipelineState::Failed(PipelineKind::Indoor));
+    sim.start_result = Ok(());
+    sim.gcs_sends(set(1));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area), "recovered");
+    // None stops it; a pipeline set again starts it.
+    sim.gcs_sends(set(0));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(sim.core.pipeline(), PipelineState::Stopped);
+    sim.gcs_sends(set(1));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Area));
+    // Stopped by command, it stays stopped whatever the parameter says.
+    sim.gcs_sends(pipeline_command(0.0, 0.0));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(sim.core.pipeline(), PipelineState::Stopped);
+    sim.gcs_sends(set(2));
+    sim.run_for(Duration::from_millis(100));
+    assert_eq!(sim.core.pipeline(), PipelineState::Stopped);
+}
+
 #[test]
 fn echoes_and_other_components_commands_are_ignored() {
     let mut sim = Sim::new(settings());
