@@ -282,6 +282,11 @@ impl ResultSets {
         })();
         if let Err(e) = written {
             let _ = fs::remove_dir_all(&partial);
+            // A run's folder is made by its first set: one that failed (a full disk at
+            // the start) leaves none (an outside trial found the empty folder).
+            if sets.complete.is_empty() {
+                let _ = fs::remove_dir(&run_dir);
+            }
             if let Some(&current) = sets.complete.iter().max() {
                 // Whatever failed (a full disk most likely), the replaced sets kept for
                 // slow readers give their room to the next attempt.
@@ -292,6 +297,9 @@ impl ResultSets {
         if let Err(e) = self.runs.point_at(&set) {
             // Complete but never current: removed, so the next start cannot take it for newer.
             let _ = fs::remove_dir_all(&set);
+            if sets.complete.is_empty() {
+                let _ = fs::remove_dir(&run_dir);
+            }
             sync_dir(&run_dir);
             return Err(e);
         }
@@ -647,6 +655,24 @@ mod tests {
         assert!(r3.current().is_none());
         write_set(&r3, "third");
         assert_eq!(names(r3.runs().root()), ["r1", "r3"]);
+    }
+
+    /// A run's first set that cannot be written (a full disk at the start) leaves no
+    /// folder for the run either.
+    #[test]
+    fn a_first_set_that_fails_leaves_no_run_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("area");
+        let r1 = ResultSets::open(&link, "r1").unwrap();
+        write_set(&r1, "first");
+        let r2 = ResultSets::open(&link, "r2").unwrap();
+        let full = || io::Error::new(io::ErrorKind::StorageFull, "No space left on device");
+        assert!(r2.write(|_| Err(full())).is_err());
+        assert_eq!(names(r2.runs().root()), ["r1"], "no empty r2");
+        assert_eq!(fs::read_to_string(link.join("a.csv")).unwrap(), "first", "r1's set stays current");
+        write_set(&r2, "second");
+        assert!(r2.write(|_| Err(full())).is_err());
+        assert_eq!(names(r2.runs().root()), ["r1", "r2"], "a run with a set keeps its folder");
     }
 
     #[test]
