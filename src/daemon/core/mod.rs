@@ -878,13 +878,33 @@ impl Core {
         Ok(())
     }
 
-    /// A parameter request addressed to mavloc (LIST may be broadcast, READ may not).
+    /// A parameter request addressed to mavloc (LIST may be broadcast; READ by name too,
+    /// when the name is mavloc's: [`Core::ours_by_name`]).
     fn addressed(&self, m: &MavMessage) -> bool {
         match m {
             MavMessage::PARAM_REQUEST_LIST(r) => self.for_us(r.target_system, r.target_component, true),
-            MavMessage::PARAM_REQUEST_READ(r) => self.for_us(r.target_system, r.target_component, false),
+            MavMessage::PARAM_REQUEST_READ(r) => {
+                self.for_us(r.target_system, r.target_component, false)
+                    || (r.param_index < 0
+                        && self.ours_by_name(r.target_system, r.target_component, &r.param_id))
+            }
             _ => false,
         }
+    }
+
+    /// A read or set of one parameter by name sent to every component of this system
+    /// (MAV_COMP_ID_ALL), as PX4 takes them: taken when the name is one of mavloc's, whose
+    /// prefixes are its own (by index it would be anyone's index; an outside trial found
+    /// these requests unanswered).
+    fn ours_by_name(
+        &self,
+        target_system: u8,
+        target_component: u8,
+        id: &mavlink::types::CharArray<16>,
+    ) -> bool {
+        target_system == self.system_id
+            && target_component == 0
+            && param_name(id).is_some_and(|n| param_table::find(&n).is_some())
     }
 
     fn for_us(&self, target_system: u8, target_component: u8, allow_broadcast: bool) -> bool {
@@ -1077,7 +1097,7 @@ impl Core {
             MavMessage::PARAM_REQUEST_LIST(r) if self.for_us(r.target_system, r.target_component, true) => {
                 self.params.on_list();
             }
-            MavMessage::PARAM_REQUEST_READ(r) if self.for_us(r.target_system, r.target_component, false) => {
+            MavMessage::PARAM_REQUEST_READ(r) if self.addressed(&f.message) => {
                 let i = if r.param_index >= 0 {
                     Some(r.param_index as usize).filter(|&i| i < param_table::PARAMS.len())
                 } else {
@@ -1092,7 +1112,10 @@ impl Core {
                     None => {}
                 }
             }
-            MavMessage::PARAM_SET(p) if self.for_us(p.target_system, p.target_component, false) => {
+            MavMessage::PARAM_SET(p)
+                if self.for_us(p.target_system, p.target_component, false)
+                    || self.ours_by_name(p.target_system, p.target_component, &p.param_id) =>
+            {
                 let name = param_name(&p.param_id).unwrap_or_default();
                 self.param_set(rx, &f, &name, Wire { value: p.param_value, ty: p.param_type });
             }

@@ -790,6 +790,50 @@ fn a_foreign_flood_of_parameter_requests_and_sets_costs_counters_not_the_link() 
     assert_ne!(tuned, Some(0.9_f32 as f64), "the foreign set changed nothing");
 }
 
+/// A read or set by name sent to every component of the system (MAV_COMP_ID_ALL) is
+/// answered when the name is mavloc's, as PX4 answers; by index, or for another
+/// component's name, it is left to the others.
+#[test]
+fn a_parameter_read_or_set_by_name_to_every_component_is_answered_when_the_name_is_ours() {
+    let mut sim = Sim::new(settings());
+    sim.run_until(secs(1));
+    let values = |sim: &Sim| {
+        sim.sent
+            .iter()
+            .filter_map(|(_, m)| match m {
+                MavMessage::PARAM_VALUE(p) => {
+                    Some((p.param_id.to_str().unwrap_or_default().to_string(), p.param_value))
+                }
+                _ => None,
+            })
+            .collect::<Vec<_>>()
+    };
+    let read = |id: &str, index: i16| {
+        MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+            param_index: index,
+            target_system: 1,
+            target_component: 0,
+            param_id: id.into(),
+        })
+    };
+    sim.gcs_sends(read("AREA_L_MAX", -1));
+    sim.gcs_sends(read("", 3));
+    sim.gcs_sends(read("MPC_XY_VEL_MAX", -1));
+    sim.run_for(Duration::from_millis(200));
+    let got = values(&sim);
+    assert_eq!(got.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>(), ["AREA_L_MAX"], "{got:?}");
+    sim.gcs_sends(MavMessage::PARAM_SET(PARAM_SET_DATA {
+        param_value: 300.0,
+        target_system: 1,
+        target_component: 0,
+        param_id: "AREA_L_MAX".into(),
+        param_type: MavParamType::MAV_PARAM_TYPE_REAL32,
+    }));
+    sim.run_for(Duration::from_millis(200));
+    // An integer parameter, answered in PX4's byte-wise encoding.
+    assert_eq!(values(&sim).last().map(|(n, v)| (n.as_str(), v.to_bits())), Some(("AREA_L_MAX", 300)));
+}
+
 /// A parameter set while the disk is full is saved once there is room again: tried every
 /// 10 s, said when it fails first and when it succeeds (it used to be tried once, and the
 /// tuned value was lost at the next start: an outside audit on a 1 MB tmpfs).
