@@ -695,7 +695,7 @@ impl Core {
         self.now = self.now.max(now);
         if let Some(ApNotice::Lost) = self.autopilot.on_timeout(now) {
             let t = self.autopilot.timeout().as_secs_f64();
-            self.notes.warn(&format!("autopilot lost (no heartbeat for {t} s)"));
+            self.notes.warn(&format!("autopilot lost (nothing from it for {t} s)"));
             self.streams.stop();
             self.timesync.stop();
             self.gimbal.release();
@@ -981,6 +981,9 @@ impl Core {
                 self.reply_raw(ack, id);
             }
             return;
+        }
+        if self.is_autopilot(&f) && !matches!(f.message, MavMessage::HEARTBEAT(_)) {
+            self.autopilot.on_traffic(rx);
         }
         if self.is_autopilot_system(&f) {
             if self.telemetry.on_message(rx, &f.message, f.header.component_id).is_some() {
