@@ -987,7 +987,8 @@ impl LivePipeline for IndoorLive {
             cov: fix_covariance(e.spread),
         });
         report.counters = vec![("IND_SDX", e.spread.0 as f32), ("IND_SDY", e.spread.1 as f32)];
-        match self.trigger.update(e.position, e.spread) {
+        let held = if e.fix { self.trigger.update(e.position, e.spread) } else { Err(self.trigger.no_fix()) };
+        match held {
             Ok(()) => {
                 report.landing_requested = true;
                 report.events.push(format!(

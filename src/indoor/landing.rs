@@ -19,6 +19,9 @@ pub struct LandingZone {
 /// Why the trigger is not firing, for logs and status messages.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Hold {
+    /// The localiser has no position fix (searching): agreeing particles of a search may
+    /// sit on a look-alike place.
+    NoFix,
     OutsideZone,
     TooUncertain,
     /// Conditions met for this many consecutive frames so far.
@@ -58,6 +61,13 @@ impl LandingTrigger {
             return Ok(());
         }
         Err(Hold::Settling(self.streak))
+    }
+
+    /// A frame without a position fix: it breaks the streak (a landing is triggered on a
+    /// track only, not on particles that agree during a search).
+    pub fn no_fix(&mut self) -> Hold {
+        self.streak = 0;
+        Hold::NoFix
     }
 
     /// Whether it has fired.
@@ -109,6 +119,15 @@ mod tests {
         assert!(t.update(Vector2::new(1.0, 2.0), (0.1, 0.1)).is_err());
         assert_eq!(t.update(Vector2::new(1.7, 2.0), (0.1, 0.1)), Err(Hold::OutsideZone));
         assert_eq!(t.update(Vector2::new(1.0, 2.0), (0.1, 0.1)), Err(Hold::Settling(1)));
+    }
+
+    #[test]
+    fn a_frame_without_a_fix_resets_the_streak() {
+        let mut t = zone(2);
+        assert_eq!(t.update(Vector2::new(1.0, 2.0), (0.1, 0.1)), Err(Hold::Settling(1)));
+        assert_eq!(t.no_fix(), Hold::NoFix);
+        assert_eq!(t.update(Vector2::new(1.0, 2.0), (0.1, 0.1)), Err(Hold::Settling(1)));
+        assert!(!t.fired());
     }
 
     #[test]
