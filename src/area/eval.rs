@@ -154,11 +154,12 @@ impl AreaEvaluation {
             .collect();
         self.true_fix_landmarks = Some(errors.len());
         if !errors.is_empty() {
+            // The mean and median as the table's distances have them.
+            let (mean, median, _) = stats(&errors);
             errors.sort_by(f64::total_cmp);
-            let n = errors.len();
-            self.true_fix_mean_m = Some(errors.iter().sum::<f64>() / n as f64);
-            self.true_fix_median_m = Some(errors[n / 2]);
-            self.true_fix_p95_m = Some(errors[((n - 1) as f64 * 0.95).round() as usize]);
+            self.true_fix_mean_m = Some(mean);
+            self.true_fix_median_m = Some(median);
+            self.true_fix_p95_m = Some(errors[((errors.len() - 1) as f64 * 0.95).round() as usize]);
         }
         self
     }

@@ -287,6 +287,11 @@ pub struct TraceEntry {
     pub covariance: [f64; 6],
 }
 
+/// A covariance's entries nn, ne, nd, ee, ed, dd, as [`TraceEntry::covariance`] keeps them.
+fn upper_triangle(p: &Matrix3<f64>) -> [f64; 6] {
+    [p[(0, 0)], p[(0, 1)], p[(0, 2)], p[(1, 1)], p[(1, 2)], p[(2, 2)]]
+}
+
 /// Counts of one match-and-estimate step.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct MatchStats {
@@ -392,7 +397,6 @@ impl Library {
                 }
             }
             if let Some(t) = trace.as_deref_mut() {
-                let p = landmark.ukf.covariance();
                 let m = landmark.ukf.state();
                 // Reported in local NED like the seed's fig. 6.2, not in the ray's frame.
                 let local = |z: &Vector2<f64>| {
@@ -408,7 +412,7 @@ impl Library {
                     mahalanobis: Some(d),
                     accepted,
                     mean: [m.x, m.y, m.z],
-                    covariance: [p[(0, 0)], p[(0, 1)], p[(0, 2)], p[(1, 1)], p[(1, 2)], p[(2, 2)]],
+                    covariance: upper_triangle(landmark.ukf.covariance()),
                 });
             }
         }
@@ -671,7 +675,6 @@ impl Library {
                 }
             }
             if let Some(c) = created.as_deref_mut() {
-                let p = landmark.ukf.covariance();
                 let b = Bearing::from_direction(&d).unwrap_or(Bearing { yaw: 0.0, pitch: 0.0 });
                 c.push(TraceEntry {
                     frame,
@@ -682,7 +685,7 @@ impl Library {
                     mahalanobis: None,
                     accepted: true,
                     mean: [ground.x, ground.y, ground.z],
-                    covariance: [p[(0, 0)], p[(0, 1)], p[(0, 2)], p[(1, 1)], p[(1, 2)], p[(2, 2)]],
+                    covariance: upper_triangle(landmark.ukf.covariance()),
                 });
             }
             self.push(landmark);
