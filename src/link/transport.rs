@@ -275,6 +275,31 @@ fn serial_io_error(e: &std::io::Error) -> String {
     }
 }
 
+/// A link-local address's zone that names no interface of this machine: the resolver
+/// says only "Name or service not known", as if the address were a host name.
+fn missing_zone(address: &LinkAddress) -> Option<std::io::Error> {
+    let host = match address {
+        LinkAddress::Serial { .. } => return None,
+        LinkAddress::UdpIn { host, .. }
+        | LinkAddress::UdpOut { host, .. }
+        | LinkAddress::TcpIn { host, .. }
+        | LinkAddress::TcpOut { host, .. } => host,
+    };
+    let (_, zone) = host.split_once('%')?;
+    let known = if zone.bytes().all(|b| b.is_ascii_digit()) {
+        std::fs::read_dir("/sys/class/net").ok()?.flatten().any(|d| {
+            std::fs::read_to_string(d.path().join("ifindex")).is_ok_and(|i| i.trim() == zone)
+        })
+    } else {
+        std::path::Path::new("/sys/class/net").join(zone).exists()
+    };
+    (!known).then(|| {
+        std::io::Error::other(format!(
+            "no network interface `{zone}` on this machine (the zone of {host}; `ip link` lists them)"
+        ))
+    })
+}
+
 /// A serial device that would not open, with what usually stands behind it: the bare errno
 /// text ("Permission denied", "Device or resource busy") leaves the user guessing, and the
 /// causes are few and well known.
@@ -330,6 +355,9 @@ enum End {
 
 impl Link {
     async fn open(&self) -> std::io::Result<(Endpoint, Option<Box<dyn Stream>>, String)> {
+        if let Some(e) = missing_zone(&self.address) {
+            return Err(e);
+        }
         match &self.address {
             LinkAddress::UdpIn { host, port } => {
                 let socket = UdpSocket::bind((host.as_str(), *port)).await?;
@@ -801,6 +829,24 @@ mod tests {
             heard.push(matches!(r, Ok(Ok(n)) if n > 0));
         }
         heard
+    }
+
+    #[tokio::test]
+    async fn a_zone_that_names_no_interface_is_reported_as_such() {
+        let (_stop, rx) = broadcast::channel(1);
+        let addr = LinkAddress::UdpOut { host: "fe80::1%nosuch0".into(), port: 14550 };
+        let mut h = spawn(addr, trust(false), None, rx);
+        match tokio::time::timeout(Duration::from_secs(5), h.events.recv()).await {
+            Ok(Some(LinkEvent::Down(m))) => assert!(m.contains("no network interface `nosuch0`"), "{m}"),
+            other => panic!("expected the link down: {other:?}"),
+        }
+        // Loopback exists by name and by index (1) wherever /sys is mounted.
+        if std::path::Path::new("/sys/class/net/lo").exists() {
+            for host in ["fe80::1%lo", "fe80::1%1"] {
+                let a = LinkAddress::UdpOut { host: host.into(), port: 14550 };
+                assert!(missing_zone(&a).is_none(), "{host}");
+            }
+        }
     }
 
     #[tokio::test]

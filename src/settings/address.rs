@@ -78,8 +78,10 @@ impl LinkAddress {
                 // An IPv6 address goes in brackets (`udpin:[::1]:14540`), as in a URL; it was
                 // refused as "not an IP address".
                 let host = match head.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
-                    Some(v6) if v6.parse::<std::net::Ipv6Addr>().is_ok() => v6,
-                    Some(_) => return Err(format!("`{s}`: `{head}` is not an IPv6 address in brackets")),
+                    Some(v6) => {
+                        check_ipv6(s, head, v6)?;
+                        v6
+                    }
                     None if head.contains(':') => {
                         return Err(format!("`{s}`: an IPv6 address goes in brackets, as `[{head}]`"))
                     }
@@ -92,11 +94,39 @@ impl LinkAddress {
     }
 }
 
+/// An IPv6 address in brackets, with a zone (`fe80::1%eth0`, RFC 6874) where it is
+/// link-local: a link-local address means nothing without the interface it is on, which
+/// is how a companion computer reaches a ground station over USB or Ethernet with no
+/// configured addresses. The system's resolver (getaddrinfo) turns the zone into the
+/// socket's scope id when the link opens; an interface that does not exist is reported
+/// then, since a USB network may appear only after the daemon starts.
+fn check_ipv6(s: &str, head: &str, v6: &str) -> Result<(), String> {
+    let (addr, zone) = match v6.split_once('%') {
+        Some((a, z)) => (a, Some(z)),
+        None => (v6, None),
+    };
+    let Ok(ip) = addr.parse::<std::net::Ipv6Addr>() else {
+        return Err(format!("`{s}`: `{head}` is not an IPv6 address in brackets"));
+    };
+    match zone {
+        None => Ok(()),
+        Some(z) if !ip.is_unicast_link_local() => Err(format!(
+            "`{s}`: a zone (`%{z}`) belongs only to a link-local address (fe80::/10), and `{addr}` is not one"
+        )),
+        // Interface names are at most 15 bytes on Linux (IFNAMSIZ 16 with the NUL).
+        Some(z) if z.is_empty() || z.len() > 15 || !z.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b)) => {
+            Err(format!("`{s}`: `%{z}` is not a network interface name or index"))
+        }
+        Some(_) => Ok(()),
+    }
+}
+
 /// A host mavloc can use: a listening link binds to an address of this machine (an IP
 /// address or `localhost`); one that connects may name a host, but not something shaped
 /// like an IPv4 address that is none (`999.1.1.1` would be looked up by DNS forever).
 fn check_host(s: &str, host: &str, listening: bool) -> Result<(), String> {
-    let ip = host.parse::<std::net::IpAddr>().is_ok();
+    // A zone (`fe80::1%eth0`) was checked with its address.
+    let ip = host.split('%').next().unwrap_or(host).parse::<std::net::IpAddr>().is_ok();
     let looks_ipv4 = host.split('.').count() == 4
         && host.split('.').all(|p| !p.is_empty() && p.bytes().all(|b| b.is_ascii_digit()));
     if looks_ipv4 && !ip {
@@ -166,6 +196,21 @@ mod tests {
         assert!(e.contains("goes in brackets, as `[::1]`"), "{e}");
         let e = LinkAddress::parse("udpin:[nope]:14540").unwrap_err();
         assert!(e.contains("`[nope]` is not an IPv6 address"), "{e}");
+    }
+
+    #[test]
+    fn a_link_local_ipv6_address_carries_its_zone() {
+        for s in ["udpin:[fe80::1%eth0]:14540", "udpout:[fe80::fc:ff:fe00:1%2]:14550", "tcpin:[fe80::1%usb0]:5760"] {
+            assert_eq!(LinkAddress::parse(s).unwrap().to_string(), s);
+        }
+        let e = LinkAddress::parse("udpin:[::1%lo]:14540").unwrap_err();
+        assert!(e.contains("only to a link-local address"), "{e}");
+        let e = LinkAddress::parse("udpin:[fe80::1%]:14540").unwrap_err();
+        assert!(e.contains("not a network interface"), "{e}");
+        let e = LinkAddress::parse("udpin:[fe80::1%a b]:14540").unwrap_err();
+        assert!(e.contains("not a network interface"), "{e}");
+        let e = LinkAddress::parse("udpin:[fe80::zz%eth0]:14540").unwrap_err();
+        assert!(e.contains("not an IPv6 address"), "{e}");
     }
 
     #[test]
