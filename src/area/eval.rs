@@ -18,7 +18,8 @@ use std::collections::HashMap;
 use serde::Serialize;
 
 use super::rays::{self, Ray};
-use crate::geometry::Vec3;
+use crate::geometry::{Rot3, Vec3};
+
 use mavloc_data::results::LandmarkRecord;
 
 /// A landmark is set against its true-pose fix only where the true rays fix the point to
@@ -55,8 +56,48 @@ pub struct AreaEvaluation {
     pub true_fix_median_m: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub true_fix_p95_m: Option<f64>,
+    /// The error's mean vector (north, east, down), m: what moves the map as a whole, as a
+    /// common error of the photos' positions or attitudes does; and the RMS of what is
+    /// left about it, m, the map's shape error.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_fix_shift_m: Option<[f64; 3]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub true_fix_shape_rms_m: Option<f64>,
+    /// Photos aligned by their tie points, set against their true attitudes: how many,
+    /// the rotation they share (rotation vector about north, east, down, degrees: what
+    /// the photos' GPS positions leave open, turning the map as a whole) and the RMS of
+    /// each photo's rest about it, degrees (how well they agree with each other).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub aligned_photos: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub aligned_common_deg: Option<[f64; 3]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub aligned_rest_rms_deg: Option<f64>,
+    /// The turn that best carries the photos' tagged positions onto their true ones
+    /// (rotation vector, degrees): what the GPS positions alone say of the survey's
+    /// orientation, to set beside `aligned_common_deg`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tagged_positions_turn_deg: Option<[f64; 3]>,
     #[serde(skip)]
     pub distances: Vec<f64>,
+}
+
+/// The rotation `r` that best carries the points `from` onto `to` about their centroids
+/// (least squares, Kabsch's SVD solution); None for fewer than three points. Twelve lines
+/// of nalgebra, not worth a dependency.
+fn best_turn(pairs: &[(Vec3, Vec3)]) -> Option<Rot3> {
+    if pairs.len() < 3 {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let (ca, cb) = pairs.iter().fold((Vec3::zeros(), Vec3::zeros()), |(a, b), (f, t)| (a + f / n, b + t / n));
+    let h: nalgebra::Matrix3<f64> = pairs.iter().map(|(f, t)| (t - cb) * (f - ca).transpose()).sum();
+    let svd = h.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    // A reflection is no turn: flip the least singular direction.
+    let d = (u * v_t).determinant().signum();
+    let r = u * nalgebra::Matrix3::from_diagonal(&Vec3::new(1.0, 1.0, d)) * v_t;
+    Some(Rot3::from_matrix_unchecked(r))
 }
 
 /// Minimal distance from `p` to a set of polylines (infinite when there are none).
@@ -111,6 +152,12 @@ pub fn evaluate(
         true_fix_mean_m: None,
         true_fix_median_m: None,
         true_fix_p95_m: None,
+        true_fix_shift_m: None,
+        true_fix_shape_rms_m: None,
+        aligned_photos: None,
+        aligned_common_deg: None,
+        aligned_rest_rms_deg: None,
+        tagged_positions_turn_deg: None,
         distances,
     }
 }
@@ -133,6 +180,29 @@ impl AreaEvaluation {
         self
     }
 
+    /// With the photos' aligned attitudes set against their true ones (`pairs`: true,
+    /// aligned; rotations "NED <- camera") and the turn their tagged positions make
+    /// against their true ones (`positions`: true, tagged). The errors are small, so
+    /// their rotation vectors average.
+    pub fn with_aligned_attitudes(mut self, pairs: &[(Rot3, Rot3)], positions: &[(Vec3, Vec3)]) -> Self {
+        if pairs.is_empty() {
+            return self;
+        }
+        let tagged_onto_true: Vec<(Vec3, Vec3)> = positions.iter().map(|(t, g)| (*g, *t)).collect();
+        if let Some(r) = best_turn(&tagged_onto_true) {
+            let v = r.scaled_axis().map(f64::to_degrees);
+            self.tagged_positions_turn_deg = Some([v.x, v.y, v.z]);
+        }
+        let v: Vec<Vec3> =
+            pairs.iter().map(|(t, a)| (t * a.inverse()).scaled_axis().map(f64::to_degrees)).collect();
+        let mean = v.iter().sum::<Vec3>() / v.len() as f64;
+        let rest = v.iter().map(|x| (x - mean).norm_squared()).sum::<f64>() / v.len() as f64;
+        self.aligned_photos = Some(v.len());
+        self.aligned_common_deg = Some([mean.x, mean.y, mean.z]);
+        self.aligned_rest_rms_deg = Some(rest.sqrt());
+        self
+    }
+
     /// With each landmark's distance from the point its own sightings fix when cast from
     /// the true poses (`rays`, by landmark id; least squares with `pixel_rad` of bearing
     /// noise, [`rays::triangulate`]). The distance to the border counts a correct landmark
@@ -144,16 +214,22 @@ impl AreaEvaluation {
         rays: &HashMap<u64, Vec<Ray>>,
         pixel_rad: f64,
     ) -> Self {
-        let mut errors: Vec<f64> = landmarks
+        let vectors: Vec<Vec3> = landmarks
             .iter()
             .filter_map(|l| {
                 let r = rays.get(&l.id)?;
                 let fix = rays::triangulate(r, &l.position, pixel_rad, &[0.0; 3])?;
-                (fix.sigma_max <= TRUE_FIX_MAX_SD_M).then(|| (l.position - fix.position).norm())
+                (fix.sigma_max <= TRUE_FIX_MAX_SD_M).then(|| l.position - fix.position)
             })
             .collect();
+        let mut errors: Vec<f64> = vectors.iter().map(|v| v.norm()).collect();
         self.true_fix_landmarks = Some(errors.len());
         if !errors.is_empty() {
+            let shift = vectors.iter().sum::<Vec3>() / vectors.len() as f64;
+            let shape =
+                vectors.iter().map(|v| (v - shift).norm_squared()).sum::<f64>() / vectors.len() as f64;
+            self.true_fix_shift_m = Some([shift.x, shift.y, shift.z]);
+            self.true_fix_shape_rms_m = Some(shape.sqrt());
             // The mean and median as the table's distances have them.
             let (mean, median, _) = stats(&errors);
             errors.sort_by(f64::total_cmp);
@@ -191,15 +267,38 @@ impl std::fmt::Display for AreaEvaluation {
             writeln!(f, "height above the true surface: median {h:+.2} m, median of its size {a:.2} m")?;
         }
         match (self.true_fix_landmarks, self.true_fix_mean_m, self.true_fix_median_m, self.true_fix_p95_m) {
-            (Some(n), Some(mean), Some(median), Some(p95)) => writeln!(
-                f,
-                "error against the true poses ({n} of {} landmarks, each against the point its sightings fix from the true poses): mean {mean:.2} m, median {median:.2} m, 95th percentile {p95:.2} m",
-                self.landmarks
-            )?,
-            (Some(_), ..) => {
-                writeln!(f, "error against the true poses: no landmark's sightings fix it from the true poses")?
+            (Some(n), Some(mean), Some(median), Some(p95)) => {
+                writeln!(
+                    f,
+                    "error against the true poses ({n} of {} landmarks, each against the point its sightings fix from the true poses): mean {mean:.2} m, median {median:.2} m, 95th percentile {p95:.2} m",
+                    self.landmarks
+                )?;
+                if let (Some([n, e, d]), Some(rms)) = (self.true_fix_shift_m, self.true_fix_shape_rms_m) {
+                    writeln!(
+                        f,
+                        "  of which the map as a whole is shifted by north {n:+.2} m, east {e:+.2} m, down {d:+.2} m; about that shift {rms:.2} m RMS"
+                    )?;
+                }
             }
+            (Some(_), ..) => writeln!(
+                f,
+                "error against the true poses: no landmark's sightings fix it from the true poses"
+            )?,
             _ => {}
+        }
+        if let (Some(n), Some([a, b, c]), Some(rms)) =
+            (self.aligned_photos, self.aligned_common_deg, self.aligned_rest_rms_deg)
+        {
+            writeln!(
+                f,
+                "photos aligned against their true attitudes ({n}): turned together about north {a:+.3}, east {b:+.3}, down {c:+.3} deg; each about that {rms:.3} deg RMS"
+            )?;
+            if let Some([a, b, c]) = self.tagged_positions_turn_deg {
+                writeln!(
+                    f,
+                    "  the photos' tagged positions against their true ones: turned about north {a:+.3}, east {b:+.3}, down {c:+.3} deg (what GPS leaves open)"
+                )?;
+            }
         }
         writeln!(f, "speed: {:.1} frames/s", self.frames_per_s)
     }
@@ -280,6 +379,42 @@ mod tests {
         assert_eq!(e.true_fix_landmarks, Some(2), "the parallel pair fixes nothing");
         assert!((e.true_fix_mean_m.unwrap() - 0.15).abs() < 1e-6, "{:?}", e.true_fix_mean_m);
         assert!(e.to_string().contains("error against the true poses (2 of 3 landmarks"), "{e}");
+        // Errors 0 and 0.3 m east: a common shift of 0.15 m east, 0.15 m RMS about it.
+        let [n, east, d] = e.true_fix_shift_m.unwrap();
+        assert!(n.abs() < 1e-6 && (east - 0.15).abs() < 1e-6 && d.abs() < 1e-6, "{:?}", e.true_fix_shift_m);
+        assert!((e.true_fix_shape_rms_m.unwrap() - 0.15).abs() < 1e-6, "{:?}", e.true_fix_shape_rms_m);
+        assert!(e.to_string().contains("east +0.15 m"), "{e}");
+    }
+
+    /// Three photos turned by one common 0.3 deg about north, two of them by another
+    /// 0.01 deg about down and back: the common part and the rest come apart.
+    #[test]
+    fn aligned_attitudes_split_into_a_common_turn_and_each_photos_rest() {
+        let deg = |x: f64, y: f64, z: f64| Rot3::new(Vec3::new(x, y, z).map(f64::to_radians));
+        let truth = [deg(0.0, 180.0, 0.0), deg(0.0, 170.0, 10.0), deg(3.0, 175.0, -20.0)];
+        let rests = [deg(0.0, 0.0, 0.01), deg(0.0, 0.0, -0.01), deg(0.0, 0.0, 0.0)];
+        let common = deg(0.3, 0.0, 0.0);
+        // aligned = (common * rest)^-1 * truth, so truth * aligned^-1 = common * rest.
+        let pairs: Vec<(Rot3, Rot3)> =
+            truth.iter().zip(rests).map(|(t, r)| (*t, (common * r).inverse() * t)).collect();
+        // Tagged positions turned by 0.2 deg about down against the true ones, about their
+        // centroid, and shifted: the turn is found, the shift is not a turn.
+        let turn = deg(0.0, 0.0, 0.2);
+        let truths = [Vec3::new(0.0, 0.0, -40.0), Vec3::new(60.0, 0.0, -40.0), Vec3::new(0.0, 60.0, -41.0)];
+        let centroid = truths.iter().sum::<Vec3>() / 3.0;
+        let positions: Vec<(Vec3, Vec3)> = truths
+            .iter()
+            .map(|t| (*t, turn.inverse() * (t - centroid) + centroid + Vec3::new(0.3, -0.2, 0.1)))
+            .collect();
+        let e = evaluate(&[], &[vec![Vec3::zeros(), Vec3::new(1.0, 0.0, 0.0)]], &[], 1.0)
+            .with_aligned_attitudes(&pairs, &positions);
+        let [_, _, d] = e.tagged_positions_turn_deg.unwrap();
+        assert!((d - 0.2).abs() < 1e-6, "{:?}", e.tagged_positions_turn_deg);
+        let [n, east, d] = e.aligned_common_deg.unwrap();
+        assert!((n - 0.3).abs() < 1e-4 && east.abs() < 1e-4 && d.abs() < 1e-4, "{:?}", e.aligned_common_deg);
+        let rms = e.aligned_rest_rms_deg.unwrap();
+        assert!((rms - (2.0f64 / 3.0).sqrt() * 0.01).abs() < 1e-4, "{rms}");
+        assert!(e.to_string().contains("photos aligned against their true attitudes (3)"), "{e}");
     }
 
     #[test]

@@ -106,6 +106,11 @@ pub struct RunSummary {
     /// the landmarks are then the filters'.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refined_rejected: Option<String>,
+    /// The static gimbal offsets of the configuration (`gimbal.*_offset_deg`: yaw, pitch,
+    /// roll, degrees) the run added to every frame's reported angles, so the tagged poses
+    /// its corrections apply to can be rebuilt (`mavloc eval area`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gimbal_offsets_deg: Option<[f64; 3]>,
     /// Live: the static gimbal offset the daemon adds to the frames' reported angles since
     /// an adjustment found it (`area.adjust_first_frames`, `daemon::flightlog`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -321,6 +326,32 @@ pub const ALIGN_MAX_FRAMES: usize = 500;
 /// focal length.
 const ALIGNED_PRIOR_DEG: f64 = 0.05;
 
+/// A row of `alignment.csv`: a photo's correction ([`super::align::Correction`]), its
+/// rotation vector in degrees about local north, east and down.
+#[derive(Serialize, Deserialize)]
+pub struct AlignmentRow {
+    pub frame: u64,
+    pub tie_sightings: usize,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub correction_deg: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub about_north_deg: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub about_east_deg: f64,
+    #[serde(serialize_with = "fixed::dp4")]
+    pub about_down_deg: f64,
+    #[serde(serialize_with = "fixed::dp3")]
+    pub shift_north_m: f64,
+    #[serde(serialize_with = "fixed::dp3")]
+    pub shift_east_m: f64,
+    #[serde(serialize_with = "fixed::dp3")]
+    pub shift_down_m: f64,
+}
+
+impl Row for AlignmentRow {
+    const COLUMNS: &'static str = "frame,tie_sightings,correction_deg,about_north_deg,about_east_deg,about_down_deg,shift_north_m,shift_east_m,shift_down_m";
+}
+
 /// Aligns the dataset's photos by their tie points (`area::align`), fills the summary's
 /// alignment fields and writes `alignment.csv`; returns the rotation correction of each
 /// frame the tie points reached. Empty when no two photos share a tie point.
@@ -403,25 +434,25 @@ fn align_photos(
         summary.cross_line_tie_median_m = before;
         summary.cross_line_tie_aligned_median_m = median(&aligned).1;
     }
-    let mut csv = String::from(
-        "frame,tie_sightings,correction_deg,about_north_deg,about_east_deg,about_down_deg,shift_north_m,shift_east_m,shift_down_m\n",
-    );
-    for (f, c) in &a.corrections {
-        let g = c.rotation.map(f64::to_degrees);
-        let t = c.shift;
-        let n = per_frame.get(f).copied().unwrap_or(0);
-        csv.push_str(&format!(
-            "{f},{n},{:.4},{:.4},{:.4},{:.4},{:.3},{:.3},{:.3}\n",
-            g.norm(),
-            g.x,
-            g.y,
-            g.z,
-            t.x,
-            t.y,
-            t.z
-        ));
-    }
-    output::write_atomic(&out.join("alignment.csv"), csv.as_bytes())?;
+    let rows: Vec<AlignmentRow> = a
+        .corrections
+        .iter()
+        .map(|(f, c)| {
+            let g = c.rotation.map(f64::to_degrees);
+            AlignmentRow {
+                frame: *f,
+                tie_sightings: per_frame.get(f).copied().unwrap_or(0),
+                correction_deg: g.norm(),
+                about_north_deg: g.x,
+                about_east_deg: g.y,
+                about_down_deg: g.z,
+                shift_north_m: c.shift.x,
+                shift_east_m: c.shift.y,
+                shift_down_m: c.shift.z,
+            }
+        })
+        .collect();
+    output::write_atomic(&out.join("alignment.csv"), mavloc_data::table::to_string(&rows).as_bytes())?;
     tracing::info!(
         photos = per_frame.len(),
         tie_points = a.ties.points.len(),
@@ -526,6 +557,7 @@ pub fn run_observed(
         method: method.into(),
         dataset_crc32: mavloc_data::dataset::telemetry_crc32(&ds.dir),
         downscale: Some(s.area.downscale.max(1)),
+        gimbal_offsets_deg: Some(s.gimbal.offsets_deg()),
         ..RunSummary::default()
     };
     let mut timing = StageTiming::default();

@@ -55,11 +55,23 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
         .ok()
         .and_then(|t| serde_json::from_str::<crate::area::offline::RunSummary>(&t).ok());
     let fps = summary.as_ref().map_or(f64::NAN, |s| s.frames_per_s);
+    let offsets = summary.as_ref().and_then(|s| s.gimbal_offsets_deg);
     let mut e = crate::area::eval::evaluate(&landmarks, &ds.ground_truth, &border, fps);
     // A rendered dataset carries its scenario, so its ground is known everywhere, and its
     // `true` poses are the truth.
     if let Some(surface) = crate::simulated::surface::true_surface(dataset).map_err(anyhow::Error::msg)? {
         e = e.with_surface(&landmarks, surface);
+        let alignment = result.join("alignment.csv");
+        match offsets {
+            Some(o) if alignment.is_file() => {
+                let (attitudes, positions) = aligned_attitudes(&ds, &alignment, o)?;
+                e = e.with_aligned_attitudes(&attitudes, &positions);
+            }
+            None if alignment.is_file() => {
+                eprintln!("mavloc eval area: alignment.csv is there, but summary.json does not say the gimbal offsets the run added (results of an older mavloc): the aligned attitudes are not set against the true ones")
+            }
+            _ => {}
+        }
         let trace = result.join("trace.csv");
         match summary.and_then(|s| s.downscale) {
             Some(downscale) if trace.is_file() => {
@@ -91,6 +103,39 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Pairs of rotations (true, aligned) and of positions (true, tagged).
+type AlignedPoses = (
+    Vec<(crate::geometry::Rot3, crate::geometry::Rot3)>,
+    Vec<(crate::geometry::Vec3, crate::geometry::Vec3)>,
+);
+
+/// Each aligned photo's true attitude and its aligned one: the tagged pose with the run's
+/// gimbal offsets (`offsets_deg`), turned by its correction (`area::align::Correction`);
+/// and its true and tagged positions.
+fn aligned_attitudes(
+    ds: &crate::data::Dataset,
+    alignment: &Path,
+    offsets_deg: [f64; 3],
+) -> anyhow::Result<AlignedPoses> {
+    let rows = mavloc_data::table::read::<crate::area::offline::AlignmentRow>(alignment)
+        .map_err(|e| anyhow::anyhow!(e.to_string()))?;
+    let records: std::collections::HashMap<u64, _> = ds.records.iter().map(|r| (r.frame, r)).collect();
+    let (mut pairs, mut positions) = (Vec::new(), Vec::new());
+    for row in rows {
+        let Some(r) = records.get(&row.frame) else {
+            anyhow::bail!("{}: frame {} is not in the dataset", alignment.display(), row.frame);
+        };
+        let turn = crate::geometry::Vec3::new(row.about_north_deg, row.about_east_deg, row.about_down_deg)
+            .map(f64::to_radians);
+        let tagged = ds.camera_pose(&r.measured, offsets_deg);
+        let aligned = crate::area::refine::corrected(&tagged, &turn);
+        let truth = ds.camera_pose(&r.truth, [0.0; 3]);
+        pairs.push((truth.attitude, aligned.attitude));
+        positions.push((truth.position, tagged.position));
+    }
+    Ok((pairs, positions))
 }
 
 /// Each landmark's accepted sightings in `trace.csv` cast from the dataset's true poses

@@ -287,9 +287,10 @@ fn missing_zone(address: &LinkAddress) -> Option<std::io::Error> {
     };
     let (_, zone) = host.split_once('%')?;
     let known = if zone.bytes().all(|b| b.is_ascii_digit()) {
-        std::fs::read_dir("/sys/class/net").ok()?.flatten().any(|d| {
-            std::fs::read_to_string(d.path().join("ifindex")).is_ok_and(|i| i.trim() == zone)
-        })
+        std::fs::read_dir("/sys/class/net")
+            .ok()?
+            .flatten()
+            .any(|d| std::fs::read_to_string(d.path().join("ifindex")).is_ok_and(|i| i.trim() == zone))
     } else {
         std::path::Path::new("/sys/class/net").join(zone).exists()
     };

@@ -114,7 +114,11 @@ fn check_ipv6(s: &str, head: &str, v6: &str) -> Result<(), String> {
             "`{s}`: a zone (`%{z}`) belongs only to a link-local address (fe80::/10), and `{addr}` is not one"
         )),
         // Interface names are at most 15 bytes on Linux (IFNAMSIZ 16 with the NUL).
-        Some(z) if z.is_empty() || z.len() > 15 || !z.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b)) => {
+        Some(z)
+            if z.is_empty()
+                || z.len() > 15
+                || !z.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.@".contains(&b)) =>
+        {
             Err(format!("`{s}`: `%{z}` is not a network interface name or index"))
         }
         Some(_) => Ok(()),
@@ -200,7 +204,9 @@ mod tests {
 
     #[test]
     fn a_link_local_ipv6_address_carries_its_zone() {
-        for s in ["udpin:[fe80::1%eth0]:14540", "udpout:[fe80::fc:ff:fe00:1%2]:14550", "tcpin:[fe80::1%usb0]:5760"] {
+        for s in
+            ["udpin:[fe80::1%eth0]:14540", "udpout:[fe80::fc:ff:fe00:1%2]:14550", "tcpin:[fe80::1%usb0]:5760"]
+        {
             assert_eq!(LinkAddress::parse(s).unwrap().to_string(), s);
         }
         let e = LinkAddress::parse("udpin:[::1%lo]:14540").unwrap_err();
