@@ -305,6 +305,8 @@ pub struct Counters {
     pub peer_lines_suppressed: u64,
     /// Autopilot telemetry dropped for a stamp far ahead of its clock.
     pub telemetry_from_the_future: u64,
+    /// The autopilot's attitude and position messages dropped for a NaN or infinite value.
+    pub telemetry_not_finite: u64,
     /// Backwards steps of the autopilot's clock that its old timeline then disproved
     /// (a spoofed or garbled reboot; see `telemetry`).
     pub reboot_claims_rejected: u64,
@@ -1643,6 +1645,7 @@ impl Core {
         self.counters.frames_dropped = s.frames_dropped;
         self.counters.peer_lines_suppressed = self.peer_lines.suppressed;
         self.counters.telemetry_from_the_future = self.telemetry.implausible;
+        self.counters.telemetry_not_finite = self.telemetry.not_finite;
         self.counters.reboot_claims_rejected = self.telemetry.reboot_claims_rejected;
         self.counters.gimbal_error_median_deg = self.gimbal.median_error_deg();
         self.counters.gimbal_error_flight_median_deg = self.gimbal.flight_median_error_deg();

@@ -88,6 +88,9 @@ pub struct Telemetry {
     pub autopilot_from_the_future: u64,
     /// Reboot claims the old timeline disproved (see the module doc).
     pub reboot_claims_rejected: u64,
+    /// The flight controller's ATTITUDE and LOCAL_POSITION_NED refused for a value that
+    /// is not a number (NaN or infinite): one would make every pose aligned near it NaN.
+    pub not_finite: u64,
     /// A backwards step waiting for confirmation.
     candidate: Option<Candidate>,
     latest_attitude: Option<(f64, nalgebra::UnitQuaternion<f64>)>,
@@ -142,6 +145,7 @@ impl Telemetry {
             implausible: 0,
             autopilot_from_the_future: 0,
             reboot_claims_rejected: 0,
+            not_finite: 0,
             candidate: None,
             latest_attitude: None,
             home: None,
@@ -237,6 +241,16 @@ impl Telemetry {
     /// itself).
     pub fn on_message(&mut self, rx: Mono, m: &MavMessage, component: u8) -> Option<Rebooted> {
         let flight_controller = component == 1;
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        let numbers = match m {
+            MavMessage::ATTITUDE(a) => finite(&[a.roll, a.pitch, a.yaw]),
+            MavMessage::LOCAL_POSITION_NED(p) => finite(&[p.x, p.y, p.z, p.vx, p.vy, p.vz]),
+            _ => true,
+        };
+        if flight_controller && !numbers {
+            self.not_finite += 1;
+            return None;
+        }
         let stamp_ms = match m {
             MavMessage::ATTITUDE(a) => Some(a.time_boot_ms),
             MavMessage::LOCAL_POSITION_NED(p) => Some(p.time_boot_ms),

@@ -1650,3 +1650,50 @@ fn timesync_answers_and_vision_stamps_are_on_an_autopilot_clock_that_runs_slow()
         "stamps against the autopilot's clock, ms: {stamp_errors_ms:?}"
     );
 }
+
+/// Telemetry that is not a number (a NaN or infinite attitude, position or velocity: a
+/// faulty estimator, or a peer sending as the autopilot) is refused and counted. Taken
+/// in, it made every pose aligned near it NaN, and the landmarks or the indoor estimate
+/// made from that pose with it.
+#[test]
+fn telemetry_that_is_not_a_number_is_refused_and_counted() {
+    let mut sim = autopilot_booted_with_mavloc_30_s_ago();
+    let bad = [
+        MavMessage::ATTITUDE(ATTITUDE_DATA { roll: f32::NAN, ..Default::default() }),
+        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            x: f32::NAN,
+            z: -10.0,
+            ..Default::default()
+        }),
+        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA { z: f32::INFINITY, ..Default::default() }),
+        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            z: -10.0,
+            vy: f32::NAN,
+            ..Default::default()
+        }),
+    ];
+    for _ in 0..10 {
+        sim.run_for(Duration::from_millis(50));
+        let ms = (sim.now.0 / 1000) as u32;
+        for m in &bad {
+            let mut m = m.clone();
+            match &mut m {
+                MavMessage::ATTITUDE(a) => a.time_boot_ms = ms,
+                MavMessage::LOCAL_POSITION_NED(p) => p.time_boot_ms = ms,
+                _ => {}
+            }
+            sim.deliver(frame(1, 1, m));
+        }
+        // Aligned where the refused messages were stamped, between good ones.
+        let at = sim.now.secs();
+        sim.run_for(Duration::from_millis(150));
+        let pose = sim.core.telemetry().aligner.align(at, sim.now.secs()).expect("a pose");
+        let v = pose.vehicle;
+        let finite = v.position.iter().chain(v.velocity.iter()).all(|x| x.is_finite())
+            && v.attitude.coords.iter().all(|x| x.is_finite());
+        assert!(finite, "{v:?}");
+    }
+    assert_eq!(sim.core.telemetry().not_finite, 40);
+    sim.run_for(Duration::from_secs(2));
+    assert_eq!(sim.core.counters().telemetry_not_finite, 40);
+}
