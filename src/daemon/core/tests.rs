@@ -1697,3 +1697,109 @@ fn telemetry_that_is_not_a_number_is_refused_and_counted() {
     sim.run_for(Duration::from_secs(2));
     assert_eq!(sim.core.counters().telemetry_not_finite, 40);
 }
+
+/// A payload of 32-bit words (MAVLink orders a payload's fields by size, so its floats
+/// fall on them), each any bits, or NaN, an infinity or zero, which random bits would
+/// make one time in 256.
+fn payload() -> impl Strategy<Value = Vec<u8>> {
+    let word = prop_oneof![
+        4 => any::<u32>(),
+        1 => Just(f32::NAN.to_bits()),
+        1 => Just(f32::INFINITY.to_bits()),
+        1 => Just(f32::NEG_INFINITY.to_bits()),
+        1 => Just(0),
+    ];
+    proptest::collection::vec(word, 0..64).prop_map(|w| w.iter().flat_map(|x| x.to_le_bytes()).collect())
+}
+
+/// Message ids to draw from: those the core reads, then every other id of the dialect.
+fn message_ids() -> (Vec<u32>, Vec<u32>) {
+    use mavlink::Message;
+    let read = [
+        "HEARTBEAT",
+        "ATTITUDE",
+        "LOCAL_POSITION_NED",
+        "GLOBAL_POSITION_INT",
+        "HOME_POSITION",
+        "TIMESYNC",
+        "COMMAND_LONG",
+        "COMMAND_INT",
+        "COMMAND_ACK",
+        "PARAM_SET",
+        "PARAM_REQUEST_READ",
+        "PARAM_REQUEST_LIST",
+        "FILE_TRANSFER_PROTOCOL",
+        "GIMBAL_DEVICE_ATTITUDE_STATUS",
+        "GIMBAL_MANAGER_STATUS",
+        "DISTANCE_SENSOR",
+        "SYS_STATUS",
+        "STATUSTEXT",
+        "EVENT",
+        "GPS_GLOBAL_ORIGIN",
+        "EXTENDED_SYS_STATE",
+        "HIL_STATE_QUATERNION",
+    ];
+    let read: Vec<u32> = read.iter().map(|n| MavMessage::message_id_from_name(n).expect(n)).collect();
+    let all = (0..20_000).filter(|id| MavMessage::default_message_from_id(*id).is_some()).collect();
+    (read, all)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 32, ..ProptestConfig::default() })]
+
+    /// Any message of the dialect with any content (random payload bytes parsed as its
+    /// type: NaN and infinite floats, any ids, indices, names and enum values the crate
+    /// accepts), as the autopilot or as the ground station: the core does not panic,
+    /// takes no pose that is not a number, and its heartbeat and watchdog go on.
+    #[test]
+    fn any_message_with_any_content_leaves_the_core_working(
+        msgs in proptest::collection::vec((any::<bool>(), any::<prop::sample::Index>(), any::<bool>(), payload()), 1..150)
+    ) {
+        let (read, all) = message_ids();
+        let mut sim = autopilot_booted_with_mavloc_30_s_ago();
+        let mut delivered = 0;
+        let mut telemetry_at = Vec::new();
+        for (one_it_reads, i, from_autopilot, payload) in msgs {
+            let ids = if one_it_reads { &read } else { &all };
+            let id = ids[i.index(ids.len())];
+            if let Ok(mut m) = <MavMessage as mavlink::Message>::parse(mavlink::MavlinkVersion::V2, id, &payload) {
+                // Telemetry stamped now, so the aligner takes it in rather than refusing
+                // a random stamp as from the future.
+                let ms = (sim.now.0 / 1000) as u32;
+                match &mut m {
+                    MavMessage::ATTITUDE(a) => a.time_boot_ms = ms,
+                    MavMessage::LOCAL_POSITION_NED(p) => p.time_boot_ms = ms,
+                    _ => {}
+                }
+                if matches!(m, MavMessage::ATTITUDE(_) | MavMessage::LOCAL_POSITION_NED(_)) && from_autopilot {
+                    telemetry_at.push(sim.now.secs());
+                }
+                let (sys, comp) = if from_autopilot { (1, 1) } else { (255, 190) };
+                sim.deliver(frame(sys, comp, m));
+                delivered += 1;
+            }
+            sim.run_for(Duration::from_millis(20));
+        }
+        // Poses where the random telemetry was stamped, with the next good samples in.
+        sim.run_for(Duration::from_millis(200));
+        for t in telemetry_at.iter().filter(|t| **t > sim.now.secs() - 2.0) {
+            for dt in [-0.01, 0.0, 0.01, 0.05] {
+                if let Ok(pose) = sim.core.telemetry().aligner.align(t + dt, sim.now.secs()) {
+                    let v = pose.vehicle;
+                    let finite = v.position.iter().chain(v.velocity.iter()).all(|x| x.is_finite())
+                        && v.attitude.coords.iter().all(|x| x.is_finite());
+                    prop_assert!(finite, "{:?}", pose);
+                }
+            }
+        }
+        prop_assume!(delivered > 0);
+        let quiet_from = sim.now;
+        // The sim's watchdog interval is 10 s.
+        sim.run_for(Duration::from_secs(11));
+        let heartbeats =
+            sim.sent_between(quiet_from, sim.now).filter(|m| matches!(m, MavMessage::HEARTBEAT(_))).count();
+        prop_assert!(heartbeats >= 10, "{heartbeats} heartbeats in 11 s");
+        let pings = sim.actions.iter().filter(|(t, a)| *t >= quiet_from && matches!(a, Action::Watchdog)).count();
+        prop_assert!(pings >= 1, "no watchdog ping in 11 s");
+    }
+}
