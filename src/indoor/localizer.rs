@@ -459,6 +459,16 @@ impl Localizer {
         self.support.iter().filter(|(_, s)| *s).count() as f64 / self.support.len().max(1) as f64
     }
 
+    /// How long (s, at time `t`) the filter has tracked a position it found itself; None
+    /// while it searches or tracks a given one. A young track's fixes are the least sure:
+    /// the particles agreed for a second on training views that may be off together.
+    pub fn found_track_age(&self, t: f64) -> Option<f64> {
+        match self.mode {
+            Mode::Tracking { since } => Some((t - since).max(0.0)),
+            Mode::Searching { .. } | Mode::Given => None,
+        }
+    }
+
     /// True while tracking a found (or given) position rather than searching the floor.
     pub fn tracking(&self) -> bool {
         matches!(self.mode, Mode::Tracking { .. } | Mode::Given)
@@ -643,9 +653,14 @@ mod tests {
         assert!(first.spread.0.max(first.spread.1) >= TRACK_SPREAD_M, "{:?}", first.spread);
         assert!(!first.fix, "particles that do not agree are no fix");
         let mut fixes = 0;
+        let mut ages = Vec::new();
         for i in 1..45 {
             truth += v * dt;
-            let e = loc.step_histogram(i as f64 * dt, &seen_at(truth), Some(v));
+            let t = i as f64 * dt;
+            let e = loc.step_histogram(t, &seen_at(truth), Some(v));
+            // A found track's age counts from its first fix; a search has none.
+            assert_eq!(e.fix, loc.found_track_age(t).is_some());
+            ages.extend(loc.found_track_age(t));
             if e.fix {
                 fixes += 1;
                 // The grid's places are 0.5 m apart: a fix is within one of them.
@@ -655,6 +670,8 @@ mod tests {
         }
         // The particles agree after a frame or two, and a second later it is a fix.
         assert!(fixes >= 25, "agreeing particles give fixes: {fixes} of 44");
+        assert_eq!(ages[0], 0.0);
+        assert!(ages.windows(2).all(|w| (w[1] - w[0] - dt).abs() < 1e-9), "{ages:?}");
     }
 
     /// Frames stop for 2 s while the vehicle flies on at a measured velocity: the particles
@@ -706,6 +723,7 @@ mod tests {
             e = Some(loc.step_histogram(i as f64 / 15.0, &far, Some(Vector2::zeros())));
         }
         assert!(loc.tracking());
+        assert_eq!(loc.found_track_age(100.0), None, "a given track is not a found one");
         let e = e.unwrap();
         assert!((e.position - pad).norm() < 1.6, "held near the pad: {:?}", e.position);
     }
