@@ -171,7 +171,13 @@ impl Telemetry {
         let home =
             Geodetic::new(h.latitude as f64 * 1e-7, h.longitude as f64 * 1e-7, h.altitude as f64 * 1e-3);
         home.validate().ok()?;
-        Some(LocalFrame::new(home).to_geodetic(&-Vec3::new(h.x as f64, h.y as f64, h.z as f64)))
+        // A local offset that is not a number would put every result at NaN degrees.
+        let offset = Vec3::new(h.x as f64, h.y as f64, h.z as f64);
+        if !offset.iter().all(|x| x.is_finite()) {
+            return None;
+        }
+        let origin = LocalFrame::new(home).to_geodetic(&-offset);
+        origin.validate().ok().map(|_| origin)
     }
 
     /// The camera's optical axis (gimbal FRD x) in NED, from a gimbal report; a yaw

@@ -1698,6 +1698,34 @@ fn telemetry_that_is_not_a_number_is_refused_and_counted() {
     assert_eq!(sim.core.counters().telemetry_not_finite, 40);
 }
 
+/// HOME_POSITION gives the results' origin: home moved back by its local offset. An
+/// offset that is not a number gives none, where it put every landmark at NaN degrees.
+#[test]
+fn a_home_whose_local_offset_is_not_a_number_gives_no_origin() {
+    let mut sim = autopilot_booted_with_mavloc_30_s_ago();
+    let home = |x: f32| {
+        MavMessage::HOME_POSITION(HOME_POSITION_DATA {
+            latitude: 520_000_000,
+            longitude: 43_700_000,
+            altitude: 10_000,
+            x,
+            y: 20.0,
+            z: 0.0,
+            ..Default::default()
+        })
+    };
+    sim.deliver(frame(1, 1, home(10.0)));
+    sim.run_for(Duration::from_millis(50));
+    let o = sim.core.origin().expect("an origin");
+    // 10 m north and 20 m east of the origin is home: the origin is south-west of it.
+    assert!(o.lat_deg < 52.0 && o.lon_deg < 4.37 && (o.lat_deg - 52.0).abs() < 1e-3, "{o:?}");
+    for bad in [f32::NAN, f32::INFINITY] {
+        sim.deliver(frame(1, 1, home(bad)));
+        sim.run_for(Duration::from_millis(50));
+        assert_eq!(sim.core.origin(), None, "x = {bad}");
+    }
+}
+
 /// A payload of 32-bit words (MAVLink orders a payload's fields by size, so its floats
 /// fall on them), each any bits, or NaN, an infinity or zero, which random bits would
 /// make one time in 256.
@@ -1750,7 +1778,7 @@ proptest! {
     /// Any message of the dialect with any content (random payload bytes parsed as its
     /// type: NaN and infinite floats, any ids, indices, names and enum values the crate
     /// accepts), as the autopilot or as the ground station: the core does not panic,
-    /// takes no pose that is not a number, and its heartbeat and watchdog go on.
+    /// takes no pose or origin that is not a number, and its heartbeat and watchdog go on.
     #[test]
     fn any_message_with_any_content_leaves_the_core_working(
         msgs in proptest::collection::vec((any::<bool>(), any::<prop::sample::Index>(), any::<bool>(), payload()), 1..150)
@@ -1779,6 +1807,10 @@ proptest! {
                 delivered += 1;
             }
             sim.run_for(Duration::from_millis(20));
+        }
+        // A random HOME_POSITION sets the results' origin: it must be a place.
+        if let Some(o) = sim.core.origin() {
+            prop_assert!(o.validate().is_ok(), "{:?}", o);
         }
         // Poses where the random telemetry was stamped, with the next good samples in.
         sim.run_for(Duration::from_millis(200));
