@@ -64,18 +64,19 @@ pub struct AreaEvaluation {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub true_fix_shape_rms_m: Option<f64>,
     /// Photos aligned by their tie points, set against their true attitudes: how many,
-    /// the rotation they share (rotation vector about north, east, down, degrees: what
-    /// the photos' GPS positions leave open, turning the map as a whole) and the RMS of
-    /// each photo's rest about it, degrees (how well they agree with each other).
+    /// the rotation they share (aligned against true, a rotation vector about north, east,
+    /// down, degrees: what the photos' GPS positions leave open, turning the map as a
+    /// whole) and the RMS of each photo's rest about it, degrees (how well they agree with
+    /// each other).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub aligned_photos: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub aligned_common_deg: Option<[f64; 3]>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub aligned_rest_rms_deg: Option<f64>,
-    /// The turn that best carries the photos' tagged positions onto their true ones
-    /// (rotation vector, degrees): what the GPS positions alone say of the survey's
-    /// orientation, to set beside `aligned_common_deg`.
+    /// The turn that best carries the photos' true positions onto their tagged ones
+    /// (rotation vector, degrees): how the GPS positions alone turn the survey, to set
+    /// beside `aligned_common_deg`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tagged_positions_turn_deg: Option<[f64; 3]>,
     #[serde(skip)]
@@ -83,8 +84,9 @@ pub struct AreaEvaluation {
 }
 
 /// The rotation `r` that best carries the points `from` onto `to` about their centroids
-/// (least squares, Kabsch's SVD solution); None for fewer than three points. Twelve lines
-/// of nalgebra, not worth a dependency.
+/// (least squares, Kabsch's SVD solution); None for fewer than three points or points on
+/// one line, whose turn about that line nothing fixes. Written here on nalgebra's SVD: the
+/// crates we use have no point-set registration.
 fn best_turn(pairs: &[(Vec3, Vec3)]) -> Option<Rot3> {
     if pairs.len() < 3 {
         return None;
@@ -93,6 +95,10 @@ fn best_turn(pairs: &[(Vec3, Vec3)]) -> Option<Rot3> {
     let (ca, cb) = pairs.iter().fold((Vec3::zeros(), Vec3::zeros()), |(a, b), (f, t)| (a + f / n, b + t / n));
     let h: nalgebra::Matrix3<f64> = pairs.iter().map(|(f, t)| (t - cb) * (f - ca).transpose()).sum();
     let svd = h.svd(true, true);
+    // Singular values come largest first: a second one near zero is a line of points.
+    if svd.singular_values[1] <= 1e-9 * svd.singular_values[0] {
+        return None;
+    }
     let (u, v_t) = (svd.u?, svd.v_t?);
     // A reflection is no turn: flip the least singular direction.
     let d = (u * v_t).determinant().signum();
@@ -182,19 +188,21 @@ impl AreaEvaluation {
 
     /// With the photos' aligned attitudes set against their true ones (`pairs`: true,
     /// aligned; rotations "NED <- camera") and the turn their tagged positions make
-    /// against their true ones (`positions`: true, tagged). The errors are small, so
+    /// against their true ones (`positions`: true, tagged); both as aligned or tagged
+    /// against true. The errors are small, so
     /// their rotation vectors average.
     pub fn with_aligned_attitudes(mut self, pairs: &[(Rot3, Rot3)], positions: &[(Vec3, Vec3)]) -> Self {
         if pairs.is_empty() {
             return self;
         }
-        let tagged_onto_true: Vec<(Vec3, Vec3)> = positions.iter().map(|(t, g)| (*g, *t)).collect();
-        if let Some(r) = best_turn(&tagged_onto_true) {
+        // Both turns as the error is: the aligned attitudes and the tagged positions turned
+        // against the truth, as the shift is the map's position less the true one.
+        if let Some(r) = best_turn(positions) {
             let v = r.scaled_axis().map(f64::to_degrees);
             self.tagged_positions_turn_deg = Some([v.x, v.y, v.z]);
         }
         let v: Vec<Vec3> =
-            pairs.iter().map(|(t, a)| (t * a.inverse()).scaled_axis().map(f64::to_degrees)).collect();
+            pairs.iter().map(|(t, a)| (a * t.inverse()).scaled_axis().map(f64::to_degrees)).collect();
         let mean = v.iter().sum::<Vec3>() / v.len() as f64;
         let rest = v.iter().map(|x| (x - mean).norm_squared()).sum::<f64>() / v.len() as f64;
         self.aligned_photos = Some(v.len());
@@ -394,9 +402,8 @@ mod tests {
         let truth = [deg(0.0, 180.0, 0.0), deg(0.0, 170.0, 10.0), deg(3.0, 175.0, -20.0)];
         let rests = [deg(0.0, 0.0, 0.01), deg(0.0, 0.0, -0.01), deg(0.0, 0.0, 0.0)];
         let common = deg(0.3, 0.0, 0.0);
-        // aligned = (common * rest)^-1 * truth, so truth * aligned^-1 = common * rest.
-        let pairs: Vec<(Rot3, Rot3)> =
-            truth.iter().zip(rests).map(|(t, r)| (*t, (common * r).inverse() * t)).collect();
+        // aligned = common * rest * truth, so aligned * truth^-1 = common * rest.
+        let pairs: Vec<(Rot3, Rot3)> = truth.iter().zip(rests).map(|(t, r)| (*t, common * r * t)).collect();
         // Tagged positions turned by 0.2 deg about down against the true ones, about their
         // centroid, and shifted: the turn is found, the shift is not a turn.
         let turn = deg(0.0, 0.0, 0.2);
@@ -404,7 +411,7 @@ mod tests {
         let centroid = truths.iter().sum::<Vec3>() / 3.0;
         let positions: Vec<(Vec3, Vec3)> = truths
             .iter()
-            .map(|t| (*t, turn.inverse() * (t - centroid) + centroid + Vec3::new(0.3, -0.2, 0.1)))
+            .map(|t| (*t, turn * (t - centroid) + centroid + Vec3::new(0.3, -0.2, 0.1)))
             .collect();
         let e = evaluate(&[], &[vec![Vec3::zeros(), Vec3::new(1.0, 0.0, 0.0)]], &[], 1.0)
             .with_aligned_attitudes(&pairs, &positions);
@@ -415,6 +422,17 @@ mod tests {
         let rms = e.aligned_rest_rms_deg.unwrap();
         assert!((rms - (2.0f64 / 3.0).sqrt() * 0.01).abs() < 1e-4, "{rms}");
         assert!(e.to_string().contains("photos aligned against their true attitudes (3)"), "{e}");
+    }
+
+    /// Points on one line leave the turn about it open: no turn is claimed.
+    #[test]
+    fn points_on_one_line_have_no_best_turn() {
+        let line: Vec<(Vec3, Vec3)> =
+            (0..5).map(|i| (Vec3::new(i as f64, 0.0, 0.0), Vec3::new(i as f64 + 0.1, 0.0, 0.0))).collect();
+        assert!(best_turn(&line).is_none());
+        let mut plane = line.clone();
+        plane.push((Vec3::new(0.0, 3.0, 0.0), Vec3::new(0.1, 3.0, 0.0)));
+        assert!(best_turn(&plane).is_some_and(|r| r.angle() < 1e-9), "a shift alone is no turn");
     }
 
     #[test]

@@ -68,7 +68,7 @@ fn area(dataset: &Path, result: &Path, json: bool) -> anyhow::Result<ExitCode> {
                 e = e.with_aligned_attitudes(&attitudes, &positions);
             }
             None if alignment.is_file() => {
-                eprintln!("mavloc eval area: alignment.csv is there, but summary.json does not say the gimbal offsets the run added (results of an older mavloc): the aligned attitudes are not set against the true ones")
+                eprintln!("mavloc eval area: alignment.csv is there, but summary.json is missing or does not say the gimbal offsets the run added (results of an older mavloc): the aligned attitudes are not set against the true ones")
             }
             _ => {}
         }
@@ -132,7 +132,11 @@ fn aligned_attitudes(
         let tagged = ds.camera_pose(&r.measured, offsets_deg);
         let aligned = crate::area::refine::corrected(&tagged, &turn);
         let truth = ds.camera_pose(&r.truth, [0.0; 3]);
-        pairs.push((truth.attitude, aligned.attitude));
+        // A photo no tie point reached keeps its tags (the run leaves it out too); its
+        // position still counts for the GPS's turn.
+        if row.tie_sightings > 0 {
+            pairs.push((truth.attitude, aligned.attitude));
+        }
         positions.push((truth.position, tagged.position));
     }
     Ok((pairs, positions))

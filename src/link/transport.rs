@@ -286,6 +286,10 @@ fn missing_zone(address: &LinkAddress) -> Option<std::io::Error> {
         | LinkAddress::TcpOut { host, .. } => host,
     };
     let (_, zone) = host.split_once('%')?;
+    // Without /sys (not Linux, or not mounted) the resolver is left to judge.
+    if !std::path::Path::new("/sys/class/net").is_dir() {
+        return None;
+    }
     let known = if zone.bytes().all(|b| b.is_ascii_digit()) {
         std::fs::read_dir("/sys/class/net")
             .ok()?

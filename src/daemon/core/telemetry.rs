@@ -88,8 +88,9 @@ pub struct Telemetry {
     pub autopilot_from_the_future: u64,
     /// Reboot claims the old timeline disproved (see the module doc).
     pub reboot_claims_rejected: u64,
-    /// The flight controller's ATTITUDE and LOCAL_POSITION_NED refused for a value that
-    /// is not a number (NaN or infinite): one would make every pose aligned near it NaN.
+    /// The flight controller's ATTITUDE, LOCAL_POSITION_NED and HOME_POSITION refused for a
+    /// value that is not a number (NaN or infinite): one would make every pose aligned
+    /// near it NaN, or every result's position.
     pub not_finite: u64,
     /// A backwards step waiting for confirmation.
     candidate: Option<Candidate>,
@@ -251,6 +252,9 @@ impl Telemetry {
         let numbers = match m {
             MavMessage::ATTITUDE(a) => finite(&[a.roll, a.pitch, a.yaw]),
             MavMessage::LOCAL_POSITION_NED(p) => finite(&[p.x, p.y, p.z, p.vx, p.vy, p.vz]),
+            // The home's local offset places the results (`origin`); a bad one is refused
+            // so the last good home stands.
+            MavMessage::HOME_POSITION(h) => finite(&[h.x, h.y, h.z]),
             _ => true,
         };
         if flight_controller && !numbers {

@@ -1698,10 +1698,11 @@ fn telemetry_that_is_not_a_number_is_refused_and_counted() {
     assert_eq!(sim.core.counters().telemetry_not_finite, 40);
 }
 
-/// HOME_POSITION gives the results' origin: home moved back by its local offset. An
-/// offset that is not a number gives none, where it put every landmark at NaN degrees.
+/// HOME_POSITION gives the results' origin: home moved back by its local offset. A home
+/// whose offset is not a number is refused and counted, and the last good one stands; it
+/// had put every landmark at NaN degrees.
 #[test]
-fn a_home_whose_local_offset_is_not_a_number_gives_no_origin() {
+fn a_home_whose_local_offset_is_not_a_number_is_refused() {
     let mut sim = autopilot_booted_with_mavloc_30_s_ago();
     let home = |x: f32| {
         MavMessage::HOME_POSITION(HOME_POSITION_DATA {
@@ -1722,8 +1723,9 @@ fn a_home_whose_local_offset_is_not_a_number_gives_no_origin() {
     for bad in [f32::NAN, f32::INFINITY] {
         sim.deliver(frame(1, 1, home(bad)));
         sim.run_for(Duration::from_millis(50));
-        assert_eq!(sim.core.origin(), None, "x = {bad}");
+        assert_eq!(sim.core.origin(), Some(o), "x = {bad}");
     }
+    assert_eq!(sim.core.telemetry().not_finite, 2);
 }
 
 /// A payload of 32-bit words (MAVLink orders a payload's fields by size, so its floats
