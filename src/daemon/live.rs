@@ -987,7 +987,7 @@ impl LivePipeline for IndoorLive {
             cov: fix_covariance(e.spread, self.localizer.found_track_age(t)),
         });
         report.counters = vec![("IND_SDX", e.spread.0 as f32), ("IND_SDY", e.spread.1 as f32)];
-        let held = if e.fix { self.trigger.update(e.position, e.spread) } else { Err(self.trigger.no_fix()) };
+        let held = self.trigger.observe(&e);
         match held {
             Ok(()) => {
                 report.landing_requested = true;

@@ -63,11 +63,16 @@ impl LandingTrigger {
         Err(Hold::Settling(self.streak))
     }
 
-    /// A frame without a position fix: it breaks the streak (a landing is triggered on a
-    /// track only, not on particles that agree during a search).
-    pub fn no_fix(&mut self) -> Hold {
-        self.streak = 0;
-        Hold::NoFix
+    /// Feeds one frame of the localiser: its estimate if it is a position fix, else a
+    /// frame that breaks the streak (a landing is triggered on a track only, not on
+    /// particles that agree during a search).
+    pub fn observe(&mut self, e: &super::localizer::Estimate) -> Result<(), Hold> {
+        if e.fix {
+            self.update(e.position, e.spread)
+        } else {
+            self.streak = 0;
+            Err(Hold::NoFix)
+        }
     }
 
     /// Whether it has fired.
@@ -124,9 +129,18 @@ mod tests {
     #[test]
     fn a_frame_without_a_fix_resets_the_streak() {
         let mut t = zone(2);
-        assert_eq!(t.update(Vector2::new(1.0, 2.0), (0.1, 0.1)), Err(Hold::Settling(1)));
-        assert_eq!(t.no_fix(), Hold::NoFix);
-        assert_eq!(t.update(Vector2::new(1.0, 2.0), (0.1, 0.1)), Err(Hold::Settling(1)));
+        let frame = |fix| super::super::localizer::Estimate {
+            t: 0.0,
+            position: Vector2::new(1.0, 2.0),
+            spread: (0.1, 0.1),
+            neighbours: Vec::new(),
+            velocity: Vector2::zeros(),
+            fix,
+        };
+        assert_eq!(t.observe(&frame(true)), Err(Hold::Settling(1)));
+        // Inside the zone and agreeing, but a search's particles: no fix, the streak ends.
+        assert_eq!(t.observe(&frame(false)), Err(Hold::NoFix));
+        assert_eq!(t.observe(&frame(true)), Err(Hold::Settling(1)));
         assert!(!t.fired());
     }
 

@@ -174,13 +174,7 @@ pub fn run(
                 .map_err(|e| e.to_string())?;
             estimate = Some((e.position, e.spread));
             // As the daemon: a landing on a position fix only.
-            let fired = if e.fix {
-                trigger.update(e.position, e.spread).is_ok()
-            } else {
-                trigger.no_fix();
-                false
-            };
-            if fired {
+            if trigger.observe(&e).is_ok() {
                 row.fired = true;
                 row.t_fire = t;
                 (row.true_x, row.true_y) = (pos.x, pos.y);
