@@ -272,6 +272,13 @@ impl ResultSets {
         let n = sets.complete.iter().chain(&sets.partial_numbers).max().map_or(1, |h| h + 1);
         let set = run_dir.join(set_name(n));
         let partial = run_dir.join(format!("{}.partial", set_name(n)));
+        // A run's folder is made by its first set: one that failed (a full disk at the
+        // start) leaves none (an outside trial found the empty folder).
+        let forget_empty_run = || {
+            if sets.complete.is_empty() {
+                let _ = fs::remove_dir(&run_dir);
+            }
+        };
         let written = (|| {
             fs::create_dir(&partial)?;
             fill(&partial)?;
@@ -282,11 +289,7 @@ impl ResultSets {
         })();
         if let Err(e) = written {
             let _ = fs::remove_dir_all(&partial);
-            // A run's folder is made by its first set: one that failed (a full disk at
-            // the start) leaves none (an outside trial found the empty folder).
-            if sets.complete.is_empty() {
-                let _ = fs::remove_dir(&run_dir);
-            }
+            forget_empty_run();
             if let Some(&current) = sets.complete.iter().max() {
                 // Whatever failed (a full disk most likely), the replaced sets kept for
                 // slow readers give their room to the next attempt.
@@ -297,9 +300,7 @@ impl ResultSets {
         if let Err(e) = self.runs.point_at(&set) {
             // Complete but never current: removed, so the next start cannot take it for newer.
             let _ = fs::remove_dir_all(&set);
-            if sets.complete.is_empty() {
-                let _ = fs::remove_dir(&run_dir);
-            }
+            forget_empty_run();
             sync_dir(&run_dir);
             return Err(e);
         }
