@@ -119,8 +119,7 @@ fn aligned_attitudes(
     alignment: &Path,
     offsets_deg: [f64; 3],
 ) -> anyhow::Result<AlignedPoses> {
-    let rows = mavloc_data::table::read::<crate::area::offline::AlignmentRow>(alignment)
-        .map_err(|e| anyhow::anyhow!(e.to_string()))?;
+    let rows = mavloc_data::table::read::<crate::area::offline::AlignmentRow>(alignment)?;
     let records: std::collections::HashMap<u64, _> = ds.records.iter().map(|r| (r.frame, r)).collect();
     let (mut pairs, mut positions) = (Vec::new(), Vec::new());
     for row in rows {

@@ -987,8 +987,7 @@ impl LivePipeline for IndoorLive {
             cov: fix_covariance(e.spread, self.localizer.found_track_age(t)),
         });
         report.counters = vec![("IND_SDX", e.spread.0 as f32), ("IND_SDY", e.spread.1 as f32)];
-        let held = self.trigger.observe(&e);
-        match held {
+        match self.trigger.observe(&e) {
             Ok(()) => {
                 report.landing_requested = true;
                 report.events.push(format!(
