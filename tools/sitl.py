@@ -262,9 +262,23 @@ def wait_timesync(status_path, events, t0, answers=520, timeout=90):
     events.append(f"only {n} timesync exchanges after {timeout} s: PX4 still stamps estimates on arrival")
 
 
-def fly_indoor(m, zone, max_s, events, t0, status_path):
+def truth_stream(px4_dir, rate_hz):
+    """Stops (0) or restarts PX4's HIL_STATE_QUATERNION on mavloc's link (PX4's onboard
+    instance, local port 14580), through PX4's own shell client. The sim camera renders
+    from that truth and takes no pose older than 0.5 s: with it stopped the camera delivers
+    nothing, as a camera that vanishes (unplugged, a driver that hangs) does."""
+    r = subprocess.run([os.path.join(px4_dir, "bin", "px4-mavlink"), "stream", "-u", "14580", "-s",
+                        "HIL_STATE_QUATERNION", "-r", str(rate_hz)], capture_output=True, text=True, timeout=10)
+    if r.returncode != 0:
+        raise RuntimeError(f"px4-mavlink stream -r {rate_hz} failed: {(r.stdout + r.stderr).strip()}")
+
+
+def fly_indoor(m, zone, max_s, events, t0, status_path, gap=None, gap_at=None):
     """Arm once PX4 is ready, take off, fly (offboard, ramped at 0.5 m/s) to the zone and
-    hold there: mavloc's landing trigger is what lands the vehicle. Ends at disarm."""
+    hold there: mavloc's landing trigger is what lands the vehicle. Ends at disarm.
+    `gap` = (px4_dir, after_s, length_s): the camera goes blind `after_s` seconds after
+    setting off, for `length_s` seconds (`--camera-gap`); `gap_at[0]` is then set to when
+    it began, in seconds after PX4 started."""
     from pymavlink import mavutil
     wait_prearm(m, 90, events, t0)
     wait_timesync(status_path, events, t0)
@@ -325,7 +339,18 @@ def fly_indoor(m, zone, max_s, events, t0, status_path):
     # pad. So leaving counts only once a heartbeat has shown offboard.
     offboard, offboard_seen = True, False
     landing_seen = None
+    blind = None  # wall time the camera went blind; then "done"
     while time.time() - fly_start < max_s:
+        if gap is not None and blind is None and time.time() - fly_start >= gap[1]:
+            truth_stream(gap[0], 0)
+            blind = time.time()
+            events.append(f"camera blind {blind - fly_start:.1f} s after setting off "
+                          f"({blind - t0:.1f} s after PX4 started)")
+            gap_at[0] = blind - t0
+        elif gap is not None and blind not in (None, "done") and time.time() - blind >= gap[2]:
+            truth_stream(gap[0], 30)
+            events.append(f"camera back after {time.time() - blind:.1f} s")
+            blind = "done"
         f = min(1.0, 0.5 * (time.time() - fly_start) / max(dist, 1e-6))
         if offboard:
             setpoint(x + f * dx, y + f * dy)
@@ -384,11 +409,13 @@ def airborne_mask(u, t):
     return (i >= 0) & (ld["landed"][np.clip(i, 0, None)] == 0)
 
 
-def estimate_vs_truth(ulg):
+def estimate_vs_truth(ulg, window=None):
     """EKF2's local position against SIH's truth over the airborne time (PX4's land
     detector), from PX4's own flight log: RMS and max, horizontal and vertical, and the
     share of that time vision position was fused. The truth is re-projected into the EKF's
-    origin (SIH's origin and the one mavloc gives differ in the GPS-denied flight)."""
+    origin (SIH's origin and the one mavloc gives differ in the GPS-denied flight).
+    With `window` = (start, end) in PX4's boot seconds: EKF2 through a camera gap instead
+    (`camera_gap_ekf`)."""
     import numpy as np
     from pyulog import ULog
     u = ULog(ulg, ["vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_land_detected",
@@ -408,6 +435,8 @@ def estimate_vs_truth(ulg):
     dn = np.radians(gt["ref_lat"][-1] - lat_e) * r
     de = np.radians(gt["ref_lon"][-1] - lon_e) * r * np.cos(np.radians(lat_e))
     truth = {"x": gt["x"] + dn, "y": gt["y"] + de, "z": gt["z"]}
+    if window is not None:
+        return camera_gap_ekf(d, t, truth, est, window)
     err = {c: np.interp(t, est["timestamp"], est[c])[air] - truth[c][air] for c in "xyz"}
     # Vertical: against the truth's own zero (EKF heights start at the ground too).
     err["z"] = err["z"] - (np.interp(t, est["timestamp"], est["z"])[~air][:1].mean() - truth["z"][~air][:1].mean()
@@ -434,6 +463,72 @@ def estimate_vs_truth(ulg):
     # Where the vehicle came to rest: the truth's last sample, in the EKF's frame.
     out["rest_truth_ne"] = [round(float(truth["x"][-1]), 3), round(float(truth["y"][-1]), 3)]
     out["start_truth_ne"] = [round(float(truth["x"][0]), 3), round(float(truth["y"][0]), 3)]
+    return out
+
+
+def camera_gap_ekf(d, t, truth, est, window):
+    """EKF2 through a camera gap (start, end in PX4's boot seconds): its horizontal error
+    against the truth at the gap's start and end and the largest from the start to 5 s
+    after the end, and when vision position was fused again."""
+    import numpy as np
+    start, end = window
+    h = np.hypot(np.interp(t, est["timestamp"], est["x"]) - truth["x"],
+                 np.interp(t, est["timestamp"], est["y"]) - truth["y"])
+    ts = t * 1e-6
+
+    def at(x):
+        return round(float(np.interp(x, ts, h)), 3)
+    w = (ts >= start) & (ts <= end + 5.0)
+    out = {"ekf_error_at_start_m": at(start), "ekf_error_at_end_m": at(end),
+           "ekf_error_max_to_5_s_after_m": round(float(h[w].max()), 3) if w.any() else None}
+    flags = d.get("estimator_status_flags")
+    if flags is not None and "cs_ev_pos" in flags:
+        ft = flags["timestamp"] * 1e-6
+        during = (ft > start + 0.5) & (ft < end)
+        out["ev_pos_fused_while_blind_share"] = round(float(flags["cs_ev_pos"][during].mean()), 3) if during.any() else None
+        back = (ft >= end) & (flags["cs_ev_pos"] == 1)
+        out["ev_pos_fused_again_after_s"] = round(float(ft[back][0] - end), 2) if back.any() else None
+    return out
+
+
+def camera_gap(ulg, traj, blind_at):
+    """How mavloc and EKF2 came through the camera's gap: the longest pause between
+    mavloc's estimates (trajectory.csv, stamped on PX4's clock) that ends after the camera
+    went blind (`blind_at`, seconds after PX4 started: PX4's boot clock, give or take the
+    few per cent SIH's lockstep runs slower), mavloc's error after it and EKF2's around it
+    (PX4's log)."""
+    import csv
+    import math
+    rows = [r for r in csv.DictReader(open(traj)) if r["true_x"] not in ("", "NaN", "nan")]
+    if len(rows) < 2:
+        return "not computed: fewer than two estimates"
+    t = [float(r["t"]) for r in rows]
+    later = [k for k in range(len(t) - 1) if t[k + 1] > blind_at]
+    if not later:
+        return "not computed: no estimate after the camera went blind"
+    i = max(later, key=lambda k: t[k + 1] - t[k])
+    start, end = t[i], t[i + 1]
+
+    def err(r):
+        return math.hypot(float(r["x"]) - float(r["true_x"]), float(r["y"]) - float(r["true_y"]))
+    after = [r for r in rows[i + 1:] if float(r["t"]) <= end + 5.0]
+    fixes = [r for r in after if r["fix"] == "1"]
+    first = rows[i + 1]
+    out = {
+        "blind_s": round(end - start, 2),
+        "starts_s": round(start, 2),
+        "error_before_m": round(err(rows[i]), 3),
+        "first_after": {"error_m": round(err(first), 3), "sigma_m": [float(first["sigma_x"]), float(first["sigma_y"])],
+                        "fix": first["fix"] == "1"},
+        "first_fix_after_s": round(float(fixes[0]["t"]) - end, 2) if fixes else None,
+        "fixes_in_5_s_after": len(fixes),
+        "fix_error_max_in_5_s_after_m": round(max(err(r) for r in fixes), 3) if fixes else None,
+        "fixes_beyond_0.5_m_in_5_s_after": sum(1 for r in fixes if err(r) > 0.5),
+    }
+    try:
+        out.update(estimate_vs_truth(ulg, (start, end)))
+    except Exception as e:  # a log without the topics: the rest stands
+        out["ekf"] = f"not computed: {type(e).__name__}: {e}"
     return out
 
 
@@ -594,6 +689,7 @@ def run_scenario(a, name, out):
     if os.path.exists(events_json):
         args += ["--set", f"mavlink.px4_events={events_json}"]
     report = {"scenario": name, "private_netns": in_private_netns(), "events": []}
+    gap_at = [None]  # when the camera went blind (--camera-gap)
     if indoor:
         lat, lon, pad = sih_origin(INDOOR_ORIGIN, INDOOR_PAD)
         params.update({"SIH_LOC_LAT0": repr(lat), "SIH_LOC_LON0": repr(lon), "SIH_LOC_H0": repr(INDOOR_ORIGIN[2])})
@@ -629,7 +725,9 @@ def run_scenario(a, name, out):
             raise RuntimeError("no heartbeat from PX4 within 30 s")
         report["events"].append(f"PX4 heartbeat after {time.time() - px4_started:.1f} s")
         if indoor:
-            fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started, os.path.join(state, "status.json"))
+            gap = (a.px4, a.camera_gap_after_s, a.camera_gap) if a.camera_gap > 0 else None
+            fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started, os.path.join(state, "status.json"),
+                       gap, gap_at)
         else:
             fly_coastline(m, a.max_s, report["events"], aim)
             report["adjustment"] = await_adjustment(state, out, os.path.join(out, "mavloc.log"), report["events"])
@@ -683,6 +781,9 @@ def run_scenario(a, name, out):
             rows = [r for r in csv.DictReader(open(traj))]
             errs = [((float(r["x"]) - float(r["true_x"])) ** 2 + (float(r["y"]) - float(r["true_y"])) ** 2) ** 0.5
                     for r in rows if r["true_x"] not in ("", "NaN", "nan")]
+            if a.camera_gap > 0 and report.get("ulg"):
+                report["camera_gap"] = (camera_gap(os.path.join(out, "px4.ulg"), traj, gap_at[0])
+                                        if gap_at[0] is not None else "not computed: the camera never went blind")
             if errs:
                 report["mavloc_estimates"] = len(rows)
                 report["mavloc_rms_m"] = round((sum(e * e for e in errs) / len(errs)) ** 0.5, 3)
@@ -951,6 +1052,12 @@ def main():
                          "(about 3 min more per flight)")
     ap.add_argument("--refine-prior-deg", type=float, default=1.5,
                     help="with --refine: area.attitude_prior_deg, the SD of each frame's attitude error (default 1.5)")
+    ap.add_argument("--camera-gap", type=float, default=0, metavar="S",
+                    help="indoor: the camera goes blind for S seconds in flight (PX4 stops the truth it renders "
+                         "from); the report's `camera_gap` says how mavloc and EKF2 came through it")
+    ap.add_argument("--camera-gap-after-s", type=float, default=6.0, metavar="T",
+                    help="with --camera-gap: T seconds after setting off for the zone (default 6: half way, at "
+                         "0.5 m/s)")
     a = ap.parse_args()
     if a.analyse:
         return analyse(a.analyse)
@@ -989,7 +1096,7 @@ def main():
             out = os.path.join(out_root, name) if a.repeat == 1 else os.path.join(out_root, name, f"run-{k + 1}")
             r = run_scenario(a, name, out)
             keys = ["scenario", "ok", "meets_bar", "error", "zone", "touchdown", "touchdown_error_m", "mavloc_rms_m",
-                    "mavloc_max_m", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg", "adjustment", "refined",
+                    "mavloc_max_m", "camera_gap", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg", "adjustment", "refined",
                     "machine"]
             print(json.dumps({k2: r[k2] for k2 in keys if k2 in r}, indent=2), flush=True)
             reports.append(r)
