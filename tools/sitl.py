@@ -398,6 +398,14 @@ def sih_origin(origin, pad):
     return lat, lon, (north, east)
 
 
+def flag_at(flags, name, t):
+    """The estimator's status flag `name` in force at each of the times `t` (us): the last
+    published before it (0 before the first)."""
+    import numpy as np
+    i = np.searchsorted(flags["timestamp"], t, side="right") - 1
+    return np.where(i >= 0, flags[name][np.clip(i, 0, None)], 0)
+
+
 def airborne_mask(u, t):
     """True where PX4's land detector says airborne (vehicle_land_detected.landed false)."""
     import numpy as np
@@ -452,10 +460,10 @@ def estimate_vs_truth(ulg, window=None):
         "ekf_origin": [round(float(lat_e), 7), round(float(lon_e), 7)],
     }
     flags = d.get("estimator_status_flags")
-    if flags is not None and "cs_ev_pos" in flags:
-        fa = airborne_mask(u, flags["timestamp"])
-        if fa is not None and fa.any():
-            out["ev_pos_fused_share"] = round(float(flags["cs_ev_pos"][fa].mean()), 4)
+    if flags is not None and "cs_ev_pos" in flags and air.any():
+        # Over time, not over messages: PX4 publishes the flags when they change (a share
+        # of messages read 0.48 for a flight that fused vision 95 % of its airborne time).
+        out["ev_pos_fused_share"] = round(float(flag_at(flags, "cs_ev_pos", t)[air].mean()), 4)
     out["attitude_error_deg"] = attitude_vs_truth(u)
     states = ekf_bias_states(u)
     if states:
@@ -483,30 +491,31 @@ def camera_gap_ekf(d, t, truth, est, window):
            "ekf_error_max_to_5_s_after_m": round(float(h[w].max()), 3) if w.any() else None}
     flags = d.get("estimator_status_flags")
     if flags is not None and "cs_ev_pos" in flags:
-        ft = flags["timestamp"] * 1e-6
-        during = (ft > start + 0.5) & (ft < end)
-        out["ev_pos_fused_while_blind_share"] = round(float(flags["cs_ev_pos"][during].mean()), 3) if during.any() else None
-        back = (ft >= end) & (flags["cs_ev_pos"] == 1)
-        out["ev_pos_fused_again_after_s"] = round(float(ft[back][0] - end), 2) if back.any() else None
+        fused = flag_at(flags, "cs_ev_pos", t)
+        during = (ts > start + 0.5) & (ts < end)
+        out["ev_pos_fused_while_blind_share"] = round(float(fused[during].mean()), 3) if during.any() else None
+        back = (ts >= end) & (fused == 1)
+        out["ev_pos_fused_again_after_s"] = round(float(ts[back][0] - end), 2) if back.any() else None
     return out
 
 
 def camera_gap(ulg, traj, blind_at):
     """How mavloc and EKF2 came through the camera's gap: the longest pause between
-    mavloc's estimates (trajectory.csv, stamped on PX4's clock) that ends after the camera
-    went blind (`blind_at`, seconds after PX4 started: PX4's boot clock, give or take the
-    few per cent SIH's lockstep runs slower), mavloc's error after it and EKF2's around it
-    (PX4's log)."""
+    mavloc's estimates (trajectory.csv, stamped on PX4's clock) that starts within 5 s of
+    when the camera went blind (`blind_at`, seconds after PX4 started), mavloc's error
+    after it and EKF2's around it (PX4's log)."""
     import csv
     import math
     rows = [r for r in csv.DictReader(open(traj)) if r["true_x"] not in ("", "NaN", "nan")]
     if len(rows) < 2:
         return "not computed: fewer than two estimates"
     t = [float(r["t"]) for r in rows]
-    later = [k for k in range(len(t) - 1) if t[k + 1] > blind_at]
-    if not later:
-        return "not computed: no estimate after the camera went blind"
-    i = max(later, key=lambda k: t[k + 1] - t[k])
+    # SIH's lockstep clock runs a few per cent slower than the wall clock the harness
+    # timed the gap on: 70 s into a flight that is 1-2 s.
+    near = [k for k in range(len(t) - 1) if abs(t[k] - blind_at) < 5.0]
+    if not near:
+        return "not computed: no estimate near the time the camera went blind"
+    i = max(near, key=lambda k: t[k + 1] - t[k])
     start, end = t[i], t[i + 1]
 
     def err(r):

@@ -417,6 +417,8 @@ pub struct Core {
     camera_live: bool,
     /// When the pipeline last processed a frame.
     last_processed: Option<Mono>,
+    /// When the last vision message (ODOMETRY, VISION_POSITION_ESTIMATE) went out.
+    last_vision_sent: Option<Mono>,
     /// The newest time an input or timeout carried.
     now: Mono,
     counters: Counters,
@@ -479,6 +481,7 @@ impl Core {
             pipeline: PipelineState::Stopped,
             camera_live: false,
             last_processed: None,
+            last_vision_sent: None,
             now: Mono::ZERO,
             counters: Counters::default(),
             write_warned: None,
@@ -804,12 +807,39 @@ impl Core {
             })
             .or_else(|| self.ftp.poll(now).map(|(to, payload)| ftp_message(to, payload)))
             .or_else(|| self.params.poll(now).map(|i| self.param_value(i)))?;
+        let message = self.vision_after_pause(now, message);
         Some(Outgoing {
             system_id: self.system_id,
             component_id: self.component_id,
             message,
             unknown_command: None,
         })
+    }
+
+    /// A vision message the first after a pause (`EV_PAUSE`) carries no placeholder
+    /// velocity: an unmeasured one goes out as unknown (NaN), which EKF2 does not fuse.
+    /// EKF2 stops fusing vision once its samples are 0.4 s apart (2 x EV_MAX_INTERVAL,
+    /// PX4 v1.16 ev_control.cpp), and starting again with no other horizontal aiding it
+    /// resets its velocity to the first one it gets, at 5 times its variance
+    /// (ev_vel_control.cpp). The placeholder (zero, variance 1e4) weighs nothing while
+    /// fusion runs, and after a 4 s camera gap against PX4 SITL it reset EKF2's velocity to
+    /// zero at a 220 m/s SD: EKF2's position went invalid, and PX4's failsafe took the
+    /// vehicle out of offboard and landed it where it was.
+    fn vision_after_pause(&mut self, now: Mono, mut m: MavMessage) -> MavMessage {
+        if !matches!(m, MavMessage::ODOMETRY(_) | MavMessage::VISION_POSITION_ESTIMATE(_)) {
+            return m;
+        }
+        let paused = self.last_vision_sent.is_none_or(|t| now.saturating_sub(t) >= EV_PAUSE);
+        self.last_vision_sent = Some(now);
+        if let MavMessage::ODOMETRY(o) = &mut m {
+            if paused && o.velocity_covariance[0] >= UNMEASURED_VARIANCE {
+                (o.vx, o.vy, o.vz) = (f32::NAN, f32::NAN, f32::NAN);
+                for i in [0, 6, 11] {
+                    o.velocity_covariance[i] = f32::NAN;
+                }
+            }
+        }
+        m
     }
 
     fn poll_heartbeat(&mut self) -> Option<MavMessage> {
@@ -1805,6 +1835,10 @@ const RANGE_VARIANCE: f64 = 0.01;
 /// Higher than this above the floor's reading, the vehicle has left the floor (a
 /// rangefinder's noise is a centimetre or two; SIH's leaves 0 as the vehicle lifts).
 const LIFT_OFF_M: f64 = 0.05;
+
+/// A pause in the vision stream after which EKF2 starts its vision fusion again (0.4 s
+/// in PX4 v1.16), with a margin for the link's jitter ([`Core::vision_after_pause`]).
+const EV_PAUSE: Duration = Duration::from_millis(300);
 
 /// Variance reported for what the pipeline does not measure (z, attitude): large enough
 /// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.

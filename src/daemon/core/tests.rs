@@ -1265,6 +1265,68 @@ fn in_the_air_the_pipeline_speaks_and_after_touchdown_the_vehicle_stands_where_i
     );
 }
 
+/// An unmeasured velocity (the camera's flow failed on a frame) goes out as a placeholder
+/// EKF2 weighs at nothing while its vision fusion runs, but as unknown (NaN) on the first
+/// vision message after a pause: EKF2 starts its fusion again there and, with no other
+/// horizontal aiding, resets its velocity to whatever it is sent (against PX4 SITL, to
+/// zero at a 220 m/s SD after a 4 s camera gap, and PX4's failsafe landed the vehicle).
+#[test]
+fn after_a_pause_in_vision_an_unmeasured_velocity_goes_out_as_unknown() {
+    let mut sim = Sim::new(gps_denied_settings());
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(12));
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    sim.run_until(secs(14));
+    let measured = VelocityEstimate { body: [0.5, 0.0, 0.0], var: [0.004, 0.004, 0.09] };
+    let with = |now: Mono, v: VelocityEstimate| match estimate(now, 1.0, 1.0) {
+        Input::Pipeline { now, event: PipelineEvent::Report { capture, attitude, mut report } } => {
+            report.velocity = Some(v);
+            Input::Pipeline { now, event: PipelineEvent::Report { capture, attitude, report } }
+        }
+        _ => unreachable!(),
+    };
+    // The last ODOMETRY sent: its velocity and variances.
+    let last = |sim: &Sim| {
+        sim.sent
+            .iter()
+            .rev()
+            .find_map(|(_, m)| match m {
+                MavMessage::ODOMETRY(o) => Some(([o.vx, o.vy, o.vz], o.velocity_covariance[0])),
+                _ => None,
+            })
+            .unwrap()
+    };
+    let mut t = secs(14);
+    let mut frame = |sim: &mut Sim, t: &mut Mono, v| {
+        sim.run_until(*t);
+        sim.input(with(*t, v));
+        sim.run_for(Duration::from_millis(10));
+        *t = *t + Duration::from_millis(66);
+        last(sim)
+    };
+    for _ in 0..10 {
+        frame(&mut sim, &mut t, measured);
+    }
+    // Mid-stream: the placeholder.
+    let (v, var) = frame(&mut sim, &mut t, VelocityEstimate::UNMEASURED);
+    assert_eq!((v, var), ([0.0; 3], 1.0e4));
+    frame(&mut sim, &mut t, measured);
+    // The camera away for 2 s: the first message after carries no velocity.
+    t = t + Duration::from_secs(2);
+    let (v, var) = frame(&mut sim, &mut t, VelocityEstimate::UNMEASURED);
+    assert!(v.iter().all(|c| c.is_nan()) && var.is_nan(), "{v:?} {var}");
+    // The stream going again, the placeholder is harmless again, and a measured one is sent.
+    let (v, _) = frame(&mut sim, &mut t, VelocityEstimate::UNMEASURED);
+    assert_eq!(v, [0.0; 3]);
+    let (v, var) = frame(&mut sim, &mut t, measured);
+    assert_eq!((v, var), ([0.5, 0.0, 0.0], 0.004));
+    // A measured velocity after a pause goes out as it is.
+    t = t + Duration::from_secs(2);
+    let (v, _) = frame(&mut sim, &mut t, measured);
+    assert_eq!(v, [0.5, 0.0, 0.0]);
+}
+
 #[test]
 fn after_an_autopilot_reboot_the_origin_is_given_again() {
     let mut sim = Sim::new(gps_denied_settings());
