@@ -499,10 +499,10 @@ def camera_gap_ekf(d, t, truth, est, window):
     return out
 
 
-def camera_gap(ulg, traj, blind_at):
+def camera_gap(ulg, traj, blind_at, length):
     """How mavloc and EKF2 came through the camera's gap: the longest pause between
     mavloc's estimates (trajectory.csv, stamped on PX4's clock) that starts within 5 s of
-    when the camera went blind (`blind_at`, seconds after PX4 started), mavloc's error
+    when the camera went blind (`blind_at`, seconds after PX4 started) for `length` s, mavloc's error
     after it and EKF2's around it (PX4's log)."""
     import csv
     import math
@@ -517,6 +517,10 @@ def camera_gap(ulg, traj, blind_at):
         return "not computed: no estimate near the time the camera went blind"
     i = max(near, key=lambda k: t[k + 1] - t[k])
     start, end = t[i], t[i + 1]
+    if end - start < 0.5 * length:
+        # The frames did not come back in flight (mavloc localises from 0.7 m up).
+        return (f"no pause of {length} s among mavloc's estimates near {blind_at:.1f} s (the longest {end - start:.2f} s): "
+                "the camera's frames did not resume in flight")
 
     def err(r):
         return math.hypot(float(r["x"]) - float(r["true_x"]), float(r["y"]) - float(r["true_y"]))
@@ -791,7 +795,7 @@ def run_scenario(a, name, out):
             errs = [((float(r["x"]) - float(r["true_x"])) ** 2 + (float(r["y"]) - float(r["true_y"])) ** 2) ** 0.5
                     for r in rows if r["true_x"] not in ("", "NaN", "nan")]
             if a.camera_gap > 0 and report.get("ulg"):
-                report["camera_gap"] = (camera_gap(os.path.join(out, "px4.ulg"), traj, gap_at[0])
+                report["camera_gap"] = (camera_gap(os.path.join(out, "px4.ulg"), traj, gap_at[0], a.camera_gap)
                                         if gap_at[0] is not None else "not computed: the camera never went blind")
             if errs:
                 report["mavloc_estimates"] = len(rows)

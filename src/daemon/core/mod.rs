@@ -17,6 +17,7 @@
 //!   acknowledged.
 //! * [`gpsdenied`]: with no GPS, vision estimates from power-on and then the origin.
 //! * [`events`]: the autopilot's EVENT messages (PX4's refusals) in words.
+//! * [`framewatch`]: frames that stop in flight without the camera saying so.
 //! * [`health`]: heartbeat, once-a-second report, watchdog.
 //! * [`notes`]: STATUSTEXT, chunked and bounded.
 //!
@@ -26,6 +27,7 @@
 pub mod autopilot;
 pub mod commands;
 pub mod events;
+pub mod framewatch;
 pub mod ftp;
 pub mod gimbal;
 pub mod gpsdenied;
@@ -419,6 +421,7 @@ pub struct Core {
     last_processed: Option<Mono>,
     /// When the last vision message (ODOMETRY, VISION_POSITION_ESTIMATE) went out.
     last_vision_sent: Option<Mono>,
+    frame_watch: framewatch::FrameWatch,
     /// The newest time an input or timeout carried.
     now: Mono,
     counters: Counters,
@@ -482,6 +485,7 @@ impl Core {
             camera_live: false,
             last_processed: None,
             last_vision_sent: None,
+            frame_watch: Default::default(),
             now: Mono::ZERO,
             counters: Counters::default(),
             write_warned: None,
@@ -716,6 +720,7 @@ impl Core {
             let command = self.landing.command();
             self.notes.error(&format!("autopilot did not acknowledge {command:?} after {tries} tries"));
         }
+        self.watch_frames(now);
         self.health.on_timeout(now);
         if self.health.take_report() {
             self.actions.push_back(Action::Report);
@@ -733,6 +738,36 @@ impl Core {
         }
     }
 
+    /// How long frames may stop in flight before the ground station is told: the indoor
+    /// pipeline runs at the camera's rate (15 Hz) in milliseconds a frame, and without GPS
+    /// it is the autopilot's position; the area pipeline's frames take longer and it flies
+    /// on nothing of it.
+    fn frame_silence_limit(&self) -> Duration {
+        match self.pipeline {
+            PipelineState::Running(PipelineKind::Indoor) => Duration::from_secs(1),
+            _ => Duration::from_secs(5),
+        }
+    }
+
+    /// Frames are missed only from a running pipeline on a camera that is up, in flight.
+    fn watching_frames(&self) -> bool {
+        matches!(self.pipeline, PipelineState::Running(_)) && self.camera_live && self.autopilot.airborne()
+    }
+
+    fn watch_frames(&mut self, now: Mono) {
+        let limit = self.frame_silence_limit();
+        if let Some(silent) = self.frame_watch.on_timeout(now, self.watching_frames(), limit) {
+            let blind = if self.pipeline == PipelineState::Running(PipelineKind::Indoor)
+                && self.settings.indoor.gps_denied
+            {
+                ": the autopilot has no position from mavloc"
+            } else {
+                ""
+            };
+            self.notes.warn(&format!("no camera frame for {:.1} s in flight{blind}", silent.as_secs_f64()));
+        }
+    }
+
     /// The earliest time `handle_timeout` or `poll_transmit` has something to do.
     pub fn poll_timeout(&self) -> Option<Mono> {
         time::earliest([
@@ -742,6 +777,8 @@ impl Core {
             self.timesync.deadline(),
             self.landing.deadline(),
             self.gps.deadline(),
+            // Only while watching: a deadline past and not acted on would spin the shell.
+            self.frame_watch.deadline(self.frame_silence_limit()).filter(|_| self.watching_frames()),
             self.gimbal.deadline(),
             self.params.deadline(),
             self.ftp.deadline(),
@@ -1538,6 +1575,7 @@ impl Core {
         {
             self.actions.push_back(Action::Worker(WorkerRequest::Stop));
             self.pipeline = PipelineState::Stopped;
+            self.frame_watch.reset();
             self.notes.info(&format!("{k:?} pipeline stopped; results written"));
         }
     }
@@ -1612,6 +1650,9 @@ impl Core {
     fn on_pipeline(&mut self, now: Mono, event: PipelineEvent) {
         match event {
             PipelineEvent::Report { capture, attitude, report } => {
+                if let Some(line) = self.frame_watch.on_frame(now) {
+                    self.notes.info(&line);
+                }
                 self.publish(now, &report, capture, attitude)
             }
             PipelineEvent::Panicked { frame, message } => {
@@ -1654,11 +1695,13 @@ impl Core {
             }
             CameraEvent::Down { why, fatal } => {
                 self.camera_live = false;
+                self.frame_watch.reset();
                 let what = if fatal { "camera failed" } else { "camera lost (retrying)" };
                 self.notes.error(&format!("{what}: {why}"));
             }
             CameraEvent::Ended(what) => {
                 self.camera_live = false;
+                self.frame_watch.reset();
                 self.notes.info(&format!("camera source ended: {what}"));
             }
             CameraEvent::Unreadable(n) => self.counters.frames_unreadable = n,

@@ -1327,6 +1327,57 @@ fn after_a_pause_in_vision_an_unmeasured_velocity_goes_out_as_unknown() {
     assert_eq!(v, [0.5, 0.0, 0.0]);
 }
 
+/// Frames that stop in flight without the camera saying so (a hung driver): the ground
+/// station is warned once, a second after the last frame, that the autopilot has no
+/// position from mavloc, and told when frames come back; on the ground, nothing.
+#[test]
+fn frames_that_stop_in_flight_are_said_once_and_their_return_with_the_time_away() {
+    let mut s = gps_denied_settings();
+    s.daemon.pipeline = PipelineKind::Indoor;
+    s.indoor.model = "floor.model".into();
+    let mut sim = Sim::new(s);
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(12));
+    assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Indoor));
+    sim.input(Input::Camera { now: sim.now, event: CameraEvent::Up("test".into()) });
+    let stop_on_ground = sim.now;
+    // Standing, the frames stop for 3 s: not flying, not said.
+    sim.input(estimate(sim.now, -2.5, -2.5));
+    sim.run_for(Duration::from_secs(3));
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    let mut t = secs(16);
+    for _ in 0..30 {
+        sim.run_until(t);
+        sim.input(estimate(t, 1.0, 1.0));
+        t = t + Duration::from_millis(66);
+    }
+    let last = t - Duration::from_millis(66);
+    sim.run_for(Duration::from_secs(3));
+    let said: Vec<(Mono, String)> = sim
+        .sent
+        .iter()
+        .filter_map(|(at, m)| match m {
+            MavMessage::STATUSTEXT(st) => {
+                let text = String::from_utf8_lossy(&st.text[..]).trim_end_matches('\0').to_string();
+                text.contains("camera frame").then_some((*at, text))
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(said.len(), 1, "{said:?}");
+    let whole = "no camera frame for 1.0 s in flight: the autopilot has no position from mavloc";
+    assert!(warnings(&sim).contains(whole), "{}", warnings(&sim));
+    let after = said[0].0.saturating_sub(last).as_secs_f64();
+    assert!((1.0..1.1).contains(&after), "said {after} s after the last frame");
+    assert!(said[0].0 > stop_on_ground + Duration::from_secs(3));
+    // Frames again: said, with how long they were away.
+    sim.input(estimate(sim.now, 1.5, 1.0));
+    sim.run_for(Duration::from_millis(100));
+    let texts = sim.statustexts();
+    assert!(texts.iter().any(|t| t.contains("camera frames again after 3.0 s without")), "{texts:?}");
+}
+
 #[test]
 fn after_an_autopilot_reboot_the_origin_is_given_again() {
     let mut sim = Sim::new(gps_denied_settings());
