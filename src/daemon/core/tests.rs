@@ -1298,7 +1298,7 @@ fn after_a_pause_in_vision_an_unmeasured_velocity_goes_out_as_unknown() {
             .unwrap()
     };
     let mut t = secs(14);
-    let mut frame = |sim: &mut Sim, t: &mut Mono, v| {
+    let frame = |sim: &mut Sim, t: &mut Mono, v| {
         sim.run_until(*t);
         sim.input(with(*t, v));
         sim.run_for(Duration::from_millis(10));
