@@ -785,10 +785,16 @@ pub struct IndoorLive {
 /// --camera-gap 2`): EKF2's displacement was 0.02, 0.09, 0.18 and 0.22 m off the true one
 /// after 0.56, 1.06, 1.56 and 2.13 s; this is about 1.4 times that, growing with the
 /// square of the gap as an accelerometer bias makes it. With GPS the autopilot knows its
-/// displacement better, and this is merely cautious.
+/// displacement better, and this is merely cautious. At most `MAX_CARRY_SD_M`: PX4 gives
+/// up a position dead-reckoned for 5 s (its failsafe takes over), and a longer gap is
+/// mostly time on the ground between flights, where the vehicle stands still.
 fn dead_reckoning_sd_m(gap_s: f64) -> f64 {
-    0.1 * gap_s + 0.02 * gap_s * gap_s
+    (0.1 * gap_s + 0.02 * gap_s * gap_s).min(MAX_CARRY_SD_M)
 }
+
+/// The widest spread a carry gives the particles (m): the reach of the renewed particles
+/// of a track from a given pad (`TRACKING_RECOVERY_SD_M`).
+const MAX_CARRY_SD_M: f64 = crate::indoor::localizer::TRACKING_RECOVERY_SD_M;
 
 /// Faster than this across a gap (m/s) the autopilot's displacement is taken for a reset
 /// of its position, not a flight, and the particles are not carried by it.
@@ -1136,6 +1142,19 @@ fn fix_covariance(spread: (f64, f64), found_track_age: Option<f64>) -> [[f64; 2]
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A carry's spread covers how far EKF2's dead-reckoned displacement was measured off
+    /// (against PX4 SITL: 0.02-0.22 m over 0.56-2.13 s), not many times more, and grows
+    /// with the gap up to the reach of a track from a pad.
+    #[test]
+    fn a_carry_spreads_with_the_gap_up_to_the_reach_of_a_track() {
+        for (gap, measured) in [(0.56, 0.02), (1.06, 0.09), (1.56, 0.18), (2.13, 0.22)] {
+            let sd = dead_reckoning_sd_m(gap);
+            assert!(sd > measured && sd < 2.5 * f64::max(measured, 0.05), "{gap} s: SD {sd}");
+        }
+        assert!(dead_reckoning_sd_m(4.0) > dead_reckoning_sd_m(3.0));
+        assert_eq!(dead_reckoning_sd_m(60.0), MAX_CARRY_SD_M);
+    }
 
     /// A fix goes out with the floor's error beyond the particles' spread: tight particles
     /// are not a 3 cm fix (an outside trial saw fixes 7-9 SD off on the spread alone).

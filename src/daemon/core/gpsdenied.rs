@@ -38,6 +38,9 @@ const PAD_SD_M: f64 = 0.05;
 /// after the camera saw again; measured against PX4 v1.16 SIH, the vehicle was lost.
 /// Over a 3 s climb at 30 Hz this still weighs as one measurement of about 1 m SD.
 pub const BLIND_SD_M: f64 = 10.0;
+/// While the pipeline is silent in flight, the held estimates' period: under the 0.4 s
+/// after which EKF2 stops fusing vision, and no faster, so that they weigh little.
+const HOLD_PERIOD: Duration = Duration::from_millis(200);
 /// The camera's velocity goes out with the next estimate off the floor if it is at most
 /// this old (the camera runs at 15 Hz or so; older, the vehicle may be doing otherwise).
 const VELOCITY_FRESH: Duration = Duration::from_millis(200);
@@ -88,10 +91,13 @@ pub struct GpsDenied {
     next_ground: Mono,
     phase: Phase,
     sent_ground: u64,
+    sent_held: u64,
     notices: Vec<Notice>,
     floor: Option<(f64, f64)>,
     /// The camera's latest velocity, while too low to localise.
     velocity: Option<(Mono, VelocityEstimate)>,
+    /// The pipeline fell silent in flight: the autopilot's own (north, east), to echo.
+    holding: Option<(f64, f64)>,
 }
 
 impl GpsDenied {
@@ -105,9 +111,11 @@ impl GpsDenied {
             next_ground: Mono::ZERO,
             phase: Phase::Seeing,
             sent_ground: 0,
+            sent_held: 0,
             notices: Vec::new(),
             floor: None,
             velocity: None,
+            holding: None,
         }
     }
 
@@ -122,6 +130,11 @@ impl GpsDenied {
     /// Standing estimates sent so far.
     pub fn sent_ground(&self) -> u64 {
         self.sent_ground
+    }
+
+    /// Estimates held while the camera's frames stopped in flight.
+    pub fn sent_held(&self) -> u64 {
+        self.sent_held
     }
 
     /// Where the vehicle is taken to stand: north, east, SD (m).
@@ -139,9 +152,13 @@ impl GpsDenied {
     /// lift-off and its controller pushed the vehicle 0.4 m/s the other way as it left
     /// the floor.) `floor`: where the floor is below it (local z, variance), if known,
     /// for the estimate's z.
-    pub fn set_state(&mut self, phase: Phase, floor: Option<(f64, f64)>) {
+    /// `holding`: high enough, in the air, but the pipeline has sent nothing for a while
+    /// (the camera's frames stopped): where the autopilot itself puts the vehicle (north,
+    /// east), echoed loosely with the floor's distance ([`GpsDenied::poll_transmit`]).
+    pub fn set_state(&mut self, phase: Phase, floor: Option<(f64, f64)>, holding: Option<(f64, f64)>) {
         self.phase = phase;
         self.floor = floor;
+        self.holding = holding.filter(|_| phase == Phase::Seeing);
     }
 
     /// The pipeline published an estimate from the air: it is where the vehicle will
@@ -205,14 +222,14 @@ impl GpsDenied {
         // restarts by resetting to the next one, which in the air is the loose one
         // (measured against PX4 SITL: its position went invalid mid-landing). An
         // estimate still in flight is older than these and EKF2 drops it.
-        self.enabled() && self.phase != Phase::Seeing
+        self.enabled() && (self.phase != Phase::Seeing || self.holding.is_some())
     }
 
     pub fn deadline(&self) -> Option<Mono> {
         if !self.enabled() {
             return None;
         }
-        let ground = (self.phase != Phase::Seeing).then_some(self.next_ground);
+        let ground = self.ground_due().then_some(self.next_ground);
         let origin = match self.state {
             OriginState::Waiting => self.vision_since.map(|t| t + ORIGIN_AFTER),
             OriginState::Sent { next, .. } => Some(next),
@@ -261,6 +278,31 @@ impl GpsDenied {
             // Keep the cadence when polled late (by less than a period).
             let next = self.next_ground + GROUND_PERIOD;
             self.next_ground = if next > now { next } else { now + GROUND_PERIOD };
+            if let Some((north, east)) = self.holding {
+                // The camera's frames stopped in flight. EKF2 has its height from vision
+                // only (EKF2_HGT_REF 3): in a 4 s gap against PX4 SITL it held a height the
+                // vehicle sank 0.36 m from, below the heights the camera localises from,
+                // where the loose estimates then restarted EKF2's vision fusion with a
+                // reset to them and its position went invalid. So the floor's distance
+                // goes on, with x and y where the autopilot itself puts the vehicle (no
+                // innovation: it tells EKF2 nothing of where it is) at `BLIND_SD_M`, and
+                // no velocity; at 5 Hz, under EKF2's 0.4 s timeout, so that 4 s of them
+                // weigh as one position of 2 m SD. (EKF2 drops a sample without all three
+                // coordinates.)
+                self.next_ground = now + HOLD_PERIOD;
+                let (down, _) = self.floor?;
+                self.sent_held += 1;
+                let e = PositionEstimate {
+                    autopilot_time: f64::NAN,
+                    north,
+                    east,
+                    down,
+                    cov: [[BLIND_SD_M * BLIND_SD_M, 0.0], [0.0, BLIND_SD_M * BLIND_SD_M]],
+                };
+                let attitude = attitude.unwrap_or((0.0, 0.0, 0.0));
+                let unknown = VelocityEstimate { body: [f64::NAN; 3], var: [f64::NAN; 3] };
+                return Some(odometry(Some(&e), &unknown, stamp, attitude, self.floor.map(|f| f.1)));
+            }
             self.vision_since.get_or_insert(now);
             self.sent_ground += 1;
             let (north, east, sd) = self.standing;

@@ -419,8 +419,12 @@ pub struct Core {
     camera_live: bool,
     /// When the pipeline last processed a frame.
     last_processed: Option<Mono>,
-    /// When the last vision message (ODOMETRY, VISION_POSITION_ESTIMATE) went out.
-    last_vision_sent: Option<Mono>,
+    /// When the last vision message (ODOMETRY, VISION_POSITION_ESTIMATE) went out, and
+    /// whether it carried a position and a velocity.
+    last_vision_sent: Option<(Mono, bool, bool)>,
+    /// When the pipeline last sent the autopilot anything of its own (an estimate, a
+    /// velocity): without GPS, a silence in flight is held ([`Core::holding`]).
+    pipeline_vision_at: Option<Mono>,
     frame_watch: framewatch::FrameWatch,
     /// The newest time an input or timeout carried.
     now: Mono,
@@ -485,6 +489,7 @@ impl Core {
             camera_live: false,
             last_processed: None,
             last_vision_sent: None,
+            pipeline_vision_at: None,
             frame_watch: Default::default(),
             now: Mono::ZERO,
             counters: Counters::default(),
@@ -777,6 +782,9 @@ impl Core {
             self.timesync.deadline(),
             self.landing.deadline(),
             self.gps.deadline(),
+            // When the pipeline's silence is to be held (future only: a past deadline
+            // not acted on would spin the shell).
+            self.pipeline_vision_at.map(|t| t + HOLD_AFTER).filter(|d| *d > self.now),
             // Only while watching: a deadline past and not acted on would spin the shell.
             self.frame_watch.deadline(self.frame_silence_limit()).filter(|_| self.watching_frames()),
             self.gimbal.deadline(),
@@ -862,20 +870,40 @@ impl Core {
     /// fusion runs, and after a 4 s camera gap against PX4 SITL it reset EKF2's velocity to
     /// zero at a 220 m/s SD: EKF2's position went invalid, and PX4's failsafe took the
     /// vehicle out of offboard and landed it where it was.
+    ///
+    /// The same holds for a position: a loose one (the "somewhere near here" of
+    /// `gpsdenied::BLIND_SD_M`) would reset EKF2's position to it at its variance, which
+    /// PX4 takes for an invalid position. It goes on only where EKF2 fuses positions
+    /// already, and is dropped (x and y NaN: EKF2 drops a sample without all three)
+    /// where it would start them.
     fn vision_after_pause(&mut self, now: Mono, mut m: MavMessage) -> MavMessage {
         if !matches!(m, MavMessage::ODOMETRY(_) | MavMessage::VISION_POSITION_ESTIMATE(_)) {
             return m;
         }
-        let paused = self.last_vision_sent.is_none_or(|t| now.saturating_sub(t) >= EV_PAUSE);
-        self.last_vision_sent = Some(now);
+        // What EKF2 is fusing now (position, velocity), as far as the last sample tells.
+        let (positions, velocities) = match self.last_vision_sent {
+            Some((t, p, v)) if now.saturating_sub(t) < EV_PAUSE => (p, v),
+            _ => (false, false),
+        };
         if let MavMessage::ODOMETRY(o) = &mut m {
-            if paused && o.velocity_covariance[0] >= UNMEASURED_VARIANCE {
+            if !velocities && o.velocity_covariance[0] >= UNMEASURED_VARIANCE {
                 (o.vx, o.vy, o.vz) = (f32::NAN, f32::NAN, f32::NAN);
                 for i in [0, 6, 11] {
                     o.velocity_covariance[i] = f32::NAN;
                 }
             }
+            if !positions && o.pose_covariance[0] >= LOOSE_VARIANCE {
+                (o.x, o.y) = (f32::NAN, f32::NAN);
+            }
         }
+        let (p, v) = match &m {
+            MavMessage::ODOMETRY(o) => {
+                (o.x.is_finite() && o.y.is_finite() && o.z.is_finite(), o.vx.is_finite())
+            }
+            MavMessage::VISION_POSITION_ESTIMATE(e) => (e.x.is_finite() && e.y.is_finite(), false),
+            _ => unreachable!("vision messages only"),
+        };
+        self.last_vision_sent = Some((now, p, v));
         m
     }
 
@@ -1281,7 +1309,22 @@ impl Core {
                 self.ground_range = h;
             }
         }
-        self.gps.set_state(self.gps_phase(), self.floor_down());
+        self.gps.set_state(self.gps_phase(), self.floor_down(), self.holding());
+    }
+
+    /// Without GPS in flight, the pipeline silent for `HOLD_AFTER`: where the autopilot
+    /// itself puts the vehicle (north, east), for the held estimates.
+    fn holding(&self) -> Option<(f64, f64)> {
+        let silent = self.pipeline_vision_at.is_some_and(|t| self.now.saturating_sub(t) >= HOLD_AFTER);
+        if !(silent
+            && self.gps.enabled()
+            && self.autopilot.airborne()
+            && self.pipeline == PipelineState::Running(PipelineKind::Indoor))
+        {
+            return None;
+        }
+        let (_, v) = self.aligner().vehicle.newest()?;
+        Some((v.position.x, v.position.y)).filter(|p| p.0.is_finite() && p.1.is_finite())
     }
 
     /// For the standing estimates: on the floor (the autopilot says so, or the camera
@@ -1786,6 +1829,7 @@ impl Core {
                 Some(v) => odometry(Some(&e), v, usec, attitude, down_var),
                 None => vision_position_estimate(&e, usec, attitude, down_var),
             });
+            self.pipeline_vision_at = Some(now);
             self.gps.on_pipeline_estimate(now, &e);
         } else if let Some(v) = &report.velocity {
             if let Some(c) = &report.coasted {
@@ -1798,6 +1842,7 @@ impl Core {
             } else {
                 // No fix yet (or lost): the velocity alone still keeps EKF2's track honest.
                 self.result(odometry(None, v, usec, attitude, None));
+                self.pipeline_vision_at = Some(now);
             }
         }
         let ms = (capture.max(0.0) * 1e3) as u32;
@@ -1882,6 +1927,15 @@ const LIFT_OFF_M: f64 = 0.05;
 /// A pause in the vision stream after which EKF2 starts its vision fusion again (0.4 s
 /// in PX4 v1.16), with a margin for the link's jitter ([`Core::vision_after_pause`]).
 const EV_PAUSE: Duration = Duration::from_millis(300);
+
+/// A position this loose (m^2, an SD of 5 m) is "somewhere near here", not a measurement:
+/// never the first of EKF2's vision fusion ([`Core::vision_after_pause`]).
+const LOOSE_VARIANCE: f32 = 25.0;
+
+/// Without GPS, the pipeline silent this long in flight (the camera's frames stopped)
+/// has the height held ([`Core::holding`]): under the 0.4 s after which EKF2 stops fusing
+/// vision, over the 67 ms between frames.
+const HOLD_AFTER: Duration = Duration::from_millis(250);
 
 /// Variance reported for what the pipeline does not measure (z, attitude): large enough
 /// that EKF2 would never lean on it, finite so nothing downstream divides by infinity.

@@ -1316,15 +1316,46 @@ fn after_a_pause_in_vision_an_unmeasured_velocity_goes_out_as_unknown() {
     t = t + Duration::from_secs(2);
     let (v, var) = frame(&mut sim, &mut t, VelocityEstimate::UNMEASURED);
     assert!(v.iter().all(|c| c.is_nan()) && var.is_nan(), "{v:?} {var}");
-    // The stream going again, the placeholder is harmless again, and a measured one is sent.
+    // Nor the next: EKF2 fuses no velocity until a measured one has gone out; after it,
+    // the placeholder is harmless again.
     let (v, _) = frame(&mut sim, &mut t, VelocityEstimate::UNMEASURED);
-    assert_eq!(v, [0.0; 3]);
+    assert!(v.iter().all(|c| c.is_nan()), "{v:?}");
     let (v, var) = frame(&mut sim, &mut t, measured);
     assert_eq!((v, var), ([0.5, 0.0, 0.0], 0.004));
+    let (v, _) = frame(&mut sim, &mut t, VelocityEstimate::UNMEASURED);
+    assert_eq!(v, [0.0; 3]);
     // A measured velocity after a pause goes out as it is.
     t = t + Duration::from_secs(2);
     let (v, _) = frame(&mut sim, &mut t, measured);
     assert_eq!(v, [0.5, 0.0, 0.0]);
+    // A loose position ("somewhere near here", 10 m SD) never starts EKF2's position
+    // fusion, which would reset to it: after a pause it goes out without x and y.
+    let loose = |now: Mono| match with(now, measured) {
+        Input::Pipeline { now, event: PipelineEvent::Report { capture, attitude, mut report } } => {
+            report.position.as_mut().unwrap().cov = [[100.0, 0.0], [0.0, 100.0]];
+            Input::Pipeline { now, event: PipelineEvent::Report { capture, attitude, report } }
+        }
+        _ => unreachable!(),
+    };
+    let last_xy = |sim: &Sim| {
+        sim.sent.iter().rev().find_map(|(_, m)| match m {
+            MavMessage::ODOMETRY(o) => Some((o.x, o.y)),
+            _ => None,
+        })
+    };
+    t = t + Duration::from_secs(2);
+    sim.run_until(t);
+    sim.input(loose(t));
+    sim.run_for(Duration::from_millis(10));
+    let (x, y) = last_xy(&sim).unwrap();
+    assert!(x.is_nan() && y.is_nan(), "{x} {y}");
+    // While positions are fused, it goes on (it weighs next to nothing there).
+    t = t + Duration::from_millis(66);
+    frame(&mut sim, &mut t, measured);
+    sim.run_until(t);
+    sim.input(loose(t));
+    sim.run_for(Duration::from_millis(10));
+    assert_eq!(last_xy(&sim), Some((1.0, 1.0)));
 }
 
 /// Frames that stop in flight without the camera saying so (a hung driver): the ground
@@ -1376,6 +1407,75 @@ fn frames_that_stop_in_flight_are_said_once_and_their_return_with_the_time_away(
     sim.run_for(Duration::from_millis(100));
     let texts = sim.statustexts();
     assert!(texts.iter().any(|t| t.contains("camera frames again after 3.0 s without")), "{texts:?}");
+}
+
+/// Without GPS, frames that stop in flight leave EKF2 without its height (vision is its
+/// height reference): the floor's distance goes on at 5 Hz, with x and y where the
+/// autopilot itself puts the vehicle, loose, and no velocity; once frames are back, the
+/// pipeline's estimates alone. (Against PX4 SITL, without it the vehicle sank 0.36 m in a
+/// 4 s gap and PX4's failsafe landed it.)
+#[test]
+fn without_gps_a_silent_camera_in_flight_has_the_height_held() {
+    let mut s = gps_denied_settings();
+    s.daemon.pipeline = PipelineKind::Indoor;
+    s.indoor.model = "floor.model".into(); // the fake shell starts any pipeline
+    let mut sim = Sim::new(s);
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(12));
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    let range = frame(
+        1,
+        1,
+        MavMessage::DISTANCE_SENSOR(DISTANCE_SENSOR_DATA {
+            current_distance: 100,
+            min_distance: 1,
+            max_distance: 10_000,
+            orientation: MavSensorOrientation::MAV_SENSOR_ROTATION_PITCH_270,
+            ..Default::default()
+        }),
+    );
+    // Flying at 1 m, the pipeline's estimates at 15 Hz, then none for 2 s, then again.
+    let mut t = secs(14);
+    while t < secs(19) {
+        sim.run_until(t);
+        sim.deliver(range.clone());
+        let silent = (secs(16)..secs(18)).contains(&t);
+        if !silent {
+            sim.input(estimate(t, 2.0, 1.0));
+        }
+        t = t + Duration::from_millis(66);
+    }
+    let sent: Vec<(Mono, ODOMETRY_DATA)> = sim
+        .sent
+        .iter()
+        .filter_map(|(at, m)| match m {
+            MavMessage::ODOMETRY(o) => Some((*at, o.clone())),
+            _ => None,
+        })
+        .collect();
+    let held: Vec<&(Mono, ODOMETRY_DATA)> =
+        sent.iter().filter(|(at, o)| *at >= secs(15) && o.pose_covariance[0] > 99.0).collect();
+    // Every vision sample (the estimates go out as VISION_POSITION_ESTIMATE: no velocity).
+    let samples: Vec<Mono> = sim
+        .sent
+        .iter()
+        .filter(|(_, m)| matches!(m, MavMessage::ODOMETRY(_) | MavMessage::VISION_POSITION_ESTIMATE(_)))
+        .map(|(at, _)| *at)
+        .collect();
+    let before = *samples.iter().rfind(|at| **at < secs(16)).unwrap();
+    assert!(held.len() >= 8 && held.len() <= 10, "5 Hz over the 1.75 s left of the gap: {}", held.len());
+    let first = held[0].0.saturating_sub(before).as_secs_f64();
+    assert!((0.25..0.3).contains(&first), "held {first} s after the last estimate");
+    for (at, o) in &held {
+        assert!(*at < secs(18) + Duration::from_millis(70), "held after the frames came back");
+        // The autopilot's own x and y (the fake's LOCAL_POSITION_NED), the floor 1 m below.
+        assert_eq!((o.x, o.y, o.z), (0.0, 0.0, -1.0));
+        assert!(o.vx.is_nan() && o.velocity_covariance[0].is_nan());
+    }
+    // Every gap between vision samples stays under EKF2's 0.4 s.
+    let gaps = samples.windows(2).filter(|w| w[0] >= secs(15)).map(|w| w[1].saturating_sub(w[0]));
+    assert!(gaps.max().unwrap() < Duration::from_millis(400));
 }
 
 #[test]
