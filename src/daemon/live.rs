@@ -785,9 +785,9 @@ pub struct IndoorLive {
 /// --camera-gap 2`): EKF2's displacement was 0.02, 0.09, 0.18 and 0.22 m off the true one
 /// after 0.56, 1.06, 1.56 and 2.13 s; this is about 1.4 times that, growing with the
 /// square of the gap as an accelerometer bias makes it. With GPS the autopilot knows its
-/// displacement better, and this is merely cautious. At most `MAX_CARRY_SD_M`: PX4 gives
-/// up a position dead-reckoned for 5 s (its failsafe takes over), and a longer gap is
-/// mostly time on the ground between flights, where the vehicle stands still.
+/// displacement better, and this is merely cautious. At most `MAX_CARRY_SD_M`: spread
+/// wider, the particles would reach look-alike places, and a gap that long is mostly
+/// time on the ground between flights, where the vehicle stands still.
 fn dead_reckoning_sd_m(gap_s: f64) -> f64 {
     (0.1 * gap_s + 0.02 * gap_s * gap_s).min(MAX_CARRY_SD_M)
 }

@@ -324,6 +324,9 @@ pub struct Counters {
     pub result_writes_failed: u64,
     /// `indoor.gps_denied`: estimates sent for the vehicle standing on the ground.
     pub standing_estimates_sent: u64,
+    /// `indoor.gps_denied`: estimates holding the height while the camera's frames
+    /// stopped in flight.
+    pub held_estimates_sent: u64,
     /// EVENT messages from the autopilot (PX4's arming refusals and health reports).
     pub autopilot_events: u64,
     /// The autopilot's TIMESYNC requests answered. PX4 v1.16 maps mavloc's timestamps
@@ -833,9 +836,13 @@ impl Core {
                 let present = self.autopilot.present();
                 let attitude = self.telemetry.attitude();
                 let stamp = self.autopilot_usec(now.secs());
+                let held = self.gps.sent_held();
                 let m = self.gps.poll_transmit(now, present, target, attitude, stamp);
                 if m.as_ref().is_some_and(|m| matches!(m, MavMessage::ODOMETRY(_))) {
-                    self.counters.standing_estimates_sent += 1;
+                    match self.gps.sent_held() > held {
+                        true => self.counters.held_estimates_sent += 1,
+                        false => self.counters.standing_estimates_sent += 1,
+                    }
                 }
                 self.say_gps_notices();
                 m

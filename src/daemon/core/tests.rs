@@ -1473,6 +1473,7 @@ fn without_gps_a_silent_camera_in_flight_has_the_height_held() {
         assert_eq!((o.x, o.y, o.z), (0.0, 0.0, -1.0));
         assert!(o.vx.is_nan() && o.velocity_covariance[0].is_nan());
     }
+    assert_eq!(sim.core.counters().held_estimates_sent, held.len() as u64);
     // Every gap between vision samples stays under EKF2's 0.4 s.
     let gaps = samples.windows(2).filter(|w| w[0] >= secs(15)).map(|w| w[1].saturating_sub(w[0]));
     assert!(gaps.max().unwrap() < Duration::from_millis(400));
