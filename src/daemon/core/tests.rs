@@ -1111,6 +1111,25 @@ fn gps_denied_settings() -> Settings {
     s
 }
 
+/// GPS-denied settings with the indoor pipeline running (the fake shell starts any).
+fn indoor_without_gps_settings() -> Settings {
+    let mut s = gps_denied_settings();
+    s.daemon.pipeline = PipelineKind::Indoor;
+    s.indoor.model = "floor.model".into();
+    s
+}
+
+/// A core with settings `s` whose autopilot without GPS, up for 12 s, is now armed and
+/// in the air.
+fn airborne_without_gps(s: Settings) -> Sim {
+    let mut sim = Sim::new(s);
+    px4_without_gps(&mut sim);
+    sim.run_until(secs(12));
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    sim
+}
+
 fn px4_without_gps(sim: &mut Sim) {
     sim.ap = FakeAutopilot::new(sim.now);
     sim.ap.gps = false;
@@ -1239,11 +1258,7 @@ fn estimate(now: Mono, north: f64, east: f64) -> Input {
 
 #[test]
 fn in_the_air_the_pipeline_speaks_and_after_touchdown_the_vehicle_stands_where_it_was_last_seen() {
-    let mut sim = Sim::new(gps_denied_settings());
-    px4_without_gps(&mut sim);
-    sim.run_until(secs(12));
-    sim.ap.armed = true;
-    sim.ap.in_air = true;
+    let mut sim = airborne_without_gps(gps_denied_settings());
     sim.run_until(secs(14));
     let standing = sim.core.counters().standing_estimates_sent;
     // Flying: the pipeline's estimates at 15 Hz, none for the standing vehicle.
@@ -1272,11 +1287,7 @@ fn in_the_air_the_pipeline_speaks_and_after_touchdown_the_vehicle_stands_where_i
 /// zero at a 220 m/s SD after a 4 s camera gap, and PX4's failsafe landed the vehicle).
 #[test]
 fn after_a_pause_in_vision_an_unmeasured_velocity_goes_out_as_unknown() {
-    let mut sim = Sim::new(gps_denied_settings());
-    px4_without_gps(&mut sim);
-    sim.run_until(secs(12));
-    sim.ap.armed = true;
-    sim.ap.in_air = true;
+    let mut sim = airborne_without_gps(gps_denied_settings());
     sim.run_until(secs(14));
     let measured = VelocityEstimate { body: [0.5, 0.0, 0.0], var: [0.004, 0.004, 0.09] };
     let with = |now: Mono, v: VelocityEstimate| match estimate(now, 1.0, 1.0) {
@@ -1363,10 +1374,7 @@ fn after_a_pause_in_vision_an_unmeasured_velocity_goes_out_as_unknown() {
 /// position from mavloc, and told when frames come back; on the ground, nothing.
 #[test]
 fn frames_that_stop_in_flight_are_said_once_and_their_return_with_the_time_away() {
-    let mut s = gps_denied_settings();
-    s.daemon.pipeline = PipelineKind::Indoor;
-    s.indoor.model = "floor.model".into();
-    let mut sim = Sim::new(s);
+    let mut sim = Sim::new(indoor_without_gps_settings());
     px4_without_gps(&mut sim);
     sim.run_until(secs(12));
     assert_eq!(sim.core.pipeline(), PipelineState::Running(PipelineKind::Indoor));
@@ -1416,14 +1424,7 @@ fn frames_that_stop_in_flight_are_said_once_and_their_return_with_the_time_away(
 /// 4 s gap and PX4's failsafe landed it.)
 #[test]
 fn without_gps_a_silent_camera_in_flight_has_the_height_held() {
-    let mut s = gps_denied_settings();
-    s.daemon.pipeline = PipelineKind::Indoor;
-    s.indoor.model = "floor.model".into(); // the fake shell starts any pipeline
-    let mut sim = Sim::new(s);
-    px4_without_gps(&mut sim);
-    sim.run_until(secs(12));
-    sim.ap.armed = true;
-    sim.ap.in_air = true;
+    let mut sim = airborne_without_gps(indoor_without_gps_settings());
     let range = frame(
         1,
         1,
@@ -1520,14 +1521,7 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
 ) {
     // Measured on PX4 v1.16 SIH: in the air by its land detector 7 s before the
     // rangefinder left 0; localising the ground-level frames then dragged EKF2 away.
-    let mut s = gps_denied_settings();
-    s.daemon.pipeline = PipelineKind::Indoor;
-    s.indoor.model = "floor.model".into(); // the fake shell starts any pipeline
-    let mut sim = Sim::new(s);
-    px4_without_gps(&mut sim);
-    sim.run_until(secs(12));
-    sim.ap.armed = true;
-    sim.ap.in_air = true;
+    let mut sim = airborne_without_gps(indoor_without_gps_settings());
     let range = |cm: u16| {
         frame(
             1,
