@@ -91,7 +91,6 @@ pub struct GpsDenied {
     next_ground: Mono,
     phase: Phase,
     sent_ground: u64,
-    sent_held: u64,
     notices: Vec<Notice>,
     floor: Option<(f64, f64)>,
     /// The camera's latest velocity, while too low to localise.
@@ -111,7 +110,6 @@ impl GpsDenied {
             next_ground: Mono::ZERO,
             phase: Phase::Seeing,
             sent_ground: 0,
-            sent_held: 0,
             notices: Vec::new(),
             floor: None,
             velocity: None,
@@ -132,9 +130,10 @@ impl GpsDenied {
         self.sent_ground
     }
 
-    /// Estimates held while the camera's frames stopped in flight.
-    pub fn sent_held(&self) -> u64 {
-        self.sent_held
+    /// Whether the estimates it sends hold the height while the camera's frames stopped
+    /// in flight (else they are for a vehicle standing or too low to localise).
+    pub fn holding(&self) -> bool {
+        self.holding.is_some()
     }
 
     /// Where the vehicle is taken to stand: north, east, SD (m).
@@ -291,7 +290,6 @@ impl GpsDenied {
                 // coordinates.)
                 self.next_ground = now + HOLD_PERIOD;
                 let (down, _) = self.floor?;
-                self.sent_held += 1;
                 let e = PositionEstimate {
                     autopilot_time: f64::NAN,
                     north,

@@ -785,9 +785,9 @@ impl Core {
             self.timesync.deadline(),
             self.landing.deadline(),
             self.gps.deadline(),
-            // When the pipeline's silence is to be held (future only: a past deadline
-            // not acted on would spin the shell).
-            self.pipeline_vision_at.map(|t| t + HOLD_AFTER).filter(|d| *d > self.now),
+            // When the pipeline's silence is to be held, without GPS (future only: a past
+            // deadline not acted on would spin the shell).
+            self.pipeline_vision_at.map(|t| t + HOLD_AFTER).filter(|d| *d > self.now && self.gps.enabled()),
             // Only while watching: a deadline past and not acted on would spin the shell.
             self.frame_watch.deadline(self.frame_silence_limit()).filter(|_| self.watching_frames()),
             self.gimbal.deadline(),
@@ -836,10 +836,9 @@ impl Core {
                 let present = self.autopilot.present();
                 let attitude = self.telemetry.attitude();
                 let stamp = self.autopilot_usec(now.secs());
-                let held = self.gps.sent_held();
                 let m = self.gps.poll_transmit(now, present, target, attitude, stamp);
                 if m.as_ref().is_some_and(|m| matches!(m, MavMessage::ODOMETRY(_))) {
-                    match self.gps.sent_held() > held {
+                    match self.gps.holding() {
                         true => self.counters.held_estimates_sent += 1,
                         false => self.counters.standing_estimates_sent += 1,
                     }
