@@ -22,6 +22,7 @@ Usage: sitl.py --px4 DIR --mavloc BIN [--out DIR] [--max-s S] [--aim mission|bor
 import argparse
 import glob
 import json
+import re
 import os
 import resource
 import shutil
@@ -273,12 +274,12 @@ def truth_stream(px4_dir, rate_hz):
         raise RuntimeError(f"px4-mavlink stream -r {rate_hz} failed: {(r.stdout + r.stderr).strip()}")
 
 
-def fly_indoor(m, zone, max_s, events, t0, status_path, gap=None, gap_at=None):
+def fly_indoor(m, zone, max_s, events, t0, status_path, fault=None, fault_at=None):
     """Arm once PX4 is ready, take off, fly (offboard, ramped at 0.5 m/s) to the zone and
     hold there: mavloc's landing trigger is what lands the vehicle. Ends at disarm.
-    `gap` = (px4_dir, after_s, length_s): the camera goes blind `after_s` seconds after
-    setting off, for `length_s` seconds (`--camera-gap`); `gap_at[0]` is then set to when
-    it began, in seconds after PX4 started."""
+    `fault` = (after_s, length_s, begin, end, what): `begin()` is called `after_s` seconds
+    after setting off and `end()` `length_s` seconds later (`--camera-gap`, `--mavloc-crash`);
+    `fault_at[0]` is then set to when it began, in seconds after PX4 started."""
     from pymavlink import mavutil
     wait_prearm(m, 90, events, t0)
     wait_timesync(status_path, events, t0)
@@ -339,18 +340,18 @@ def fly_indoor(m, zone, max_s, events, t0, status_path, gap=None, gap_at=None):
     # pad. So leaving counts only once a heartbeat has shown offboard.
     offboard, offboard_seen = True, False
     landing_seen = None
-    blind = None  # wall time the camera went blind; then "done"
+    began = None  # wall time the fault began; then "done"
     while time.time() - fly_start < max_s:
-        if gap is not None and blind is None and time.time() - fly_start >= gap[1]:
-            truth_stream(gap[0], 0)
-            blind = time.time()
-            events.append(f"camera blind {blind - fly_start:.1f} s after setting off "
-                          f"({blind - t0:.1f} s after PX4 started)")
-            gap_at[0] = blind - t0
-        elif gap is not None and blind not in (None, "done") and time.time() - blind >= gap[2]:
-            truth_stream(gap[0], 30)
-            events.append(f"camera back after {time.time() - blind:.1f} s")
-            blind = "done"
+        if fault is not None and began is None and time.time() - fly_start >= fault[0]:
+            fault[2]()
+            began = time.time()
+            events.append(f"{fault[4]} {began - fly_start:.1f} s after setting off "
+                          f"({began - t0:.1f} s after PX4 started)")
+            fault_at[0] = began - t0
+        elif fault is not None and began not in (None, "done") and time.time() - began >= fault[1]:
+            fault[3]()
+            events.append(f"{fault[4]}: over after {time.time() - began:.1f} s")
+            began = "done"
         f = min(1.0, 0.5 * (time.time() - fly_start) / max(dist, 1e-6))
         if offboard:
             setpoint(x + f * dx, y + f * dy)
@@ -499,14 +500,13 @@ def camera_gap_ekf(d, t, truth, est, window):
     return out
 
 
-def camera_gap(ulg, traj, blind_at, length):
+def camera_gap(ulg, rows, blind_at, length):
     """How mavloc and EKF2 came through the camera's gap: the longest pause between
-    mavloc's estimates (trajectory.csv, stamped on PX4's clock) that starts within 5 s of
+    mavloc's estimates (`rows` of trajectory.csv, stamped on PX4's clock) that starts within 5 s of
     when the camera went blind (`blind_at`, seconds after PX4 started) for `length` s, mavloc's error
     after it and EKF2's around it (PX4's log)."""
-    import csv
     import math
-    rows = [r for r in csv.DictReader(open(traj)) if r["true_x"] not in ("", "NaN", "nan")]
+    rows = [r for r in rows if r["true_x"] not in ("", "NaN", "nan")]
     if len(rows) < 2:
         return "not computed: fewer than two estimates"
     t = [float(r["t"]) for r in rows]
@@ -702,7 +702,7 @@ def run_scenario(a, name, out):
     if os.path.exists(events_json):
         args += ["--set", f"mavlink.px4_events={events_json}"]
     report = {"scenario": name, "private_netns": in_private_netns(), "events": []}
-    gap_at = [None]  # when the camera went blind (--camera-gap)
+    fault_at = [None]  # when the camera went blind (--camera-gap) or mavloc was killed (--mavloc-crash)
     if indoor:
         lat, lon, pad = sih_origin(INDOOR_ORIGIN, INDOOR_PAD)
         params.update({"SIH_LOC_LAT0": repr(lat), "SIH_LOC_LON0": repr(lon), "SIH_LOC_H0": repr(INDOOR_ORIGIN[2])})
@@ -710,6 +710,9 @@ def run_scenario(a, name, out):
         args += ["--set", f"indoor.pad_x_m={pad[0]:.4f}", "--set", f"indoor.pad_y_m={pad[1]:.4f}",
                  "--set", f"indoor.landing_x_m={INDOOR_ZONE[0]}", "--set", f"indoor.landing_y_m={INDOOR_ZONE[1]}",
                  "--set", f"indoor.model={a.model}"]
+        if a.floor_scenario:
+            args += ["--set", f"camera.scenario={a.floor_scenario}"]
+            report["floor_seed"] = a.floor_seed
         report["zone"] = list(INDOOR_ZONE)
         report["pad"] = [round(pad[0], 4), round(pad[1], 4)]
         report["zone_from_pad_m"] = round(((INDOOR_ZONE[0] - pad[0]) ** 2 + (INDOOR_ZONE[1] - pad[1]) ** 2) ** 0.5, 2)
@@ -728,8 +731,25 @@ def run_scenario(a, name, out):
     ticks0, own0 = cpu_ticks(), own_cpu_s()
     px4, px4_started = start_px4(a.px4, params, out)
     mlog = open(os.path.join(out, "mavloc.log"), "w")
-    mavloc = subprocess.Popen([a.mavloc, "--config", config, "run"] + args, stdout=mlog, stderr=subprocess.STDOUT,
-                              env=dict(os.environ, RUST_LOG=os.environ.get("MAVLOC_SITL_RUST_LOG", "mavloc=info")))
+
+    def start_mavloc():
+        return subprocess.Popen([a.mavloc, "--config", config, "run"] + args, stdout=mlog, stderr=subprocess.STDOUT,
+                                env=dict(os.environ, RUST_LOG=os.environ.get("MAVLOC_SITL_RUST_LOG", "mavloc=info")))
+    mavloc = start_mavloc()
+
+    def crash():
+        # SIGKILL: no shutdown, no last words, as a crash or the kernel's OOM killer.
+        nonlocal mavloc
+        mavloc.kill()
+        report["mavloc_crash_exit"] = mavloc.wait()
+        mlog.write("--- sitl: mavloc killed (SIGKILL) ---\n")
+        mlog.flush()
+
+    def restart():
+        nonlocal mavloc
+        mlog.write("--- sitl: mavloc started again ---\n")
+        mlog.flush()
+        mavloc = start_mavloc()
     try:
         # The pilot is a ground station on PX4's GCS link (PX4 sends to 14550).
         m = mavutil.mavlink_connection("udpin:127.0.0.1:14550", source_system=255, source_component=190)
@@ -738,9 +758,14 @@ def run_scenario(a, name, out):
             raise RuntimeError("no heartbeat from PX4 within 30 s")
         report["events"].append(f"PX4 heartbeat after {time.time() - px4_started:.1f} s")
         if indoor:
-            gap = (a.px4, a.camera_gap_after_s, a.camera_gap) if a.camera_gap > 0 else None
+            fault = None
+            if a.camera_gap > 0:
+                fault = (a.fault_after_s, a.camera_gap, lambda: truth_stream(a.px4, 0), lambda: truth_stream(a.px4, 30),
+                         "camera blind")
+            elif a.mavloc_crash > 0:
+                fault = (a.fault_after_s, a.mavloc_crash, crash, restart, "mavloc killed")
             fly_indoor(m, INDOOR_ZONE, a.max_s, report["events"], px4_started, os.path.join(state, "status.json"),
-                       gap, gap_at)
+                       fault, fault_at)
         else:
             fly_coastline(m, a.max_s, report["events"], aim)
             report["adjustment"] = await_adjustment(state, out, os.path.join(out, "mavloc.log"), report["events"])
@@ -788,15 +813,18 @@ def run_scenario(a, name, out):
             rest = e["rest_truth_ne"]
             report["touchdown"] = rest
             report["touchdown_error_m"] = round(((rest[0] - INDOOR_ZONE[0]) ** 2 + (rest[1] - INDOOR_ZONE[1]) ** 2) ** 0.5, 3)
-        traj = os.path.join(state, "results", "indoor", "trajectory.csv")
-        if os.path.exists(traj):
+        # Every run's trajectory: a mavloc started again (--mavloc-crash) opens a run of its own.
+        trajs = sorted(glob.glob(os.path.join(state, "results", "indoor.runs", "*", "trajectory.csv")))
+        if trajs:
             import csv
-            rows = [r for r in csv.DictReader(open(traj))]
+            rows = sorted((r for traj in trajs for r in csv.DictReader(open(traj))), key=lambda r: float(r["t"]))
+            report["mavloc_runs"] = len(trajs)
             errs = [((float(r["x"]) - float(r["true_x"])) ** 2 + (float(r["y"]) - float(r["true_y"])) ** 2) ** 0.5
                     for r in rows if r["true_x"] not in ("", "NaN", "nan")]
-            if a.camera_gap > 0 and report.get("ulg"):
-                report["camera_gap"] = (camera_gap(os.path.join(out, "px4.ulg"), traj, gap_at[0], a.camera_gap)
-                                        if gap_at[0] is not None else "not computed: the camera never went blind")
+            for key, length in (("camera_gap", a.camera_gap), ("mavloc_crash", a.mavloc_crash)):
+                if length > 0 and report.get("ulg"):
+                    report[key] = (camera_gap(os.path.join(out, "px4.ulg"), rows, fault_at[0], length)
+                                   if fault_at[0] is not None else "not computed: the fault never began")
             if errs:
                 report["mavloc_estimates"] = len(rows)
                 report["mavloc_rms_m"] = round((sum(e * e for e in errs) / len(errs)) ** 0.5, 3)
@@ -1068,9 +1096,17 @@ def main():
     ap.add_argument("--camera-gap", type=float, default=0, metavar="S",
                     help="indoor: the camera goes blind for S seconds in flight (PX4 stops the truth it renders "
                          "from); the report's `camera_gap` says how mavloc and EKF2 came through it")
-    ap.add_argument("--camera-gap-after-s", type=float, default=6.0, metavar="T",
-                    help="with --camera-gap: T seconds after setting off for the zone (default 6: half way, at "
+    ap.add_argument("--mavloc-crash", type=float, default=0, metavar="S",
+                    help="indoor: mavloc is killed (SIGKILL) in flight and started again S seconds later, as "
+                         "systemd's Restart=on-failure does (RestartSec=2 in systemd/mavloc.service); the report's "
+                         "`mavloc_crash` says how mavloc and EKF2 came through it")
+    ap.add_argument("--fault-after-s", "--camera-gap-after-s", dest="fault_after_s", type=float, default=6.0,
+                    metavar="T",
+                    help="with --camera-gap or --mavloc-crash: T seconds after setting off for the zone (default 6: half way, at "
                          "0.5 m/s)")
+    ap.add_argument("--floor-seed", type=int, metavar="N",
+                    help="indoor: fly over another procedural floor, the indoor-floor scenario with seed N (the "
+                         "default floor is seed 3); its scenario file and model are made once into OUT/.cache")
     a = ap.parse_args()
     if a.analyse:
         return analyse(a.analyse)
@@ -1080,6 +1116,8 @@ def main():
         a.px4_param = dict(kv.split("=", 1) for kv in a.px4_param)
     except ValueError:
         ap.error("--px4-param takes NAME=VALUE")
+    if a.camera_gap > 0 and a.mavloc_crash > 0:
+        ap.error("--camera-gap and --mavloc-crash are one fault each: fly them apart")
     bad = [kv for kv in a.set if "=" not in kv]
     if bad:
         ap.error(f"--set takes KEY=VALUE, not {bad[0]!r}")
@@ -1087,19 +1125,35 @@ def main():
     os.environ["MAVLINK20"] = "1"
     scenarios = a.scenario or ([f"coastline-{a.aim}"] if a.aim else ["indoor", "coastline-border"])
     out_root = os.path.abspath(a.out)
+    cache = os.path.join(out_root, ".cache")
+    a.floor_scenario = None
+    seed_args, tag = [], ""
+    if a.floor_seed is not None:
+        if "indoor" not in scenarios:
+            ap.error("--floor-seed is for the indoor scenario")
+        # The built-in scenario with another seed: the same floor's size, camera and
+        # origin, another texture. The sim camera renders from this file.
+        os.makedirs(cache, exist_ok=True)
+        text = open(os.path.join(ROOT, "sim", "scenarios", "indoor-floor.toml")).read()
+        text, n = re.subn(r"(?m)^seed = \d+", f"seed = {a.floor_seed}", text)
+        if n != 1:
+            sys.exit("sitl: sim/scenarios/indoor-floor.toml has no `seed = N` line to replace")
+        a.floor_scenario = os.path.join(cache, f"indoor-floor-seed{a.floor_seed}.toml")
+        with open(a.floor_scenario, "w") as f:
+            f.write(text)
+        seed_args, tag = ["--seed", str(a.floor_seed)], f"-seed{a.floor_seed}"
     if "indoor" in scenarios and not a.model:
-        cache = os.path.join(out_root, ".cache")
         # Rescaled to the floor's scale from 1 m (indoor.height_ref_m), so heights away
         # from 1 m keep the trained scale; a new name, so a cache of the older kind is not
         # taken for it (the suffix follows mavloc's model version).
-        a.model = os.path.join(cache, "floor-h1-v2.model")
+        a.model = os.path.join(cache, f"floor{tag}-h1-v2.model")
         if not os.path.exists(a.model):
             os.makedirs(cache, exist_ok=True)
-            train = os.path.join(cache, "floor-train")
+            train = os.path.join(cache, f"floor{tag}-train")
             print("sitl: training the floor model once (5000 rendered views) into", a.model, flush=True)
             if not os.path.exists(os.path.join(train, "telemetry.jsonl")):
-                subprocess.run([a.mavloc, "sim", "render", "--scenario", "indoor-floor", "--views", "5000", "--out",
-                                train, "--force"], check=True, stdout=subprocess.DEVNULL)
+                subprocess.run([a.mavloc, "sim", "render", "--scenario", "indoor-floor", *seed_args, "--views", "5000",
+                                "--out", train, "--force"], check=True, stdout=subprocess.DEVNULL)
             subprocess.run([a.mavloc, "indoor", "train", "--dataset", train, "--out", a.model,
                             "--set", "indoor.height_ref_m=1.0"], check=True, stdout=subprocess.DEVNULL)
     ok = True
@@ -1109,7 +1163,7 @@ def main():
             out = os.path.join(out_root, name) if a.repeat == 1 else os.path.join(out_root, name, f"run-{k + 1}")
             r = run_scenario(a, name, out)
             keys = ["scenario", "ok", "meets_bar", "error", "zone", "touchdown", "touchdown_error_m", "mavloc_rms_m",
-                    "mavloc_max_m", "camera_gap", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg", "adjustment", "refined",
+                    "mavloc_max_m", "camera_gap", "mavloc_crash", "px4_estimate_vs_truth", "landmarks", "mean_m", "gimbal_error_median_deg", "adjustment", "refined",
                     "machine"]
             print(json.dumps({k2: r[k2] for k2 in keys if k2 in r}, indent=2), flush=True)
             reports.append(r)

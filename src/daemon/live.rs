@@ -777,6 +777,9 @@ pub struct IndoorLive {
     /// The autopilot's horizontal position at the localiser's last frame, to carry the
     /// particles across a gap in the frames ([`IndoorLive::carry_across_gap`]).
     last_vehicle: Option<(f64, Vector2<f64>)>,
+    /// Without GPS, where the particles start is decided at the first frame
+    /// ([`IndoorLive::start`]): the pad, or near the autopilot's position in the air.
+    start_pending: bool,
 }
 
 /// The SD (m) of the autopilot's own displacement over a gap of `gap_s` seconds in the
@@ -807,6 +810,12 @@ const VERTICAL_VAR: f64 = 0.3 * 0.3;
 /// Where the particles start around the pad in a GPS-denied take-off (m).
 const PAD_START_SD_M: f64 = 0.3;
 
+/// A GPS-denied pipeline started in the air (mavloc restarted after a crash, the pipeline
+/// rebuilt or reset): the SD (m) of the autopilot's position it searches from. That
+/// position was dead-reckoned on the autopilot's IMU since mavloc's last estimate: against
+/// PX4 SITL (SIH), 0.3-1.7 m off after 4 s without them (`tools/sitl.py --camera-gap 4`).
+const AIR_START_SD_M: f64 = 1.0;
+
 fn zone(s: &Settings) -> LandingZone {
     let i = &s.indoor;
     LandingZone {
@@ -833,11 +842,8 @@ impl IndoorLive {
                 rel * 100.0
             );
         }
-        let mut localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
-        if i.gps_denied {
-            // The vehicle takes off from the pad mavloc reported while it stood there.
-            localizer.start_at(Vector2::new(i.pad_x_m, i.pad_y_m), PAD_START_SD_M);
-        }
+        let localizer = Localizer::new(&model, LocalizerParams::from_settings(i, 1))?;
+        let start_pending = i.gps_denied;
         let dir = sets::open_run_dir(link, run)
             .map_err(|e| format!("cannot open results {}: {e}", link.display()))?;
         tracing::info!("indoor: run {run}, results in {} (a link to {})", link.display(), dir.display());
@@ -861,11 +867,57 @@ impl IndoorLive {
             flow_ok: 0,
             flow_failed: Default::default(),
             last_vehicle: None,
+            start_pending,
         })
     }
 }
 
 impl IndoorLive {
+    /// Without GPS, where the particles start, at the pipeline's first frame. A frame that
+    /// only measures the motion (the camera too low to localise) over the pad is a
+    /// take-off: from the pad mavloc reported while the vehicle stood there, tracked as
+    /// given. Any other first frame is a pipeline started in the air: mavloc restarted
+    /// after a crash (systemd's `Restart=on-failure`), the pipeline rebuilt after a panic,
+    /// or reset or started by a command. The pad is then wrong by however far the vehicle
+    /// flew, and a track given there is never searched out of (against PX4 SITL the
+    /// autopilot was sent the pad's neighbourhood, metres off, as fixes, and flew off on
+    /// them); so the particles search near where the autopilot itself puts the vehicle,
+    /// and no fix goes out until they have found it. Too low to localise (climbing or
+    /// descending away from the pad), they can only be carried on the camera's velocity:
+    /// tracked from there as from a pad that may be off.
+    fn start(&mut self, frame: &LiveFrame, vehicle: Vector2<f64>) -> Option<String> {
+        if !std::mem::take(&mut self.start_pending) {
+            return None;
+        }
+        let i = &self.settings.indoor;
+        let pad = Vector2::new(i.pad_x_m, i.pad_y_m);
+        let known = vehicle.iter().all(|c| c.is_finite());
+        if frame.motion_only && (!known || (vehicle - pad).norm() <= AIR_START_SD_M) {
+            self.localizer.start_at(pad, PAD_START_SD_M);
+            return None;
+        }
+        if !known {
+            return Some(
+                "indoor: started in the air with no position from the autopilot: searching the whole floor"
+                    .into(),
+            );
+        }
+        if frame.motion_only {
+            self.localizer.start_at(vehicle, AIR_START_SD_M);
+            return Some(format!(
+                "indoor: started low in the air, {:.1} m from the pad: tracking from the autopilot's position x {:.2} y {:.2} m (SD {AIR_START_SD_M} m)",
+                (vehicle - pad).norm(),
+                vehicle.x,
+                vehicle.y
+            ));
+        }
+        self.localizer.search_near(vehicle, AIR_START_SD_M);
+        Some(format!(
+            "indoor: started in the air: searching near the autopilot's position x {:.2} y {:.2} m (SD {AIR_START_SD_M} m), not from the pad",
+            vehicle.x, vehicle.y
+        ))
+    }
+
     /// Across a gap in the frames the camera's own velocity is not measured (its flow
     /// needs frames under `flow::MAX_DT_S` apart), and the particles would stay where the
     /// camera left them: they are carried by the autopilot's displacement over the gap
@@ -1061,8 +1113,10 @@ impl LivePipeline for IndoorLive {
         let t = frame.pose.autopilot_time;
         let p = frame.pose.vehicle.position;
         let vehicle = Vector2::new(p.x, p.y);
+        let started = self.start(frame, vehicle);
         let carried = self.carry_across_gap(t, vehicle);
         let mut report = self.process_frame(frame);
+        report.events.extend(started);
         report.events.extend(carried);
         if self.localizer.last_time() == Some(t) {
             self.last_vehicle = Some((t, vehicle));
@@ -1076,7 +1130,15 @@ impl LivePipeline for IndoorLive {
         if !self.localizer.set_params(&params) {
             match Localizer::new(&self.model, params) {
                 Ok(l) => {
+                    // From where the old one put the vehicle, if it ran: a search of the
+                    // whole floor would send nothing for seconds and may settle on a
+                    // look-alike (an unrun one leaves the start to the first frame).
+                    let prior = self.localizer.last_time().map(|_| self.localizer.coasted());
                     self.localizer = l;
+                    if let Some((p, (sx, sy))) = prior {
+                        self.localizer.search_near(p, sx.max(sy).max(PAD_START_SD_M));
+                        self.start_pending = false;
+                    }
                     tracing::info!("indoor: k or particle count changed: localiser restarted");
                 }
                 Err(e) => tracing::warn!("indoor: new settings not applied: {e}"),

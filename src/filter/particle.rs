@@ -196,10 +196,20 @@ impl ParticleFilter {
     /// All particles drawn around a known position (tracking from a known start instead
     /// of global localisation), equal weights.
     pub fn reset_around(&mut self, centre: Vector2<f64>, sd_m: f64) {
+        self.reset_mixed(centre, sd_m, 0.0);
+    }
+
+    /// Particles drawn around a position, and a share `anywhere` of them anywhere on the
+    /// map (a prior that may be off: the filter's random particles come only when the
+    /// likelihood drops, which it does not where every place looks as unlikely as the
+    /// prior's), equal weights.
+    pub fn reset_mixed(&mut self, centre: Vector2<f64>, sd_m: f64, anywhere: f64) {
         let g = Gaussian2::new(&(Matrix2::identity() * (sd_m * sd_m).max(1e-12)))
             .expect("a positive diagonal is positive definite");
-        for p in &mut self.particles {
-            *p = centre + g.sample(&mut self.rng);
+        let n = self.particles.len();
+        let far = ((n as f64 * anywhere.clamp(0.0, 1.0)).round() as usize).min(n);
+        for i in 0..n {
+            self.particles[i] = if i < far { self.uniform() } else { centre + g.sample(&mut self.rng) };
         }
         let w = 1.0 / self.particles.len() as f64;
         self.weights.iter_mut().for_each(|x| *x = w);

@@ -169,9 +169,22 @@ enum Mode {
     Tracking { since: f64 },
     /// Tracking from a position given by the caller (a GPS-denied take-off pad): never
     /// searching again, where a jump across the floor would be fed to an autopilot that
-    /// flies on these estimates alone.
-    Given,
+    /// flies on these estimates alone. Unsettled, renewed particles reach as far as a pad
+    /// may be off (`TRACKING_RECOVERY_SD_M`, at the neighbours near the mean); settled
+    /// (`settled_since`: the particles agreed for `TRACK_AFTER_S` where the neighbours
+    /// point), only as far as a found track's ([`Localizer::found_recovery_sd`]). Kept
+    /// wide, a look-alike 1.5 m away took a settled track for seconds in PX4 SITL's
+    /// hover before the landing (floor 2024, 1.3-1.7 m off, sent as fixes). A settled
+    /// track that loses the neighbours' support (`LOST_AFTER_S`), or is carried across a
+    /// gap, is unsettled again. `agreed_since` as [`Mode::Searching`]'s.
+    Given { settled_since: Option<f64>, agreed_since: Option<f64> },
 }
+
+/// A search from a prior ([`Localizer::search_near`]) starts this share of its particles
+/// anywhere on the floor: with all of them near a prior that is metres off, the filter
+/// never found the place its frames showed (its random particles come only when the
+/// likelihood drops, and it does not drop where every place looks equally unlikely).
+const SEARCH_ANYWHERE_SHARE: f64 = 0.2;
 
 /// Tracking from a known start: renewed particles within about this (SD, m) of the mean.
 pub const TRACKING_RECOVERY_SD_M: f64 = 1.0;
@@ -392,6 +405,8 @@ impl Localizer {
     pub fn carry(&mut self, t: f64, displacement: Vector2<f64>, sd_m: f64) {
         let var = sd_m * sd_m + 1e-6;
         self.predict(displacement, &(Matrix2::identity() * var));
+        // Off by up to the carry's spread: the wide reach that absorbs a pad that is off.
+        self.unsettle();
         self.history.clear();
         self.last_t = Some(t);
     }
@@ -459,7 +474,33 @@ impl Localizer {
                     }
                 }
             }
-            Mode::Given => {}
+            Mode::Given { settled_since: None, agreed_since } => {
+                if spread.0.max(spread.1) >= TRACK_SPREAD_M {
+                    self.mode = Mode::Given { settled_since: None, agreed_since: None };
+                    self.support.clear();
+                    return;
+                }
+                let since = agreed_since.unwrap_or(t);
+                self.support.push_back((t, supported));
+                self.mode = if t - since >= TRACK_AFTER_S && self.support_share() >= TRACK_SUPPORT_SHARE {
+                    self.support.clear();
+                    self.pf.set_local_recovery(Some(self.found_recovery_sd()));
+                    self.pf.set_sensor_resetting(false);
+                    Mode::Given { settled_since: Some(t), agreed_since: None }
+                } else {
+                    Mode::Given { settled_since: None, agreed_since: Some(since) }
+                };
+            }
+            Mode::Given { settled_since: Some(since), .. } => {
+                self.pf.set_local_recovery(Some(self.found_recovery_sd()));
+                self.support.push_back((t, supported));
+                while self.support.front().is_some_and(|(t0, _)| t - t0 > LOST_AFTER_S) {
+                    self.support.pop_front();
+                }
+                if t - since >= LOST_AFTER_S && self.support_share() < MIN_SUPPORT_SHARE {
+                    self.unsettle();
+                }
+            }
             Mode::Tracking { since } => {
                 // The velocity may come and go (telemetry), and the reach with it.
                 self.pf.set_local_recovery(Some(self.found_recovery_sd()));
@@ -475,6 +516,16 @@ impl Localizer {
         }
     }
 
+    /// A given track back to the wide reach it started with (a no-op for other modes).
+    fn unsettle(&mut self) {
+        if let Mode::Given { .. } = self.mode {
+            self.pf.set_local_recovery(Some(TRACKING_RECOVERY_SD_M));
+            self.pf.set_sensor_resetting(true);
+            self.mode = Mode::Given { settled_since: None, agreed_since: None };
+            self.support.clear();
+        }
+    }
+
     /// The share of the frames in `support` whose nearest neighbour supported the estimate.
     fn support_share(&self) -> f64 {
         self.support.iter().filter(|(_, s)| *s).count() as f64 / self.support.len().max(1) as f64
@@ -486,13 +537,13 @@ impl Localizer {
     pub fn found_track_age(&self, t: f64) -> Option<f64> {
         match self.mode {
             Mode::Tracking { since } => Some((t - since).max(0.0)),
-            Mode::Searching { .. } | Mode::Given => None,
+            Mode::Searching { .. } | Mode::Given { .. } => None,
         }
     }
 
     /// True while tracking a found (or given) position rather than searching the floor.
     pub fn tracking(&self) -> bool {
-        matches!(self.mode, Mode::Tracking { .. } | Mode::Given)
+        matches!(self.mode, Mode::Tracking { .. } | Mode::Given { .. })
     }
 
     /// Applies what can change mid-flight (motion model, its SD, samples per histogram);
@@ -508,6 +559,22 @@ impl Localizer {
         self.pf.particles()
     }
 
+    /// Searches again from a prior instead of the whole floor: most particles drawn around
+    /// `centre` (SD `sd_m`), `SEARCH_ANYWHERE_SHARE` of them and renewed ones anywhere on
+    /// the floor, and no fix until they agree on a place the nearest neighbours support, as
+    /// after a uniform start. For a localiser (re)started in flight, where the prior is the
+    /// autopilot's own position (dead-reckoned since the last estimate it had) or the
+    /// previous localiser's: one that is off is searched out of, never tracked as a pad is
+    /// ([`Localizer::start_at`]).
+    pub fn search_near(&mut self, centre: Vector2<f64>, sd_m: f64) {
+        self.pf.restart_global();
+        self.pf.reset_mixed(centre, sd_m, SEARCH_ANYWHERE_SHARE);
+        self.history.clear();
+        self.support.clear();
+        self.last_t = None;
+        self.mode = Mode::Searching { agreed_since: None };
+    }
+
     /// Starts tracking from a known position (a GPS-denied take-off from a known pad)
     /// instead of searching the whole floor.
     /// From then on it tracks: particles that renew themselves do so near the estimate
@@ -519,7 +586,8 @@ impl Localizer {
         self.pf.set_sensor_resetting(true);
         self.history.clear();
         self.last_t = None;
-        self.mode = Mode::Given;
+        self.mode = Mode::Given { settled_since: None, agreed_since: None };
+        self.support.clear();
     }
 }
 
@@ -773,6 +841,83 @@ mod tests {
         assert_eq!(loc.found_track_age(100.0), None, "a given track is not a found one");
         let e = e.unwrap();
         assert!((e.position - pad).norm() < 1.6, "held near the pad: {:?}", e.position);
+    }
+
+    /// A search from a prior (a localiser started in flight, near the autopilot's own
+    /// position): no fix while the particles only agree on the prior, a fix once they agree
+    /// on the place the frames show, and that place found also when the prior is metres off
+    /// (where a track from a given start stays held near it:
+    /// `a_track_from_a_given_start_is_never_given_up`).
+    #[test]
+    fn a_search_from_a_prior_fixes_only_the_place_the_frames_show() {
+        let truth = Vector2::new(1.5, 1.0);
+        let seen = seen_at(truth);
+        // (prior, its SD, the first fix by (s), a fix within (m)): from a prior metres off,
+        // the few particles started anywhere find the place, within the neighbours' support
+        // (the grid's particles are sparse there).
+        let cases =
+            [(Vector2::new(1.0, 0.5), 0.5, 2.0, 0.3), (Vector2::new(-2.0, -2.0), 1.0, 8.0, SUPPORT_M)];
+        for (prior, sd, within_s, within_m) in cases {
+            let (mut loc, _) = started_on_the_pad(0.05);
+            loc.search_near(prior, sd);
+            assert!(!loc.tracking(), "a search, not a track");
+            let mut first_fix = None;
+            for i in 0..(15.0 * 10.0) as usize {
+                let t = i as f64 / 15.0;
+                let e = loc.step_histogram(t, &seen, Some(Vector2::zeros()));
+                if e.fix {
+                    assert!(
+                        (e.position - truth).norm() < within_m,
+                        "prior {prior:?}: a fix at {:?}",
+                        e.position
+                    );
+                    first_fix.get_or_insert(t);
+                }
+                if t < TRACK_AFTER_S {
+                    assert!(
+                        !e.fix,
+                        "prior {prior:?}: a fix at {t:.2} s, before the particles agreed for a second"
+                    );
+                }
+            }
+            let first = first_fix.unwrap_or_else(|| panic!("prior {prior:?}: never a fix"));
+            assert!(first <= within_s, "prior {prior:?}: first fix after {first:.2} s");
+            assert!(loc.found_track_age(10.0).is_some(), "prior {prior:?}: a track found, so young at first");
+        }
+    }
+
+    /// A track from a pad takes frames that point up to a metre and a half away while it
+    /// settles (the pad may be that far off); settled, a look-alike a metre away is out of
+    /// its reach; frames that keep pointing there past `LOST_AFTER_S` unsettle it, and it
+    /// follows them again.
+    #[test]
+    fn a_given_track_narrows_its_reach_once_settled_and_widens_it_when_lost() {
+        let steps = |loc: &mut Localizer, t: &mut f64, h: &[f32], n: usize| {
+            let mut e = None;
+            for _ in 0..n {
+                e = Some(loc.step_histogram(*t, h, Some(Vector2::zeros())));
+                *t += 1.0 / 15.0;
+            }
+            e.expect("at least one frame")
+        };
+        let (mut loc, pad) = started_on_the_pad(0.1);
+        let there = pad + Vector2::new(1.0, 0.0);
+        let (here, look_alike) = (seen_at(pad), seen_at(there));
+        let mut t = 0.0;
+        // Unsettled: the frames a metre away take it.
+        let e = steps(&mut loc, &mut t, &look_alike, 8);
+        assert!((e.position - there).norm() < 0.3, "unsettled, held at {:?}", e.position);
+        let (mut loc, _) = started_on_the_pad(0.1);
+        let mut t = 0.0;
+        steps(&mut loc, &mut t, &here, 30);
+        assert!(matches!(loc.mode, Mode::Given { settled_since: Some(_), .. }), "{:?}", loc.mode);
+        // Settled: the same frames do not.
+        let e = steps(&mut loc, &mut t, &look_alike, 8);
+        assert!((e.position - pad).norm() < 0.3, "settled, taken to {:?}", e.position);
+        // Lost: unsettled, and taken there.
+        let e = steps(&mut loc, &mut t, &look_alike, (15.0 * (LOST_AFTER_S + 2.0)) as usize);
+        assert!((e.position - there).norm() < 0.3, "lost, held at {:?}", e.position);
+        assert!(loc.tracking() && loc.found_track_age(t).is_none(), "still a given track, never a search");
     }
 
     #[test]

@@ -50,19 +50,31 @@ pub fn fly_with(
     masks: bool,
     pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
 ) -> Flight {
-    fly_vehicle(settings, duration_s, masks, None, |v| v, pipeline, |_, _| {})
+    let mut pipeline = Some(pipeline);
+    let pipeline = move |s: &Settings| pipeline.take().expect("one pipeline: no fault rebuilds it")(s);
+    fly_vehicle(settings, duration_s, masks, Faults::default(), |v| v, pipeline, |_, _| {})
+}
+
+/// What goes wrong in a flight, from when to when (simulated seconds).
+#[derive(Clone, Copy, Default)]
+pub struct Faults {
+    /// The camera delivers nothing.
+    pub blind: Option<(f64, f64)>,
+    /// The daemon is down (killed): nothing reaches it and it sends nothing; at the end a
+    /// new core and pipeline start, as systemd starts the daemon again.
+    pub down: Option<(f64, f64)>,
 }
 
 /// The loop itself: `vehicle` adapts the built-in vehicle (e.g. without GPS), `gcs` is
 /// called every step with the time and the vehicle (a ground station's commands);
-/// `blind`: from when to when (simulated seconds) the camera delivers nothing.
+/// `pipeline` builds the pipeline, again after a restart (`faults`).
 pub fn fly_vehicle(
     settings: &Settings,
     duration_s: f64,
     masks: bool,
-    blind: Option<(f64, f64)>,
+    faults: Faults,
     vehicle: impl FnOnce(Vehicle) -> Vehicle,
-    pipeline: impl FnOnce(&Settings) -> Box<dyn LivePipeline>,
+    mut pipeline: impl FnMut(&Settings) -> Box<dyn LivePipeline>,
     mut gcs: impl FnMut(f64, &mut Vehicle),
 ) -> Flight {
     let scenario = Scenario::load(&settings.camera.scenario).unwrap();
@@ -83,6 +95,18 @@ pub fn fly_vehicle(
         let now = Mono::from_secs_f64(t);
         gcs(t, &mut vehicle);
         vehicle.step(t);
+        if let Some((from, to)) = faults.down {
+            if (from..to).contains(&t) {
+                vehicle.out.clear();
+                continue;
+            }
+            if t >= to && t - step < to {
+                // Started again: a new core, a new pipeline, the same state folder.
+                live.write_results().unwrap();
+                core = Core::new(settings.clone(), Default::default(), false, None);
+                live = pipeline(settings);
+            }
+        }
         for (component, message) in vehicle.out.drain(..) {
             let header = MavHeader { system_id: 1, component_id: component, sequence: 0 };
             let frame = Frame {
@@ -124,7 +148,7 @@ pub fn fly_vehicle(
         if capture <= last_rendered || core.on_ground() || core.too_low() {
             continue;
         }
-        if blind.is_some_and(|(from, to)| (from..to).contains(&t)) {
+        if faults.blind.is_some_and(|(from, to)| (from..to).contains(&t)) {
             continue;
         }
         let Ok(pose) = a.align(capture, t) else { continue };
@@ -321,11 +345,11 @@ fn indoor_flight_lands_in_the_zone_with_estimates_within_0_2_m_median_in_simulat
 
 /// The built-in vehicle without GPS, taking off from the mission's start (the pad) and
 /// landed by mavloc's trigger at the mission's position at 12 s (the zone); a ground
-/// station tries to arm every 2 s. `blind`: as [`fly_vehicle`]'s. Returns the flight, the
+/// station tries to arm every 2 s. `faults`: as [`fly_vehicle`]'s. Returns the flight, the
 /// arming answers (simulated time, result) and the zone.
 fn fly_without_gps(
     dir: &std::path::Path,
-    blind: Option<(f64, f64)>,
+    faults: Faults,
 ) -> (Flight, Vec<(f64, mavlink::dialects::common::MavResult)>, mavloc::geometry::Vec3) {
     use mavlink::dialects::common::*;
     let model = crate::fixtures::small_indoor_model();
@@ -370,7 +394,7 @@ fn fly_without_gps(
         &s,
         50.0,
         true,
-        blind,
+        faults,
         |v| v.without_gps(),
         move |s| {
             let k = mavloc::camera::intrinsics(s).unwrap();
@@ -409,7 +433,7 @@ fn fly_without_gps(
 fn without_gps_the_vehicle_arms_on_mavlocs_estimates_alone_and_lands_on_the_zone_in_simulated_time() {
     use mavlink::dialects::common::*;
     let dir = tempfile::tempdir().unwrap();
-    let (flight, answers, zone) = fly_without_gps(dir.path(), None);
+    let (flight, answers, zone) = fly_without_gps(dir.path(), Faults::default());
     #[allow(deprecated)]
     let origin_sent = flight
         .sent
@@ -437,6 +461,46 @@ fn without_gps_the_vehicle_arms_on_mavlocs_estimates_alone_and_lands_on_the_zone
     // Landed on the zone by the precision landing.
     assert!(flight.core.on_ground(), "the vehicle landed");
     assert!(miss < 0.05, "landed {miss} m from the zone's centre");
+}
+
+/// mavloc killed in a flight without GPS and started again 2 s later (systemd's
+/// `Restart=on-failure`): the new pipeline's first frame is in the air, far from the pad
+/// it would have started a take-off from. It searches near where the autopilot itself
+/// puts the vehicle, sends no fix until it has found it, and lands it on the zone. Started
+/// at the pad as before, it was held there as a given track (never searched out of), and
+/// every fix it sent was metres off.
+#[test]
+fn without_gps_mavloc_restarted_in_flight_finds_the_vehicle_again_not_at_the_pad() {
+    let dir = tempfile::tempdir().unwrap();
+    let (from, to) = (16.0, 18.0);
+    let (flight, _, zone) =
+        fly_without_gps(dir.path(), Faults { down: Some((from, to)), ..Default::default() });
+    let at_restart = flight.frames.iter().find(|(c, _, _)| *c >= to).expect("frames after the restart");
+    let (pad_x, pad_y) = (flight.core.settings().indoor.pad_x_m, flight.core.settings().indoor.pad_y_m);
+    let from_pad = (at_restart.2[0] - pad_x).hypot(at_restart.2[1] - pad_y);
+    // Each estimate sent after the restart: (capture, error m).
+    let sent: Vec<(f64, f64)> = flight
+        .frames
+        .iter()
+        .filter(|(c, _, _)| *c >= to)
+        .filter_map(|(c, r, truth)| r.position.map(|p| (*c, (p.north - truth[0]).hypot(p.east - truth[1]))))
+        .collect();
+    let first = sent.first().expect("a fix after the restart");
+    let worst = sent.iter().map(|e| e.1).fold(0.0, f64::max);
+    println!(
+        "mavloc down {from}-{to} s, the vehicle {from_pad:.2} m from the pad: first fix {:.2} s after the restart, {:.3} m off; {} sent, the worst {worst:.3} m",
+        first.0 - to,
+        first.1,
+        sent.len()
+    );
+    assert!(from_pad > 2.0, "the restart is only {from_pad:.2} m from the pad");
+    let events: Vec<&String> = flight.frames.iter().flat_map(|(_, r, _)| &r.events).collect();
+    assert!(events.iter().any(|e| e.contains("started in the air")), "{events:?}");
+    assert!(first.0 - to < 3.0, "the first fix {:.2} s after the restart", first.0 - to);
+    assert!(worst < 0.5, "an estimate {worst:.3} m off went to the autopilot after the restart");
+    let landed = flight.vehicle.state.position;
+    let miss = (landed.x - zone.x).hypot(landed.y - zone.y);
+    assert!(flight.core.on_ground() && miss < 0.1, "landed {miss} m from the zone's centre");
 }
 
 /// A real camera gives no target mask: the live area pipeline segments the frames with
@@ -471,7 +535,8 @@ fn live_area_segments_frames_from_a_camera_without_masks() {
 fn without_gps_a_camera_gap_in_flight_is_bridged_by_the_autopilots_position() {
     let dir = tempfile::tempdir().unwrap();
     let (from, to) = (16.0, 18.5);
-    let (flight, _, zone) = fly_without_gps(dir.path(), Some((from, to)));
+    let (flight, _, zone) =
+        fly_without_gps(dir.path(), Faults { blind: Some((from, to)), ..Default::default() });
     let last_before = flight.frames.iter().rfind(|(c, _, _)| *c < from).expect("frames before the gap");
     let first_after = flight.frames.iter().find(|(c, _, _)| *c >= to).expect("frames after the gap");
     let moved = (first_after.2[0] - last_before.2[0]).hypot(first_after.2[1] - last_before.2[1]);

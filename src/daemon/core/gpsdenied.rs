@@ -209,6 +209,15 @@ impl GpsDenied {
         }
     }
 
+    /// The autopilot was found armed (mavloc started again in flight, after a crash): the
+    /// vehicle is not on the pad, and where it will stand is unknown until the pipeline
+    /// says (its estimates, or its particles carried on the camera's velocity). Until then
+    /// the estimates for a vehicle on or near the floor go out with no x and y, which
+    /// EKF2 drops, rather than the pad, metres off, to a few centimetres.
+    pub fn forget_pad(&mut self) {
+        self.standing = (f64::NAN, f64::NAN, PAD_SD_M);
+    }
+
     /// The autopilot rebooted or came back: its estimator starts over.
     pub fn restart(&mut self) {
         self.state = OriginState::Waiting;
@@ -230,7 +239,9 @@ impl GpsDenied {
         }
         let ground = self.ground_due().then_some(self.next_ground);
         let origin = match self.state {
-            OriginState::Waiting => self.vision_since.map(|t| t + ORIGIN_AFTER),
+            OriginState::Waiting if self.phase == Phase::Standing => {
+                self.vision_since.map(|t| t + ORIGIN_AFTER)
+            }
             OriginState::Sent { next, .. } => Some(next),
             _ => None,
         };
@@ -258,7 +269,15 @@ impl GpsDenied {
             return None;
         }
         match self.state {
-            OriginState::Waiting if self.vision_since.is_some_and(|t| t + ORIGIN_AFTER <= now) => {
+            // Only while the vehicle stands. One in the air has an origin already (it could
+            // not have armed without), and a new one moves its local frame under it (PX4
+            // v1.16 `setLatLonOrigin` shifts the local position by the origins' difference):
+            // mavloc started again in flight (a crash, systemd's restart) sent it again
+            // mid-flight before this.
+            OriginState::Waiting
+                if self.phase == Phase::Standing
+                    && self.vision_since.is_some_and(|t| t + ORIGIN_AFTER <= now) =>
+            {
                 self.state = OriginState::Sent { tries: 1, next: now + ORIGIN_RETRY };
                 self.notices.push(Notice::OriginSent(origin));
                 return Some(set_origin(&origin, target, stamp));

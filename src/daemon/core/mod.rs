@@ -426,7 +426,7 @@ pub struct Core {
     /// whether it carried a position and a velocity.
     last_vision_sent: Option<(Mono, bool, bool)>,
     /// When the pipeline last sent the autopilot anything of its own (an estimate, a
-    /// velocity): without GPS, a silence in flight is held ([`Core::holding`]).
+    /// velocity), or started: without GPS, a silence in flight is held ([`Core::holding`]).
     pipeline_vision_at: Option<Mono>,
     frame_watch: framewatch::FrameWatch,
     /// The newest time an input or timeout carried.
@@ -1112,7 +1112,15 @@ impl Core {
                     self.waiting.found();
                     self.streams.start();
                     self.timesync.start(rx);
-                    if self.gps.enabled() {
+                    if self.gps.enabled() && self.autopilot.armed() {
+                        // Found armed: mavloc started again in flight (or by a vehicle
+                        // standing armed); the origin waits for the ground, and the pad
+                        // is not where the vehicle is.
+                        self.gps.forget_pad();
+                        self.notes.info(
+                            "no GPS: the autopilot is armed; vision estimates from now on, not the pad; the origin only once it stands",
+                        );
+                    } else if self.gps.enabled() {
                         let (n, e, _) = self.gps.standing();
                         self.notes.info(&format!(
                             "no GPS: vision estimates from now on, the pad (x {n:.2}, y {e:.2} m) while standing; the origin after {} s",
@@ -1646,6 +1654,10 @@ impl Core {
                 match result {
                     Ok(()) => {
                         self.pipeline = PipelineState::Running(kind);
+                        // A new pipeline's silence counts from its start: one started in
+                        // the air (mavloc restarted in flight) has the height held until
+                        // its first estimate, as a camera gap does.
+                        self.pipeline_vision_at = Some(self.now);
                         let src = format!("{:?}", self.settings.camera.source).to_lowercase();
                         self.notes
                             .info(&format!("{kind:?} pipeline started; frames from camera source {src}"));
