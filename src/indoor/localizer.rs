@@ -155,6 +155,9 @@ pub struct Localizer {
     mode: Mode,
     /// Tracking: per frame of the last `LOST_AFTER_S`, whether the estimate was supported.
     support: VecDeque<(f64, bool)>,
+    /// A search from a prior ([`Localizer::search_near`]): None before its first frame,
+    /// then when that was. Given up for the whole floor after `PRIOR_SEARCH_S`.
+    prior_search: Option<Option<f64>>,
 }
 
 /// Searching the whole floor, or tracking a position found (beyond the seed, whose filter
@@ -185,6 +188,13 @@ enum Mode {
 /// never found the place its frames showed (its random particles come only when the
 /// likelihood drops, and it does not drop where every place looks equally unlikely).
 const SEARCH_ANYWHERE_SHARE: f64 = 0.2;
+
+/// A search from a prior that has not found the place in this long (s) searches the whole
+/// floor instead: the prior was too far off. Against PX4 SITL, mavloc started again 5 s
+/// after it was killed found PX4 failed safe (no aiding for 5 s) and its position 4.6 m off;
+/// the search near it found nothing before the vehicle came down. (From a prior within its
+/// SD the first fix came 1.0 s after the frames, in every flight.)
+const PRIOR_SEARCH_S: f64 = 2.5;
 
 /// Tracking from a known start: renewed particles within about this (SD, m) of the mean.
 pub const TRACKING_RECOVERY_SD_M: f64 = 1.0;
@@ -225,6 +235,7 @@ impl Localizer {
             last_spread: (f64::INFINITY, f64::INFINITY),
             mode: Mode::Searching { agreed_since: None },
             support: VecDeque::new(),
+            prior_search: None,
             params: LocalizerParams { k, ..params },
         })
     }
@@ -443,6 +454,20 @@ impl Localizer {
         // (a wrong track on a 7 m floor met one within reach every few frames and was never
         // given up).
         let supported = neighbours.first().is_some_and(|z| (z - position).norm() <= SUPPORT_M);
+        // A search from a prior gives way to one of the whole floor, unless its particles
+        // are agreeing on a place now.
+        match self.prior_search {
+            Some(None) => self.prior_search = Some(Some(t)),
+            Some(Some(t0))
+                if t - t0 > PRIOR_SEARCH_S && self.mode == (Mode::Searching { agreed_since: None }) =>
+            {
+                self.prior_search = None;
+                self.pf.restart_global();
+                self.support.clear();
+                return;
+            }
+            _ => {}
+        }
         match self.mode {
             Mode::Searching { agreed_since } => {
                 if spread.0.max(spread.1) >= TRACK_SPREAD_M {
@@ -459,6 +484,7 @@ impl Localizer {
                         self.pf.restart_global();
                         self.mode = Mode::Searching { agreed_since: None };
                         self.support.clear();
+                        self.prior_search = None;
                     } else if t - since >= TRACK_AFTER_S {
                         self.pf.set_local_recovery(Some(self.found_recovery_sd()));
                         // No sensor resetting either: renewed particles start at the
@@ -469,6 +495,7 @@ impl Localizer {
                         self.pf.set_sensor_resetting(false);
                         self.mode = Mode::Tracking { since: t };
                         self.support.clear();
+                        self.prior_search = None;
                     } else {
                         self.mode = Mode::Searching { agreed_since: Some(since) };
                     }
@@ -573,6 +600,7 @@ impl Localizer {
         self.support.clear();
         self.last_t = None;
         self.mode = Mode::Searching { agreed_since: None };
+        self.prior_search = Some(None);
     }
 
     /// Starts tracking from a known position (a GPS-denied take-off from a known pad)
@@ -588,6 +616,7 @@ impl Localizer {
         self.last_t = None;
         self.mode = Mode::Given { settled_since: None, agreed_since: None };
         self.support.clear();
+        self.prior_search = None;
     }
 }
 
@@ -884,6 +913,27 @@ mod tests {
             assert!(first <= within_s, "prior {prior:?}: first fix after {first:.2} s");
             assert!(loc.found_track_age(10.0).is_some(), "prior {prior:?}: a track found, so young at first");
         }
+    }
+
+    /// A search from a prior that finds nothing for `PRIOR_SEARCH_S` (here nothing in view)
+    /// searches the whole floor: the prior was off by more than its spread.
+    #[test]
+    fn a_search_from_a_prior_that_finds_nothing_gives_way_to_the_whole_floor() {
+        let (mut loc, _) = started_on_the_pad(0.05);
+        loc.search_near(Vector2::new(-2.0, -2.0), 0.3);
+        let nothing = vec![0.0; 17 * 17];
+        let mut spreads = Vec::new();
+        for i in 0..(15.0 * (PRIOR_SEARCH_S + 1.0)) as usize {
+            let t = i as f64 / 15.0;
+            let e = loc.step_histogram(t, &nothing, Some(Vector2::zeros()));
+            assert!(!e.fix, "a fix at {t:.2} s with nothing in view");
+            spreads.push((t, e.spread.0.max(e.spread.1)));
+        }
+        let before =
+            spreads.iter().filter(|(t, _)| *t < PRIOR_SEARCH_S - 0.1).map(|s| s.1).fold(0.0, f64::max);
+        let after = spreads.last().unwrap().1;
+        // A fifth anywhere on the 8 m floor: about 1.5 m; all of them: about 2.3 m.
+        assert!(before < 1.8 && after > 2.0, "spread {before:.2} m near the prior, {after:.2} m after");
     }
 
     /// A track from a pad takes frames that point up to a metre and a half away while it

@@ -97,6 +97,9 @@ pub struct GpsDenied {
     velocity: Option<(Mono, VelocityEstimate)>,
     /// The pipeline fell silent in flight: the autopilot's own (north, east), to echo.
     holding: Option<(f64, f64)>,
+    /// The autopilot was found flying ([`GpsDenied::forget_pad`]): no origin until it
+    /// says the vehicle is on the ground ([`GpsDenied::on_ground`]), not merely low.
+    found_flying: bool,
 }
 
 impl GpsDenied {
@@ -114,6 +117,7 @@ impl GpsDenied {
             floor: None,
             velocity: None,
             holding: None,
+            found_flying: false,
         }
     }
 
@@ -216,6 +220,17 @@ impl GpsDenied {
     /// EKF2 drops, rather than the pad, metres off, to a few centimetres.
     pub fn forget_pad(&mut self) {
         self.standing = (f64::NAN, f64::NAN, PAD_SD_M);
+        self.found_flying = true;
+    }
+
+    /// The autopilot says the vehicle is on the ground (its landed state, or disarmed).
+    pub fn on_ground(&mut self) {
+        self.found_flying = false;
+    }
+
+    /// Whether the origin may go out now: only while the vehicle stands.
+    fn origin_may_go(&self) -> bool {
+        self.phase == Phase::Standing && !self.found_flying
     }
 
     /// The autopilot rebooted or came back: its estimator starts over.
@@ -239,9 +254,7 @@ impl GpsDenied {
         }
         let ground = self.ground_due().then_some(self.next_ground);
         let origin = match self.state {
-            OriginState::Waiting if self.phase == Phase::Standing => {
-                self.vision_since.map(|t| t + ORIGIN_AFTER)
-            }
+            OriginState::Waiting if self.origin_may_go() => self.vision_since.map(|t| t + ORIGIN_AFTER),
             OriginState::Sent { next, .. } => Some(next),
             _ => None,
         };
@@ -269,14 +282,14 @@ impl GpsDenied {
             return None;
         }
         match self.state {
-            // Only while the vehicle stands. One in the air has an origin already (it could
-            // not have armed without), and a new one moves its local frame under it (PX4
-            // v1.16 `setLatLonOrigin` shifts the local position by the origins' difference):
-            // mavloc started again in flight (a crash, systemd's restart) sent it again
-            // mid-flight before this.
+            // Only while the vehicle stands (found flying: once the autopilot says it is on
+            // the ground, not in the last decimetres of a descent). One in the air has an
+            // origin already (it could not have armed without), and a new one moves its
+            // local frame under it (PX4 v1.16 `setLatLonOrigin` shifts the local position by
+            // the origins' difference): mavloc started again in flight (a crash, systemd's
+            // restart) sent it mid-flight before this.
             OriginState::Waiting
-                if self.phase == Phase::Standing
-                    && self.vision_since.is_some_and(|t| t + ORIGIN_AFTER <= now) =>
+                if self.origin_may_go() && self.vision_since.is_some_and(|t| t + ORIGIN_AFTER <= now) =>
             {
                 self.state = OriginState::Sent { tries: 1, next: now + ORIGIN_RETRY };
                 self.notices.push(Notice::OriginSent(origin));

@@ -1112,10 +1112,10 @@ impl Core {
                     self.waiting.found();
                     self.streams.start();
                     self.timesync.start(rx);
-                    if self.gps.enabled() && self.autopilot.armed() {
-                        // Found armed: mavloc started again in flight (or by a vehicle
-                        // standing armed); the origin waits for the ground, and the pad
-                        // is not where the vehicle is.
+                    if self.gps.enabled() && self.autopilot.armed() && !self.autopilot.on_ground() {
+                        // Found armed and not known to stand: mavloc started again in
+                        // flight; the origin waits for the ground, and the pad is not
+                        // where the vehicle is.
                         self.gps.forget_pad();
                         self.notes.info(
                             "no GPS: the autopilot is armed; vision estimates from now on, not the pad; the origin only once it stands",
@@ -1319,6 +1319,7 @@ impl Core {
 
     fn update_gps_phase(&mut self) {
         if self.standing() {
+            self.gps.on_ground();
             if let Some(h) = self.fresh_range() {
                 self.ground_range = h;
             }
