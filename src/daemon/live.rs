@@ -883,7 +883,7 @@ impl IndoorLive {
     /// autopilot was sent the pad's neighbourhood, metres off, as fixes, and flew off on
     /// them); so the particles search near where the autopilot itself puts the vehicle,
     /// and no fix goes out until they have found it. Too low to localise (climbing or
-    /// descending away from the pad), they can only be carried on the camera's velocity:
+    /// descending away from the pad, or too high), they can only be carried on the camera's velocity:
     /// tracked from there as from a pad that may be off.
     fn start(&mut self, frame: &LiveFrame, vehicle: Vector2<f64>) -> Option<String> {
         if !std::mem::take(&mut self.start_pending) {
@@ -905,7 +905,7 @@ impl IndoorLive {
         if frame.motion_only {
             self.localizer.start_at(vehicle, AIR_START_SD_M);
             return Some(format!(
-                "indoor: started low in the air, {:.1} m from the pad: tracking from the autopilot's position x {:.2} y {:.2} m (SD {AIR_START_SD_M} m)",
+                "indoor: started in the air where the camera cannot localise, {:.1} m from the pad: tracking from the autopilot's position x {:.2} y {:.2} m (SD {AIR_START_SD_M} m)",
                 (vehicle - pad).norm(),
                 vehicle.x,
                 vehicle.y

@@ -930,6 +930,7 @@ fn checked<'a>(s: &Settings, origins: &'a BTreeMap<String, String>) -> Validator
     // At least two frames: the trigger never fires on a single frame.
     v.range_int("indoor.landing_frames", i.landing_frames.into(), 2, 1000);
     v.range("indoor.min_height_m", i.min_height_m, 0.0, 1000.0);
+    v.range("indoor.max_height_m", i.max_height_m, i.min_height_m, 1000.0);
     v.range("indoor.height_ref_m", i.height_ref_m, -1.0, 100.0);
     v.range("indoor.pad_x_m", i.pad_x_m, -1000.0, 1000.0);
     v.range("indoor.pad_y_m", i.pad_y_m, -1000.0, 1000.0);

@@ -26,6 +26,13 @@ fn install_honours_prefix_and_keeps_what_the_user_edited() {
     let unit = std::fs::read_to_string(&unit_path).unwrap();
     assert!(unit.contains("ExecStart=/usr/bin/mavloc run"), "{unit}");
     assert!(unit.contains("RestartPreventExitStatus=78"));
+    // Back within PX4's 5 s without vision (GPS-denied), and never given up on.
+    let restart_s: f64 = unit
+        .lines()
+        .find_map(|l| l.strip_prefix("RestartSec="))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("RestartSec in seconds");
+    assert!(restart_s <= 1.0 && unit.contains("StartLimitIntervalSec=0"), "{unit}");
     let config = std::fs::read_to_string(d.join("etc/mavloc/mavloc.toml")).unwrap();
     assert!(config.contains("source = \"v4l2\""), "the real-drone configuration is installed");
 

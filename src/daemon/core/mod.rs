@@ -1365,15 +1365,20 @@ impl Core {
 
     /// No indoor localisation now: the vehicle stands, or the camera is lower than
     /// `indoor.min_height_m` (taking off, touching down, or a take-off PX4 has declared
-    /// while the rangefinder still reads the ground).
+    /// while the rangefinder still reads the ground) or higher than `indoor.max_height_m`.
     pub fn vision_paused(&self) -> bool {
         self.standing() || self.too_low()
     }
 
-    /// The indoor pipeline runs and the camera is below `indoor.min_height_m`.
+    /// The indoor pipeline runs and the camera is outside the heights it localises from:
+    /// below `indoor.min_height_m`, or above `indoor.max_height_m` (there the view reaches
+    /// past the floor the model knows: from 9 m over the simulated floor fixes were metres
+    /// off, and against PX4 SITL its precision landing, its target lost, climbed to 9.5 m).
+    /// Only the camera's velocity is measured then.
     pub fn too_low(&self) -> bool {
+        let i = &self.settings.indoor;
         matches!(self.pipeline, PipelineState::Running(PipelineKind::Indoor))
-            && self.height_above_floor().is_some_and(|h| h < self.settings.indoor.min_height_m)
+            && self.height_above_floor().is_some_and(|h| h < i.min_height_m || h > i.max_height_m)
     }
 
     /// Standing on the ground, as far as the autopilot says: its landed state, or

@@ -1295,6 +1295,7 @@ fn without_gps_started_again_in_flight_sends_no_origin_and_no_pad_until_the_vehi
     let mut t = secs(1);
     while t < secs(12) {
         sim.run_until(t);
+        sim.deliver(range_m(1.0));
         sim.input(estimate(t, 2.0, 1.0));
         t = t + Duration::from_millis(66);
     }
@@ -1306,7 +1307,6 @@ fn without_gps_started_again_in_flight_sends_no_origin_and_no_pad_until_the_vehi
         "the pad went out: {:?}",
         v.iter().find(|v| v.x != 2.0)
     );
-    assert_eq!(sim.core.counters().standing_estimates_sent, 0);
     assert!(sim.statustexts().concat().contains("the origin only once it stands"), "not said why");
     // Landed: standing where it was last seen, and now the origin.
     sim.ap.in_air = false;
@@ -1316,6 +1316,37 @@ fn without_gps_started_again_in_flight_sends_no_origin_and_no_pad_until_the_vehi
     assert!(!origins.is_empty() && origins[0].0 >= secs(12), "no origin once standing: {origins:?}");
     let standing = vision(&sim, secs(13), sim.now);
     assert!(!standing.is_empty() && standing.iter().all(|v| v.x == 2.0 && v.y == 1.0), "standing at the pad");
+}
+
+/// Higher than `indoor.max_height_m` the camera localises nothing (over the simulated
+/// floor the fixes from 9 m were 4.3 m RMS off; PX4's precision landing, its target lost,
+/// climbs to 10 m to search): the frames only measure the motion and, without GPS, the
+/// estimates go out loose, as below `min_height_m`.
+#[test]
+fn above_the_heights_it_localises_from_the_camera_only_measures_the_motion() {
+    let mut sim = airborne_without_gps(indoor_without_gps_settings());
+    for (cm, paused) in [(100, false), (290, false), (310, true), (900, true), (150, false)] {
+        sim.deliver(range_m(cm as f64 / 100.0));
+        sim.run_for(Duration::from_millis(100));
+        assert_eq!(sim.core.vision_paused(), paused, "at {cm} cm");
+        let phase = if paused { gpsdenied::Phase::Blind } else { gpsdenied::Phase::Seeing };
+        assert_eq!(sim.core.gps_phase(), phase, "at {cm} cm");
+    }
+}
+
+/// The downward rangefinder's reading, `m` metres.
+fn range_m(m: f64) -> Frame {
+    frame(
+        1,
+        1,
+        MavMessage::DISTANCE_SENSOR(DISTANCE_SENSOR_DATA {
+            current_distance: (m * 100.0) as u16,
+            min_distance: 1,
+            max_distance: 40_000,
+            orientation: MavSensorOrientation::MAV_SENSOR_ROTATION_PITCH_270,
+            ..Default::default()
+        }),
+    )
 }
 
 /// Found in the air without GPS, with nothing from the pipeline before the touchdown (a
@@ -1687,11 +1718,10 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     sim.run_until(t + Duration::from_millis(100));
     let loose = vision(&sim, t, t + Duration::from_millis(100));
     assert!(!loose.is_empty() && loose.iter().all(|v| (v.x, v.y) == (-2.2, -2.6) && v.covariance[0] >= 99.0));
-    for i in 0..20 {
+    for i in 0..31 {
         sim.run_until(secs(15) + Duration::from_millis(100 * i));
         sim.deliver(range(100));
     }
-    sim.run_until(secs(18));
     assert!(!sim.core.vision_paused(), "1 m up: the pipeline's turn");
     // It says nothing here: in the air without GPS its silence has the height held, x and
     // y loose (a pipeline started in the air, or a camera gone, is silent the same way).
