@@ -945,7 +945,7 @@ fn offer_pending(core: &Core, live: &mut Live, now: Mono) {
             mask: c.mask,
             origin: core.origin(),
             truth: c.truth,
-            motion_only: c.pose.is_none() && core.too_low(),
+            motion_only: c.pose.is_none() && core.outside_heights(),
         };
         if let Some(r) = &live.recorder {
             let g = &core.settings().gimbal;

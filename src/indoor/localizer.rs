@@ -183,6 +183,18 @@ enum Mode {
     Given { settled_since: Option<f64>, agreed_since: Option<f64> },
 }
 
+/// Where the particles stand on [`Localizer::agreement`]'s rule.
+enum Agreement {
+    /// Spread wider than `TRACK_SPREAD_M`.
+    Apart,
+    /// Agreeing since this time, not yet for `TRACK_AFTER_S`.
+    Agreeing(f64),
+    /// Agreed for `TRACK_AFTER_S` where the nearest neighbours point.
+    Supported,
+    /// Agreed for `TRACK_AFTER_S` where they do not: a look-alike.
+    Unsupported,
+}
+
 /// A search from a prior ([`Localizer::search_near`]) starts this share of its particles
 /// anywhere on the floor: with all of them near a prior that is metres off, the filter
 /// never found the place its frames showed (its random particles come only when the
@@ -470,22 +482,19 @@ impl Localizer {
         }
         match self.mode {
             Mode::Searching { agreed_since } => {
-                if spread.0.max(spread.1) >= TRACK_SPREAD_M {
-                    self.mode = Mode::Searching { agreed_since: None };
-                    self.support.clear();
-                } else {
-                    let since = agreed_since.unwrap_or(t);
-                    self.support.push_back((t, supported));
-                    if t - since >= TRACK_AFTER_S && self.support_share() < TRACK_SUPPORT_SHARE {
+                self.mode = match self.agreement(t, spread, supported, agreed_since) {
+                    Agreement::Apart => Mode::Searching { agreed_since: None },
+                    Agreement::Agreeing(since) => Mode::Searching { agreed_since: Some(since) },
+                    Agreement::Unsupported => {
                         // Agreed on a place the nearest neighbours do not point at: a
                         // look-alike the first frames' neighbours gathered the particles
                         // on. Searched again, not tracked (floor 1234 of an outside trial:
                         // 6 s tracked 3.4 m off, every frame sent as a fix).
                         self.pf.restart_global();
-                        self.mode = Mode::Searching { agreed_since: None };
-                        self.support.clear();
                         self.prior_search = None;
-                    } else if t - since >= TRACK_AFTER_S {
+                        Mode::Searching { agreed_since: None }
+                    }
+                    Agreement::Supported => {
                         self.pf.set_local_recovery(Some(self.found_recovery_sd()));
                         // No sensor resetting either: renewed particles start at the
                         // neighbours near the mean, and a look-alike place within reach
@@ -493,54 +502,81 @@ impl Localizer {
                         // floors: the worst error went from 1.35 to 0.80 m on one, RMS
                         // 0.01-0.03 m lower on most).
                         self.pf.set_sensor_resetting(false);
-                        self.mode = Mode::Tracking { since: t };
-                        self.support.clear();
                         self.prior_search = None;
-                    } else {
-                        self.mode = Mode::Searching { agreed_since: Some(since) };
+                        Mode::Tracking { since: t }
                     }
-                }
+                };
             }
             Mode::Given { settled_since: None, agreed_since } => {
-                if spread.0.max(spread.1) >= TRACK_SPREAD_M {
-                    self.mode = Mode::Given { settled_since: None, agreed_since: None };
-                    self.support.clear();
-                    return;
-                }
-                let since = agreed_since.unwrap_or(t);
-                self.support.push_back((t, supported));
-                self.mode = if t - since >= TRACK_AFTER_S && self.support_share() >= TRACK_SUPPORT_SHARE {
-                    self.support.clear();
-                    self.pf.set_local_recovery(Some(self.found_recovery_sd()));
-                    self.pf.set_sensor_resetting(false);
-                    Mode::Given { settled_since: Some(t), agreed_since: None }
-                } else {
-                    Mode::Given { settled_since: None, agreed_since: Some(since) }
+                self.mode = match self.agreement(t, spread, supported, agreed_since) {
+                    Agreement::Agreeing(since) => {
+                        Mode::Given { settled_since: None, agreed_since: Some(since) }
+                    }
+                    Agreement::Supported => {
+                        self.pf.set_local_recovery(Some(self.found_recovery_sd()));
+                        self.pf.set_sensor_resetting(false);
+                        Mode::Given { settled_since: Some(t), agreed_since: None }
+                    }
+                    Agreement::Apart | Agreement::Unsupported => {
+                        Mode::Given { settled_since: None, agreed_since: None }
+                    }
                 };
             }
             Mode::Given { settled_since: Some(since), .. } => {
                 self.pf.set_local_recovery(Some(self.found_recovery_sd()));
-                self.support.push_back((t, supported));
-                while self.support.front().is_some_and(|(t0, _)| t - t0 > LOST_AFTER_S) {
-                    self.support.pop_front();
-                }
-                if t - since >= LOST_AFTER_S && self.support_share() < MIN_SUPPORT_SHARE {
+                if self.lost(t, since, supported) {
                     self.unsettle();
                 }
             }
             Mode::Tracking { since } => {
                 // The velocity may come and go (telemetry), and the reach with it.
                 self.pf.set_local_recovery(Some(self.found_recovery_sd()));
-                self.support.push_back((t, supported));
-                while self.support.front().is_some_and(|(t0, _)| t - t0 > LOST_AFTER_S) {
-                    self.support.pop_front();
-                }
-                if t - since >= LOST_AFTER_S && self.support_share() < MIN_SUPPORT_SHARE {
+                if self.lost(t, since, supported) {
                     self.pf.restart_global();
                     self.mode = Mode::Searching { agreed_since: None };
                 }
             }
         }
+    }
+
+    /// The rule a search turns into a track by, and a track from a pad settles by: the
+    /// particles agree (SD under `TRACK_SPREAD_M`) for `TRACK_AFTER_S` (`agreed_since`:
+    /// since when they have agreed), on a place the nearest neighbour supports in at least
+    /// `TRACK_SUPPORT_SHARE` of those frames. Records this frame's support.
+    fn agreement(
+        &mut self,
+        t: f64,
+        spread: (f64, f64),
+        supported: bool,
+        agreed_since: Option<f64>,
+    ) -> Agreement {
+        if spread.0.max(spread.1) >= TRACK_SPREAD_M {
+            self.support.clear();
+            return Agreement::Apart;
+        }
+        let since = agreed_since.unwrap_or(t);
+        self.support.push_back((t, supported));
+        if t - since < TRACK_AFTER_S {
+            return Agreement::Agreeing(since);
+        }
+        let verdict = match self.support_share() >= TRACK_SUPPORT_SHARE {
+            true => Agreement::Supported,
+            false => Agreement::Unsupported,
+        };
+        self.support.clear();
+        verdict
+    }
+
+    /// The rule a track (found, or settled from a pad) is lost by: tracked since `since`
+    /// for at least `LOST_AFTER_S`, and over the last `LOST_AFTER_S` the nearest neighbour
+    /// supported the estimate in under `MIN_SUPPORT_SHARE` of the frames. Records this
+    /// frame's support.
+    fn lost(&mut self, t: f64, since: f64, supported: bool) -> bool {
+        self.support.push_back((t, supported));
+        while self.support.front().is_some_and(|(t0, _)| t - t0 > LOST_AFTER_S) {
+            self.support.pop_front();
+        }
+        t - since >= LOST_AFTER_S && self.support_share() < MIN_SUPPORT_SHARE
     }
 
     /// A given track back to the wide reach it started with (a no-op for other modes).

@@ -145,7 +145,7 @@ pub fn fly_vehicle(
         let a = core.aligner();
         let Some(stamp) = a.newest_complete(t) else { continue };
         let Some(capture) = a.clock.to_local(stamp) else { continue };
-        if capture <= last_rendered || core.on_ground() || core.too_low() {
+        if capture <= last_rendered || core.on_ground() || core.outside_heights() {
             continue;
         }
         if faults.blind.is_some_and(|(from, to)| (from..to).contains(&t)) {

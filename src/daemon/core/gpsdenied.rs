@@ -50,7 +50,7 @@ const VELOCITY_FRESH: Duration = Duration::from_millis(200);
 pub enum Phase {
     /// On the floor: where it was last seen, to a few centimetres.
     Standing,
-    /// Off the floor but too low to localise: x and y loose, z tight.
+    /// Off the floor but too low (or too high) to localise: x and y loose, z tight.
     Blind,
     /// High enough: the pipeline's estimates go out, these stop.
     Seeing,

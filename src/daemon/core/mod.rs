@@ -1343,13 +1343,13 @@ impl Core {
     }
 
     /// For the standing estimates: on the floor (the autopilot says so, or the camera
-    /// has not left it), off it but too low to localise, or high enough.
+    /// has not left it), off it but too low (or too high) to localise, or in between.
     pub fn gps_phase(&self) -> gpsdenied::Phase {
         use gpsdenied::Phase;
         let lifted = self.height_above_floor().is_some_and(|h| h > self.ground_range + LIFT_OFF_M);
-        if self.standing() || (self.too_low() && !lifted) {
+        if self.standing() || (self.outside_heights() && !lifted) {
             Phase::Standing
-        } else if self.too_low() {
+        } else if self.outside_heights() {
             Phase::Blind
         } else {
             Phase::Seeing
@@ -1367,7 +1367,7 @@ impl Core {
     /// `indoor.min_height_m` (taking off, touching down, or a take-off PX4 has declared
     /// while the rangefinder still reads the ground) or higher than `indoor.max_height_m`.
     pub fn vision_paused(&self) -> bool {
-        self.standing() || self.too_low()
+        self.standing() || self.outside_heights()
     }
 
     /// The indoor pipeline runs and the camera is outside the heights it localises from:
@@ -1375,7 +1375,7 @@ impl Core {
     /// past the floor the model knows: from 9 m over the simulated floor fixes were metres
     /// off, and against PX4 SITL its precision landing, its target lost, climbed to 9.5 m).
     /// Only the camera's velocity is measured then.
-    pub fn too_low(&self) -> bool {
+    pub fn outside_heights(&self) -> bool {
         let i = &self.settings.indoor;
         matches!(self.pipeline, PipelineState::Running(PipelineKind::Indoor))
             && self.height_above_floor().is_some_and(|h| h < i.min_height_m || h > i.max_height_m)

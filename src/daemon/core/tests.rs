@@ -1130,6 +1130,16 @@ fn airborne_without_gps(s: Settings) -> Sim {
     sim
 }
 
+/// A core started (mavloc started again after a crash) while its autopilot without GPS
+/// is armed and in the air, the indoor pipeline running.
+fn started_in_flight_without_gps() -> Sim {
+    let mut sim = Sim::new(indoor_without_gps_settings());
+    px4_without_gps(&mut sim);
+    sim.ap.armed = true;
+    sim.ap.in_air = true;
+    sim
+}
+
 fn px4_without_gps(sim: &mut Sim) {
     sim.ap = FakeAutopilot::new(sim.now);
     sim.ap.gps = false;
@@ -1288,10 +1298,7 @@ fn in_the_air_the_pipeline_speaks_and_after_touchdown_the_vehicle_stands_where_i
 /// the restarted daemon sent the origin 5 s into the flight: PX4 SITL took it.)
 #[test]
 fn without_gps_started_again_in_flight_sends_no_origin_and_no_pad_until_the_vehicle_stands() {
-    let mut sim = Sim::new(indoor_without_gps_settings());
-    px4_without_gps(&mut sim);
-    sim.ap.armed = true;
-    sim.ap.in_air = true;
+    let mut sim = started_in_flight_without_gps();
     let mut t = secs(1);
     while t < secs(12) {
         sim.run_until(t);
@@ -1354,10 +1361,7 @@ fn range_m(m: f64) -> Frame {
 /// such (x and y NaN, which EKF2 drops), not as the pad to a few centimetres.
 #[test]
 fn without_gps_started_again_in_flight_never_claims_the_pad() {
-    let mut sim = Sim::new(indoor_without_gps_settings());
-    px4_without_gps(&mut sim);
-    sim.ap.armed = true;
-    sim.ap.in_air = true;
+    let mut sim = started_in_flight_without_gps();
     sim.run_until(secs(3));
     sim.ap.in_air = false;
     sim.ap.armed = false;
@@ -1640,7 +1644,7 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
     }
     sim.run_until(secs(14));
     assert!(
-        sim.core.too_low() && sim.core.vision_paused(),
+        sim.core.outside_heights() && sim.core.vision_paused(),
         "{:?} {:?}",
         sim.core.pipeline(),
         sim.core.height_above_floor()
@@ -1738,7 +1742,7 @@ fn a_take_off_px4_declares_while_its_rangefinder_still_reads_the_floor_keeps_the
         sim.deliver(range(65_506));
     }
     assert_eq!(sim.core.height_above_floor(), Some(0.0));
-    assert!(sim.core.too_low() && sim.core.vision_paused());
+    assert!(sim.core.outside_heights() && sim.core.vision_paused());
     // Standing again where the particles last put it (no fix came after), tight.
     let t = sim.now;
     sim.run_until(t + Duration::from_millis(200));
